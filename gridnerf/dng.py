@@ -1,0 +1,189 @@
+"""Minimal DNG writer (tifffile) for simulated RAW frames and tests.
+
+Writes one uncompressed 16-bit CFA image in IFD0 with the DNG tags LibRaw needs to
+decode it: CFA layout, per-CFA-position black level, white level, a D65 colour
+matrix and the as-shot neutral. The container is always 16 bits per sample; the
+sensor bit depth is carried by `WhiteLevel` (pidng's 14-bit packing is broken,
+REFERENCE.md section 6).
+
+Tag numbers and types follow the DNG 1.4 specification and TIFF/EP:
+
+| tag   | name                 | type      |
+|-------|----------------------|-----------|
+| 33421 | CFARepeatPatternDim  | SHORT 2   |
+| 33422 | CFAPattern           | BYTE 4    |
+| 33434 | ExposureTime         | RATIONAL  |
+| 34855 | ISOSpeedRatings      | SHORT     |
+| 50706 | DNGVersion           | BYTE 4    |
+| 50707 | DNGBackwardVersion   | BYTE 4    |
+| 50708 | UniqueCameraModel    | ASCII     |
+| 50710 | CFAPlaneColor        | BYTE 3    |
+| 50711 | CFALayout            | SHORT     |
+| 50713 | BlackLevelRepeatDim  | SHORT 2   |
+| 50714 | BlackLevel           | RATIONAL 4|
+| 50717 | WhiteLevel           | LONG      |
+| 50721 | ColorMatrix1         | SRATIONAL 9 |
+| 50728 | AsShotNeutral        | RATIONAL 3 |
+| 50778 | CalibrationIlluminant1 | SHORT   |
+"""
+
+from __future__ import annotations
+
+import os
+from fractions import Fraction
+from pathlib import Path
+
+import numpy as np
+import tifffile
+
+# TIFF field types.
+_BYTE, _ASCII, _SHORT, _LONG, _RATIONAL, _SRATIONAL = 1, 2, 3, 4, 5, 10
+
+# Tag codes (see module docstring).
+TAG_MAKE = 271
+TAG_MODEL = 272
+TAG_ORIENTATION = 274
+TAG_CFA_REPEAT_PATTERN_DIM = 33421
+TAG_CFA_PATTERN = 33422
+TAG_EXPOSURE_TIME = 33434
+TAG_ISO = 34855
+TAG_DNG_VERSION = 50706
+TAG_DNG_BACKWARD_VERSION = 50707
+TAG_UNIQUE_CAMERA_MODEL = 50708
+TAG_CFA_PLANE_COLOR = 50710
+TAG_CFA_LAYOUT = 50711
+TAG_BLACK_LEVEL_REPEAT_DIM = 50713
+TAG_BLACK_LEVEL = 50714
+TAG_WHITE_LEVEL = 50717
+TAG_COLOR_MATRIX_1 = 50721
+TAG_COLOR_MATRIX_2 = 50722
+TAG_AS_SHOT_NEUTRAL = 50728
+TAG_CALIBRATION_ILLUMINANT_1 = 50778
+TAG_CALIBRATION_ILLUMINANT_2 = 50779
+
+PHOTOMETRIC_CFA = 32803
+ILLUMINANT_D65 = 21
+
+# Largest denominator used when storing floats as (S)RATIONAL.
+_MAX_DENOMINATOR = 1_000_000
+
+
+def _rationals(values, signed: bool) -> tuple[int, ...]:
+    """Flat (num0, den0, num1, den1, ...) tuple of the closest fractions to `values`."""
+    out: list[int] = []
+    for v in np.asarray(values, np.float64).ravel():
+        if not np.isfinite(v):
+            raise ValueError(f"cannot store non-finite value {v} as a DNG rational")
+        if not signed and v < 0:
+            raise ValueError(f"cannot store negative value {v} as an unsigned DNG rational")
+        f = Fraction(float(v)).limit_denominator(_MAX_DENOMINATOR)
+        limit = 2**31 - 1 if signed else 2**32 - 1
+        if abs(f.numerator) > limit:
+            raise ValueError(f"value {v} is too large for a DNG rational")
+        out += [f.numerator, f.denominator]
+    return tuple(out)
+
+
+def _check_inputs(raw_bayer, cfa, black_level, white_level, xyz_to_cam, as_shot_neutral):
+    """Validate shapes, dtypes and ranges; returns the arrays in canonical form."""
+    raw_bayer = np.asarray(raw_bayer)
+    if raw_bayer.ndim != 2 or raw_bayer.shape[0] < 2 or raw_bayer.shape[1] < 2:
+        raise ValueError(f"raw_bayer must be (H, W) with H, W >= 2, got {raw_bayer.shape}")
+    if raw_bayer.dtype != np.uint16:
+        raise ValueError(f"raw_bayer must be uint16, got {raw_bayer.dtype}")
+    cfa = np.asarray(cfa)
+    if cfa.shape != (2, 2) or sorted(cfa.ravel().tolist()) != [0, 1, 1, 2]:
+        raise ValueError(f"cfa must be a (2, 2) Bayer pattern of 0=R 1=G 2=B, got {cfa.tolist()}")
+    black_level = np.asarray(black_level, np.float64)
+    if black_level.shape != (2, 2):
+        raise ValueError(f"black_level must be (2, 2) per CFA position, got {black_level.shape}")
+    if not 0 < int(white_level) <= 65535:
+        raise ValueError(f"white_level must be in 1..65535, got {white_level}")
+    if np.any(black_level < 0) or np.any(black_level >= int(white_level)):
+        raise ValueError(f"black_level {black_level.tolist()} must lie in [0, white_level)")
+    xyz_to_cam = np.asarray(xyz_to_cam, np.float64)
+    if xyz_to_cam.shape != (3, 3):
+        raise ValueError(f"xyz_to_cam must be (3, 3), got {xyz_to_cam.shape}")
+    as_shot_neutral = np.asarray(as_shot_neutral, np.float64)
+    if as_shot_neutral.shape != (3,) or np.any(as_shot_neutral <= 0):
+        raise ValueError(f"as_shot_neutral must be 3 positive values, got {as_shot_neutral}")
+    return raw_bayer, cfa, black_level, xyz_to_cam, as_shot_neutral
+
+
+def write_dng(
+    path,
+    raw_bayer: np.ndarray,
+    cfa: np.ndarray,
+    black_level: np.ndarray,
+    white_level: int,
+    xyz_to_cam: np.ndarray,
+    as_shot_neutral: np.ndarray,
+    exposure_time: float | None = None,
+    iso: float | None = None,
+    camera_model: str = "gridnerf simulated camera",
+) -> None:
+    """Write a Bayer mosaic as an uncompressed 16-bit DNG, atomically.
+
+    Args:
+      path: destination file (`.dng`); written to `<path>.tmp` then `os.replace`d.
+      raw_bayer: (H, W) uint16 visible mosaic, black level included.
+      cfa: (2, 2) int colour index per CFA position, 0=R 1=G 2=B (`cfa[y % 2, x % 2]`).
+      black_level: (2, 2) float per CFA position; non-integers are kept (RATIONAL tag).
+      white_level: int, the sensor clipping level in DN (e.g. 16383 for 14 bits).
+      xyz_to_cam: (3, 3) XYZ -> camera matrix for D65, stored as ColorMatrix1.
+      as_shot_neutral: (3,) camera RGB of a neutral surface (AsShotNeutral).
+      exposure_time: seconds, optional (ExposureTime).
+      iso: optional ISO speed (ISOSpeedRatings, rounded to an integer).
+      camera_model: UniqueCameraModel and Model string.
+    """
+    raw_bayer, cfa, black_level, xyz_to_cam, as_shot_neutral = _check_inputs(
+        raw_bayer, cfa, black_level, white_level, xyz_to_cam, as_shot_neutral
+    )
+    height = raw_bayer.shape[0]
+    model = str(camera_model)
+    extratags = [
+        (TAG_CFA_REPEAT_PATTERN_DIM, _SHORT, 2, (2, 2), True),
+        (TAG_CFA_PATTERN, _BYTE, 4, tuple(int(c) for c in cfa.ravel()), True),
+        (TAG_DNG_VERSION, _BYTE, 4, (1, 4, 0, 0), True),
+        (TAG_DNG_BACKWARD_VERSION, _BYTE, 4, (1, 1, 0, 0), True),
+        (TAG_UNIQUE_CAMERA_MODEL, _ASCII, 0, model, True),
+        (TAG_CFA_PLANE_COLOR, _BYTE, 3, (0, 1, 2), True),
+        (TAG_CFA_LAYOUT, _SHORT, 1, 1, True),
+        (TAG_BLACK_LEVEL_REPEAT_DIM, _SHORT, 2, (2, 2), True),
+        (TAG_BLACK_LEVEL, _RATIONAL, 4, _rationals(black_level, signed=False), True),
+        (TAG_WHITE_LEVEL, _LONG, 1, int(white_level), True),
+        (TAG_COLOR_MATRIX_1, _SRATIONAL, 9, _rationals(xyz_to_cam, signed=True), True),
+        (TAG_AS_SHOT_NEUTRAL, _RATIONAL, 3, _rationals(as_shot_neutral, signed=False), True),
+        (TAG_CALIBRATION_ILLUMINANT_1, _SHORT, 1, ILLUMINANT_D65, True),
+        (TAG_MAKE, _ASCII, 0, "gridnerf", True),
+        (TAG_MODEL, _ASCII, 0, model, True),
+        (TAG_ORIENTATION, _SHORT, 1, 1, True),
+    ]
+    if exposure_time is not None:
+        extratags.append(
+            (TAG_EXPOSURE_TIME, _RATIONAL, 1, _rationals([exposure_time], signed=False), True)
+        )
+    if iso is not None:
+        extratags.append((TAG_ISO, _SHORT, 1, int(round(float(iso))), True))
+
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with open(tmp, "wb") as fh:
+            tifffile.imwrite(
+                fh,
+                np.ascontiguousarray(raw_bayer),
+                byteorder="<",
+                photometric=PHOTOMETRIC_CFA,
+                planarconfig="contig",
+                compression=None,
+                subfiletype=0,
+                rowsperstrip=height,
+                metadata=None,
+                software=False,
+                extratags=extratags,
+            )
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()

@@ -1,0 +1,42 @@
+"""Automatic exposure and output colour: camera RGB after gains -> display sRGB.
+
+The raw is linear, so brightness is one scale factor alpha (paper eq. 13).
+Convention (shared with the simulator's references): alpha makes the mean
+luminance of the bright *training* renders equal `target_luminance` (0.18,
+middle grey). One alpha per scene, so every view is rendered consistently.
+
+Gains act in camera RGB. For display, the gain-corrected camera RGB goes to
+linear sRGB through the row-normalised colour matrix of the raw file
+(`color.srgb_from_cam`, RawNeRF's convention: neutral stays neutral). With
+`use_color_matrix=False` the camera RGB is shown as if it were sRGB: the
+paper's matrix-free output, which cannot undo the sensor's channel mixing.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gridnerf import color
+
+
+def display_matrix(xyz_to_cam: np.ndarray, use_color_matrix: bool) -> np.ndarray:
+    """(3, 3) linear-sRGB-from-balanced-camera-RGB matrix, or identity (paper's output)."""
+    return color.srgb_from_cam(xyz_to_cam) if use_color_matrix else np.eye(3)
+
+
+def alpha_for_luminance(rgb_linear: np.ndarray, target: float = 0.18) -> float:
+    """Scalar alpha with mean(luminance(alpha * rgb_linear)) == target.
+
+    rgb_linear: (..., 3). A black or non-finite input gives alpha = 1 rather than Inf/NaN.
+    """
+    y = float(np.mean(color.luminance(np.asarray(rgb_linear, np.float64))))
+    if not np.isfinite(y) or y <= 1e-12:
+        return 1.0
+    return target / y
+
+
+def to_display(rgb_cam: np.ndarray, alpha: float, matrix: np.ndarray):
+    """Gain-corrected camera RGB (..., 3) -> (rgb_linear, rgb_srgb), both (..., 3) float32."""
+    rgb_linear = (alpha * np.asarray(rgb_cam, np.float64)) @ matrix.T
+    rgb_linear = rgb_linear.astype(np.float32)
+    return rgb_linear, color.srgb_encode(rgb_linear).astype(np.float32)
