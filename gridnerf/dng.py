@@ -64,6 +64,9 @@ TAG_CALIBRATION_ILLUMINANT_2 = 50779
 PHOTOMETRIC_CFA = 32803
 ILLUMINANT_D65 = 21
 
+# LibRaw refuses images narrower or shorter than this ("Unsupported file format").
+MIN_SIZE = 22
+
 # Largest denominator used when storing floats as (S)RATIONAL.
 _MAX_DENOMINATOR = 1_000_000
 
@@ -87,8 +90,11 @@ def _rationals(values, signed: bool) -> tuple[int, ...]:
 def _check_inputs(raw_bayer, cfa, black_level, white_level, xyz_to_cam, as_shot_neutral):
     """Validate shapes, dtypes and ranges; returns the arrays in canonical form."""
     raw_bayer = np.asarray(raw_bayer)
-    if raw_bayer.ndim != 2 or raw_bayer.shape[0] < 2 or raw_bayer.shape[1] < 2:
-        raise ValueError(f"raw_bayer must be (H, W) with H, W >= 2, got {raw_bayer.shape}")
+    if raw_bayer.ndim != 2 or min(raw_bayer.shape) < MIN_SIZE:
+        raise ValueError(
+            f"raw_bayer must be (H, W) with H, W >= {MIN_SIZE} (LibRaw's minimum), "
+            f"got {raw_bayer.shape}"
+        )
     if raw_bayer.dtype != np.uint16:
         raise ValueError(f"raw_bayer must be uint16, got {raw_bayer.dtype}")
     cfa = np.asarray(cfa)
@@ -126,7 +132,7 @@ def write_dng(
 
     Args:
       path: destination file (`.dng`); written to `<path>.tmp` then `os.replace`d.
-      raw_bayer: (H, W) uint16 visible mosaic, black level included.
+      raw_bayer: (H, W) uint16 visible mosaic, black level included; H, W >= 22.
       cfa: (2, 2) int colour index per CFA position, 0=R 1=G 2=B (`cfa[y % 2, x % 2]`).
       black_level: (2, 2) float per CFA position; non-integers are kept (RATIONAL tag).
       white_level: int, the sensor clipping level in DN (e.g. 16383 for 14 bits).

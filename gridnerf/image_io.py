@@ -111,7 +111,7 @@ def write_png(path: str | Path, rgb_srgb: np.ndarray) -> None:
         1/255 (NaN is written as 0). uint8 input is written as is.
     """
     rgb_uint8 = _to_uint8(_check_rgb(path, rgb_srgb, "PNG"))
-    _atomic_write(path, lambda tmp: iio.imwrite(tmp, rgb_uint8, extension=".png"))
+    _atomic_write(path, lambda tmp: iio.imwrite(tmp, rgb_uint8, plugin="pillow", extension=".png"))
 
 
 def read_png(path: str | Path) -> np.ndarray:
@@ -119,7 +119,7 @@ def read_png(path: str | Path) -> np.ndarray:
     fix = "re-export the image as a PNG or regenerate it"
     path = _check_readable(path, "PNG", fix)
     try:
-        image = np.asarray(iio.imread(path, extension=".png"))
+        image = np.asarray(iio.imread(path, plugin="pillow", extension=".png"))
     except Exception as e:  # imageio raises assorted errors on corrupt files
         raise SceneError(path, f"cannot read PNG ({e})", fix) from e
     if image.ndim == 2:
@@ -130,9 +130,7 @@ def read_png(path: str | Path) -> np.ndarray:
         image = np.repeat(image, 3, axis=-1)
     image = image[..., :3]
     if np.issubdtype(image.dtype, np.integer):
-        return (image.astype(np.float32) / np.float32(np.iinfo(image.dtype).max)).astype(
-            np.float32
-        )
+        return (image.astype(np.float32) / np.float32(np.iinfo(image.dtype).max)).astype(np.float32)
     return np.clip(image.astype(np.float32), 0.0, 1.0)
 
 
@@ -160,7 +158,9 @@ def write_mp4(
     shape = frames[0].shape
     if any(f.shape != shape for f in frames):
         sizes = sorted({f.shape for f in frames})
-        raise SceneError(path, f"video frames differ in size: {sizes}", "render every frame at one size")
+        raise SceneError(
+            path, f"video frames differ in size: {sizes}", "render every frame at one size"
+        )
     if not fps > 0:
         raise SceneError(path, f"fps must be positive, got {fps}", "pass fps > 0")
     h, w = shape[0] + shape[0] % 2, shape[1] + shape[1] % 2

@@ -1,0 +1,160 @@
+"""The plain 2D baseline gridnerf must beat: brighten one dark RAW frame on its own.
+
+demosaic (bilinear) -> grey-world white balance -> camera -> linear sRGB ->
+auto exposure -> clip negatives. No multi-view averaging, so the output keeps
+all of the frame's noise; that is exactly what a NeRF should improve on.
+
+Conventions (docs/design.md): `cfa` is a (2, 2) int array of colour indices
+(0=R, 1=G, 2=B) with `cfa[y % 2, x % 2]`; `raw_bayer` is normalised raw with
+negatives kept.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import convolve
+
+from gridnerf.color import luminance, srgb_from_cam
+from gridnerf.errors import RawError
+
+# Bilinear interpolation kernel for normalised convolution: cross neighbours
+# weigh twice the diagonal ones, the centre four times.
+_BILINEAR = np.array([[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]])
+
+
+def _check_cfa(cfa) -> np.ndarray:
+    cfa = np.asarray(cfa)
+    if cfa.shape != (2, 2) or not np.issubdtype(cfa.dtype, np.integer):
+        raise RawError(
+            None,
+            f"CFA pattern must be a (2, 2) int array, got {cfa.dtype}{cfa.shape}",
+            "pass colour indices per CFA position, e.g. [[0, 1], [1, 2]] for RGGB",
+        )
+    if set(cfa.ravel().tolist()) != {0, 1, 2}:
+        raise RawError(
+            None,
+            f"CFA pattern {cfa.tolist()} is not an RGB Bayer pattern",
+            "use colour indices 0=R, 1=G, 2=B, each present at least once",
+        )
+    return cfa
+
+
+def cfa_masks(shape: tuple[int, int], cfa) -> np.ndarray:
+    """Per-colour sample masks: (H, W) shape, cfa (2, 2) -> (3, H, W) bool."""
+    cfa = _check_cfa(cfa)
+    h, w = shape
+    colour = np.tile(cfa, ((h + 1) // 2, (w + 1) // 2))[:h, :w]
+    return np.stack([colour == c for c in range(3)])
+
+
+def demosaic_bilinear(raw_bayer, cfa) -> np.ndarray:
+    """Bilinear demosaic for any 2x2 RGB pattern, by normalised convolution.
+
+    Each channel is `conv(raw * mask_c, K) / conv(mask_c, K)` with the 3x3
+    bilinear kernel K and zero padding (so borders average only real samples),
+    and measured samples are kept exactly. Negative values are kept.
+
+    Args:
+      raw_bayer: (H, W) float, normalised mosaic, H, W >= 2.
+      cfa: (2, 2) int colour index per CFA position.
+
+    Returns:
+      rgb_cam: (H, W, 3) float32, camera-native linear RGB.
+    """
+    raw_bayer = np.asarray(raw_bayer)
+    if raw_bayer.ndim != 2 or min(raw_bayer.shape) < 2:
+        raise RawError(
+            None,
+            f"expected a 2D Bayer mosaic of at least 2x2, got shape {raw_bayer.shape}",
+            "pass the single-channel raw frame (H, W), not a demosaicked image",
+        )
+    masks = cfa_masks(raw_bayer.shape, cfa)
+    raw = raw_bayer.astype(np.float64)
+    channels = []
+    for mask in masks:
+        weight = mask.astype(np.float64)
+        num = convolve(raw * weight, _BILINEAR, mode="constant", cval=0.0)
+        den = convolve(weight, _BILINEAR, mode="constant", cval=0.0)
+        # Every 3x3 window clipped to the image holds a full 2x2 CFA period: den > 0.
+        channels.append(np.where(mask, raw, num / den))
+    return np.stack(channels, axis=-1).astype(np.float32)
+
+
+def grey_world_gains(rgb_cam, mask=None) -> np.ndarray:
+    """Grey-world von Kries gains: (3,) with `gains_k * mean_k == mean(mean_R, mean_G, mean_B)`.
+
+    The same target as L_ca (`K_avg / Cbar_k`). A channel whose mean is at or
+    below 1e-3 of the brightest channel mean (e.g. an all-zero blue channel, or
+    pure noise with a negative mean) is floored there, capping its gain near
+    1000; an image with no positive channel mean gets unit gains.
+
+    Args:
+      rgb_cam: (H, W, 3) float, camera-native linear RGB.
+      mask: optional (H, W) bool, pixels to average over (all when None).
+
+    Returns:
+      (3,) float32 gains.
+    """
+    rgb = np.asarray(rgb_cam, np.float64).reshape(-1, 3)
+    if mask is not None:
+        mask = np.asarray(mask, bool).reshape(-1)
+        if mask.shape[0] != rgb.shape[0]:
+            raise ValueError(f"mask has {mask.shape[0]} pixels, image has {rgb.shape[0]}")
+        rgb = rgb[mask]
+    if rgb.shape[0] == 0:
+        return np.ones(3, np.float32)
+    means = rgb.mean(axis=0)
+    top = means.max()
+    if not top > 0.0:
+        return np.ones(3, np.float32)
+    means = np.maximum(means, 1e-3 * top)
+    return (means.mean() / means).astype(np.float32)
+
+
+def auto_exposure(rgb_linear, target_mean_luminance: float = 0.18) -> float:
+    """Scalar alpha with `mean(luminance(alpha * rgb_linear)) == target_mean_luminance`.
+
+    The mean includes negative noise (an unbiased brightness estimate). An image
+    with no positive mean luminance gets alpha = 1.
+
+    Args:
+      rgb_linear: (H, W, 3) float, linear sRGB.
+    """
+    mean_y = float(np.mean(luminance(np.asarray(rgb_linear, np.float64))))
+    if not mean_y > 0.0:
+        return 1.0
+    return float(target_mean_luminance / mean_y)
+
+
+def process_dark_frame(raw_bayer, cfa, xyz_to_cam, use_matrix: bool = True) -> np.ndarray:
+    """Brighten one dark RAW frame: the 2D baseline.
+
+    demosaic_bilinear -> grey_world_gains -> (srgb_from_cam(xyz_to_cam) when
+    use_matrix) -> auto_exposure (mean luminance 0.18) -> clip negatives to 0.
+
+    Args:
+      raw_bayer: (H, W) float, normalised mosaic (negatives kept).
+      cfa: (2, 2) int colour index per CFA position.
+      xyz_to_cam: (3, 3) XYZ->camera matrix (DNG ColorMatrix); ignored when
+        use_matrix is False (may then be None).
+      use_matrix: convert camera RGB to linear sRGB with the colour matrix.
+
+    Returns:
+      rgb_linear: (H, W, 3) float32, >= 0, finite.
+    """
+    raw_bayer = np.asarray(raw_bayer)
+    if not np.all(np.isfinite(raw_bayer)):
+        raise RawError(None, "raw frame contains NaN/Inf", "re-read the RAW file; it is corrupt")
+    rgb = demosaic_bilinear(raw_bayer, cfa).astype(np.float64)
+    rgb = rgb * grey_world_gains(rgb).astype(np.float64)
+    if use_matrix:
+        matrix = np.asarray(xyz_to_cam, np.float64) if xyz_to_cam is not None else None
+        if matrix is None or matrix.shape != (3, 3) or not np.all(np.isfinite(matrix)):
+            raise RawError(
+                None,
+                "a finite (3, 3) XYZ->camera colour matrix is needed",
+                "pass the DNG ColorMatrix, or use_matrix=False",
+            )
+        rgb = rgb @ srgb_from_cam(matrix).T
+    rgb = rgb * auto_exposure(rgb)
+    return np.maximum(rgb, 0.0).astype(np.float32)

@@ -1,0 +1,381 @@
+"""Pinhole cameras: the `Cameras` container, pose file I/O, validation, projection.
+
+Conventions (docs/design.md): camera-to-world `(N, 3, 4)` in OpenGL axes (x right, y up,
+the camera looks along -z). Pixel (col u, row v) has its centre at `(u + 0.5, v + 0.5)`;
+the ray through it has camera-frame direction `((u + 0.5 - cx) / fx, -(v + 0.5 - cy) / fy, -1)`.
+Intrinsics are in pixels of the full-resolution frame. COLMAP uses the same pixel-centre
+convention, so its `cx, cy` carry over unchanged.
+
+Readers: nerfstudio `transforms.json`, COLMAP `sparse/0` (binary or text, via pycolmap) and
+LLFF `poses_bounds.npy`. Lens distortion (SIMPLE_RADIAL, RADIAL, OPENCV) is ignored: the
+renderer is a pure pinhole model, which is accurate for the small distortions of the
+previews COLMAP sees; undistort the images first if the lens distorts strongly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gridnerf.errors import PoseError, SceneError
+
+# OpenCV camera axes (x right, y down, z forward) <-> OpenGL (x right, y up, z backward).
+_CV_TO_GL = np.diag([1.0, -1.0, -1.0])
+_COLMAP_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+
+
+@dataclass(frozen=True, eq=False)
+class Cameras:
+    """N pinhole cameras sharing one frame size.
+
+    names: frame stems (raw/<name>.dng); c2w: (N, 3, 4) float64 OpenGL camera-to-world;
+    fx, fy, cx, cy: (N,) float64 pixels of the full-res frame; width, height: frame size.
+    """
+
+    names: tuple[str, ...]
+    c2w: np.ndarray
+    fx: np.ndarray
+    fy: np.ndarray
+    cx: np.ndarray
+    cy: np.ndarray
+    width: int
+    height: int
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def scaled(self, factor: float) -> Cameras:
+        """Cameras for the image scaled by `factor` (0.5 for 2x2 binning); sizes are floored."""
+        return dataclasses.replace(
+            self,
+            fx=self.fx * factor,
+            fy=self.fy * factor,
+            cx=self.cx * factor,
+            cy=self.cy * factor,
+            width=int(np.floor(self.width * factor + 1e-9)),
+            height=int(np.floor(self.height * factor + 1e-9)),
+        )
+
+    def take(self, indices) -> Cameras:
+        """The subset (in the given order) of cameras `indices` (int sequence)."""
+        idx = np.asarray(indices, dtype=int)
+        return dataclasses.replace(
+            self,
+            names=tuple(self.names[i] for i in idx),
+            c2w=self.c2w[idx],
+            fx=self.fx[idx],
+            fy=self.fy[idx],
+            cx=self.cx[idx],
+            cy=self.cy[idx],
+        )
+
+    def with_c2w(self, c2w: np.ndarray) -> Cameras:
+        """The same cameras with new poses c2w: (N, 3, 4)."""
+        return dataclasses.replace(self, c2w=np.asarray(c2w, dtype=np.float64))
+
+
+def make_cameras(names, c2w, fx, fy, cx, cy, width: int, height: int) -> Cameras:
+    """Build `Cameras`, broadcasting scalar intrinsics to (N,) float64 arrays."""
+    n = len(names)
+    c2w = np.asarray(c2w, dtype=np.float64).reshape(n, -1, 4)[:, :3, :]
+
+    def vec(x):
+        return np.broadcast_to(np.asarray(x, dtype=np.float64), (n,)).copy()
+
+    return Cameras(tuple(names), c2w, vec(fx), vec(fy), vec(cx), vec(cy), int(width), int(height))
+
+
+def resize_to(cams: Cameras, width: int, height: int, source_path) -> Cameras:
+    """Rescale intrinsics given for another image size (e.g. JPEG previews) to width x height.
+
+    Raises SceneError naming source_path if the aspect ratios differ by more than 2%.
+    """
+    if (cams.width, cams.height) == (width, height):
+        return cams
+    return _rescale(cams, width / cams.width, height / cams.height, width, height, source_path)
+
+
+def _rescale(cams: Cameras, sx: float, sy: float, width: int, height: int, path) -> Cameras:
+    if abs(sx / sy - 1.0) > 0.02:
+        raise SceneError(
+            path,
+            f"camera size {cams.width}x{cams.height} does not match the raw frames' "
+            f"{width}x{height} (different aspect ratio)",
+            "give intrinsics for the full raw frame size (w, h in transforms.json) or "
+            "re-run `gridnerf poses` on previews with the raw frames' aspect ratio",
+        )
+    return dataclasses.replace(
+        cams, fx=cams.fx * sx, fy=cams.fy * sy, cx=cams.cx * sx, cy=cams.cy * sy,
+        width=int(width), height=int(height),
+    )
+
+
+def _stem(file_path: str) -> str:
+    return Path(str(file_path)).stem
+
+
+_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x")
+
+
+def _intrinsics(frame: dict, base: dict, path, where: str):
+    """(fx, fy, cx, cy, w, h) of one frame: its own keys override the top level's."""
+    merged = {**base, **{k: frame[k] for k in _INTRINSIC_KEYS if k in frame}}
+    try:
+        w, h = int(merged["w"]), int(merged["h"])
+        if "fl_x" in merged:
+            fx = float(merged["fl_x"])
+        else:
+            fx = 0.5 * w / np.tan(0.5 * float(merged["camera_angle_x"]))
+        fy = float(merged.get("fl_y", fx))
+        cx = float(merged.get("cx", w / 2.0))
+        cy = float(merged.get("cy", h / 2.0))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise SceneError(
+            path, f"{where}: missing or invalid intrinsics ({exc!r})",
+            "add fl_x, fl_y, cx, cy, w, h (pixels of the raw frame) at the top level",
+        ) from None
+    return fx, fy, cx, cy, w, h
+
+
+def load_transforms(path) -> tuple[Cameras, dict | None, tuple[float, float] | None]:
+    """Read a nerfstudio transforms.json.
+
+    Returns (cameras, split, near_far): split is {"train": [stems], "test": [stems]} or None,
+    near_far is (near, far) in world units or None. Per-frame intrinsics override the top
+    level; train/test entries may be file_path values or stems.
+    """
+    path = Path(path)
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise SceneError(path, f"cannot read transforms.json ({exc})",
+                         "fix the JSON or delete it and run `gridnerf poses`") from None
+    frames = meta.get("frames") if isinstance(meta, dict) else None
+    if not frames:
+        raise SceneError(path, "no frames listed", "add frames or run `gridnerf poses`")
+    base = {k: meta[k] for k in _INTRINSIC_KEYS if k in meta}
+    names, c2ws, intr = [], [], []
+    for k, frame in enumerate(frames):
+        if "file_path" not in frame:
+            raise SceneError(path, f"frame {k} has no file_path", "add file_path: raw/<name>.dng")
+        name = _stem(frame["file_path"])
+        if "transform_matrix" not in frame:
+            raise PoseError(path, f"frame {name!r} has no transform_matrix (no pose)",
+                            "run `gridnerf poses` or remove the frame")
+        m = np.asarray(frame["transform_matrix"], dtype=np.float64)
+        if m.shape not in ((4, 4), (3, 4)):
+            raise PoseError(path, f"frame {name!r}: transform_matrix has shape {m.shape}",
+                            "give a 4x4 camera-to-world matrix")
+        if name in names:
+            raise SceneError(path, f"frame {name!r} is listed twice", "remove the duplicate")
+        names.append(name)
+        c2ws.append(m[:3])
+        intr.append(_intrinsics(frame, base, path, f"frame {name!r}"))
+    sizes = {(w, h) for *_, w, h in intr}
+    if len(sizes) > 1:
+        odd = next(n for n, i in zip(names, intr, strict=True) if i[4:] != intr[0][4:])
+        raise SceneError(path, f"frame {odd!r} has size {intr[names.index(odd)][4:]} but "
+                         f"frame {names[0]!r} has {intr[0][4:]}",
+                         "all frames must have one size: remove or re-export the odd frame")
+    fx, fy, cx, cy, w, h = (np.array(col) for col in zip(*intr, strict=True))
+    cams = make_cameras(names, np.stack(c2ws), fx, fy, cx, cy, int(w[0]), int(h[0]))
+    return cams, _read_split(meta, names, path), _read_near_far(meta, path)
+
+
+def _read_split(meta: dict, names: list[str], path) -> dict | None:
+    lists = {}
+    choices = (("train", ("train_filenames",)), ("test", ("test_filenames", "val_filenames")))
+    for key, keys in choices:
+        for k in keys:
+            if k in meta:
+                lists[key] = [_stem(f) for f in meta[k]]
+                break
+    if not lists:
+        return None
+    for key, stems in lists.items():
+        unknown = [s for s in stems if s not in names]
+        if unknown:
+            raise SceneError(path, f"{key} split names {unknown[:3]} that are not frames",
+                             "list only frames present in `frames` (file_path or stem)")
+    if "train" not in lists:
+        lists["train"] = [n for n in names if n not in set(lists["test"])]
+    if "test" not in lists:
+        lists["test"] = [n for n in names if n not in set(lists["train"])]
+    return {"train": lists["train"], "test": lists["test"]}
+
+
+def _read_near_far(meta: dict, path) -> tuple[float, float] | None:
+    if "near_far" not in meta:
+        return None
+    try:
+        near, far = (float(x) for x in meta["near_far"])
+    except (TypeError, ValueError):
+        near, far = np.nan, np.nan
+    if not (np.isfinite(near) and np.isfinite(far) and 0 < near < far):
+        raise SceneError(path, f"near_far {meta['near_far']!r} is not [near, far] with "
+                         "0 < near < far", "fix near_far or remove it")
+    return near, far
+
+
+def write_transforms(path, cams: Cameras, train_names, test_names, near_far=None) -> None:
+    """Write cams as a nerfstudio transforms.json (atomic). file_path is raw/<name>.dng."""
+    path = Path(path)
+    shared = all(np.allclose(a, a[0]) for a in (cams.fx, cams.fy, cams.cx, cams.cy))
+    meta: dict = {"camera_model": "OPENCV", "w": cams.width, "h": cams.height}
+    if shared:
+        meta.update(fl_x=float(cams.fx[0]), fl_y=float(cams.fy[0]),
+                    cx=float(cams.cx[0]), cy=float(cams.cy[0]))
+    frames = []
+    for i, name in enumerate(cams.names):
+        m = np.eye(4)
+        m[:3] = cams.c2w[i]
+        frame = {"file_path": f"raw/{name}.dng", "transform_matrix": m.tolist()}
+        if not shared:
+            frame.update(fl_x=float(cams.fx[i]), fl_y=float(cams.fy[i]),
+                         cx=float(cams.cx[i]), cy=float(cams.cy[i]))
+        frames.append(frame)
+    meta["frames"] = frames
+    meta["train_filenames"] = [f"raw/{n}.dng" for n in train_names]
+    meta["test_filenames"] = [f"raw/{n}.dng" for n in test_names]
+    if near_far is not None:
+        meta["near_far"] = [float(near_far[0]), float(near_far[1])]
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(meta, indent=2))
+    os.replace(tmp, path)
+
+
+def load_colmap(sparse_dir, names=None) -> tuple[Cameras, np.ndarray]:
+    """Read a COLMAP model (binary or text) -> (cameras, points3d (P, 3) float64).
+
+    names: frame stems to return, in that order (PoseError if one is not registered);
+    None returns every registered image sorted by name. OpenCV world-to-camera poses
+    become OpenGL camera-to-world. Distortion parameters are ignored (module docstring).
+    """
+    import pycolmap
+
+    sparse_dir = Path(sparse_dir)
+    try:
+        rec = pycolmap.Reconstruction(str(sparse_dir))
+    except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError
+        raise SceneError(sparse_dir, f"cannot read the COLMAP model ({exc})",
+                         "re-run `gridnerf poses`") from None
+    by_stem = {_stem(im.name): im for im in rec.images.values() if im.has_pose}
+    if names is None:
+        names = sorted(by_stem)
+    missing = [n for n in names if n not in by_stem]
+    if missing:
+        raise PoseError(sparse_dir, f"frames {missing[:5]} have no pose (COLMAP did not "
+                        "register them)", "run `gridnerf poses` or remove the frame")
+    if not names:
+        raise PoseError(sparse_dir, "the model has no registered images", "run `gridnerf poses`")
+    c2w, intr, sizes = [], [], set()
+    for n in names:
+        im = by_stem[n]
+        w2c = im.cam_from_world().matrix()
+        r_cv = w2c[:, :3].T
+        c2w.append(np.concatenate([r_cv @ _CV_TO_GL, (-r_cv @ w2c[:, 3])[:, None]], axis=1))
+        cam = rec.cameras[im.camera_id]
+        model, p = cam.model.name, np.asarray(cam.params, dtype=np.float64)
+        if model not in _COLMAP_MODELS:
+            raise SceneError(sparse_dir, f"unsupported COLMAP camera model {model}",
+                             f"use one of {', '.join(_COLMAP_MODELS)}")
+        if model in ("PINHOLE", "OPENCV"):
+            intr.append(p[:4])
+        else:
+            intr.append(np.array([p[0], p[0], p[1], p[2]]))
+        sizes.add((int(cam.width), int(cam.height)))
+    if len(sizes) > 1:
+        raise SceneError(sparse_dir, f"COLMAP cameras have different image sizes {sorted(sizes)}",
+                         "use previews of one size")
+    (w, h), intr = sizes.pop(), np.stack(intr)
+    points = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
+    cams = make_cameras(names, np.stack(c2w), intr[:, 0], intr[:, 1], intr[:, 2], intr[:, 3], w, h)
+    return cams, points
+
+
+def load_llff(poses_bounds_path, names, width: int, height: int) -> tuple[Cameras, np.ndarray]:
+    """Read LLFF poses_bounds.npy (N, 17) for frames `names` (sorted raw stems).
+
+    Rows are a flattened 3x5 [down, right, backwards, position, (H, W, focal)] plus
+    (near, far). Returns (cameras at width x height, bounds (N, 2)); the principal point
+    is the image centre (LLFF's assumption).
+    """
+    path = Path(poses_bounds_path)
+    try:
+        arr = np.load(path)
+    except (OSError, ValueError) as exc:
+        raise SceneError(path, f"cannot read poses_bounds.npy ({exc})",
+                         "re-create it or run `gridnerf poses`") from None
+    if arr.ndim != 2 or arr.shape[1] != 17:
+        raise SceneError(path, f"expected an (N, 17) array, found shape {arr.shape}",
+                         "re-create it with LLFF's imgs2poses or run `gridnerf poses`")
+    if arr.shape[0] != len(names):
+        raise SceneError(path, f"{arr.shape[0]} poses for {len(names)} raw frames",
+                         "one row per raw frame (sorted by name): re-run `gridnerf poses`")
+    poses = arr[:, :15].reshape(-1, 3, 5).astype(np.float64)
+    down, right, back, pos = (poses[:, :, k] for k in range(4))
+    c2w = np.stack([right, -down, back, pos], axis=2)
+    h_file, w_file, focal = poses[0, :, 4]
+    cams = make_cameras(names, c2w, focal, focal, w_file / 2.0, h_file / 2.0,
+                        int(round(w_file)), int(round(h_file)))
+    if (w_file, h_file) != (width, height):
+        cams = _rescale(cams, width / w_file, height / h_file, width, height, path)
+    return cams, arr[:, 15:17].astype(np.float64)
+
+
+def validate(cams: Cameras, source_path) -> None:
+    """PoseError naming source_path and the frame for non-finite or non-rigid poses."""
+    for i, name in enumerate(cams.names):
+        m = cams.c2w[i]
+        intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]])
+        if not (np.all(np.isfinite(m)) and np.all(np.isfinite(intr))):
+            raise PoseError(source_path, f"frame {name!r} has a NaN/Inf pose or intrinsics",
+                            "re-run `gridnerf poses` or remove the frame")
+        r = m[:, :3]
+        err = np.abs(r.T @ r - np.eye(3)).max()
+        if err > 1e-3 or np.linalg.det(r) <= 0:
+            raise PoseError(source_path, f"frame {name!r}: rotation is not rigid "
+                            f"(|R^T R - I| = {err:.2g}, det = {np.linalg.det(r):.3g})",
+                            "give orthonormal right-handed rotations (no scale or mirror)")
+        if cams.fx[i] <= 0 or cams.fy[i] <= 0:
+            raise PoseError(source_path, f"frame {name!r}: focal length must be positive",
+                            "fix fl_x/fl_y")
+
+
+def project(cams: Cameras, i: int, points_world: np.ndarray) -> np.ndarray:
+    """points_world: (P, 3) -> (P, 2) continuous pixel coords (u right, v down).
+
+    Pixel (u, v) has its centre at (u + 0.5, v + 0.5). Points behind the camera give NaN.
+    """
+    c2w = cams.c2w[i]
+    p_cam = (np.asarray(points_world, dtype=np.float64) - c2w[:, 3]) @ c2w[:, :3]
+    depth = -p_cam[:, 2]
+    safe = np.where(depth > 0, depth, np.nan)
+    u = cams.cx[i] + cams.fx[i] * p_cam[:, 0] / safe
+    v = cams.cy[i] - cams.fy[i] * p_cam[:, 1] / safe
+    return np.stack([u, v], axis=-1)
+
+
+def bounds_from_points(cams: Cameras, points_world: np.ndarray, margin: float = 0.1
+                       ) -> tuple[float, float] | None:
+    """Scene (near, far) from sparse points: per view, the 1st/99th percentile of the depths
+    of the points it sees; near = min over views / (1 + margin), far = max * (1 + margin).
+    Returns None when no view sees a point."""
+    nears, fars = [], []
+    for i in range(len(cams)):
+        uv = project(cams, i, points_world)
+        p_cam = (points_world - cams.c2w[i][:, 3]) @ cams.c2w[i][:, :3]
+        seen = ((uv[:, 0] >= 0) & (uv[:, 0] <= cams.width)
+                & (uv[:, 1] >= 0) & (uv[:, 1] <= cams.height))
+        depth = -p_cam[seen, 2]
+        if depth.size:
+            nears.append(np.percentile(depth, 1))
+            fars.append(np.percentile(depth, 99))
+    if not nears:
+        return None
+    return float(min(nears) / (1 + margin)), float(max(fars) * (1 + margin))

@@ -1,0 +1,143 @@
+"""Training rays and targets: Scene -> device arrays -> random ray patches (jittable).
+
+Two target modes (config.data.binning):
+- binned: 2x2-binned camera RGB (`rgb_cam`, (N, h, w, 3) float32) with a
+  validity mask; rays go through the centres of the binned pixels.
+- mosaic: the Bayer mosaic kept as uint16 (`raw_bayer`, (N, H, W)), normalised
+  inside the batch gather; the target's mask is one-hot on the measured
+  channel (and zero on saturated pixels), so the loss sees the raw mosaic.
+Targets are divided by each frame's relative exposure (RawNeRF's shutter
+ratio), and negative values are kept.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gridnerf import rays
+from gridnerf.scene import Scene
+
+
+@jax.tree_util.register_dataclass
+@dataclass(frozen=True)
+class RayData:
+    """Device-side training data. Array fields are pytree leaves; mode/ndc are static."""
+
+    c2w: jax.Array  # (N, 3, 4) camera-to-world of the training frames
+    intrinsics: jax.Array  # (N, 4) fx, fy, cx, cy at the target resolution
+    ndc_intrinsics: jax.Array  # (4,) fx, fy, width, height of camera 0 at full resolution
+    pixels: jax.Array  # binned: rgb_cam (N, h, w, 3) float32; mosaic: raw_bayer (N, H, W) uint16
+    valid: jax.Array  # binned: (N, h, w, 3) bool, False where saturated; mosaic: unused (N,)
+    black: jax.Array  # (N, 2, 2) black level per CFA position (mosaic)
+    white: jax.Array  # (N,) white level (mosaic)
+    inv_exposure: jax.Array  # (N,) 1 / relative exposure of each frame
+    cfa: jax.Array  # (2, 2) int32 colour index per CFA position
+    mosaic: bool = jax.tree_util.field(default=False, metadata=dict(static=True))  # type: ignore
+    ndc: bool = jax.tree_util.field(default=True, metadata=dict(static=True))  # type: ignore
+
+    @property
+    def image_hw(self) -> tuple[int, int]:
+        return int(self.pixels.shape[1]), int(self.pixels.shape[2])
+
+
+def build(scene: Scene, frames: np.ndarray, binning: bool, downscale: int = 1) -> RayData:
+    """Device arrays for `frames` (indices into scene.names)."""
+    cams = scene.cameras
+    full = np.array([cams.fx[0], cams.fy[0], cams.width, cams.height], np.float32)
+    c2w = cams.c2w[frames].astype(np.float32)
+    black = scene.black_level[frames].astype(np.float32)
+    white = scene.white_level[frames].astype(np.float32)
+    if binning:
+        factor = 1.0 / (2 * downscale)
+        pairs = [scene.rgb_cam_binned(int(i), downscale) for i in frames]
+        pixels = np.stack([p[0] for p in pairs]).astype(np.float32)
+        valid = np.stack([p[1] for p in pairs])
+    else:
+        if downscale != 1:
+            raise ValueError("mosaic training needs data.downscale=1 (use binning to downscale)")
+        factor = 1.0
+        pixels = scene.raw_bayer[frames]
+        valid = np.ones(len(frames), bool)
+    intr = (
+        np.stack([cams.fx[frames], cams.fy[frames], cams.cx[frames], cams.cy[frames]], axis=1)
+        * factor
+    )
+    return RayData(
+        c2w=jnp.asarray(c2w),
+        intrinsics=jnp.asarray(intr.astype(np.float32)),
+        ndc_intrinsics=jnp.asarray(full),
+        pixels=jnp.asarray(pixels),
+        valid=jnp.asarray(valid),
+        black=jnp.asarray(black),
+        white=jnp.asarray(white),
+        inv_exposure=jnp.asarray((1.0 / scene.exposure[frames]).astype(np.float32)),
+        cfa=jnp.asarray(scene.cfa.astype(np.int32)),
+        mosaic=not binning,
+        ndc=scene.forward_facing,
+    )
+
+
+def pixel_rays(c2w, intrinsics, u, v):
+    """World rays through pixel centres: c2w (..., 3, 4), intrinsics (..., 4) fx, fy, cx, cy,
+    u, v (...) pixel column/row. Returns origins, directions (..., 3), camera-frame z = -1."""
+    fx, fy, cx, cy = (intrinsics[..., k] for k in range(4))
+    return rays.pixel_rays(c2w, fx, fy, cx, cy, u, v, xp=jnp)
+
+
+def to_grid_space(ndc: bool, ndc_intrinsics, origins, directions):
+    """Rays in the grid's coordinates: NDC (forward-facing scenes) or world.
+
+    ndc_intrinsics: (4,) fx, fy, width, height of camera 0 at full resolution.
+    """
+    if not ndc:
+        return origins, directions
+    fx, fy, w, h = (ndc_intrinsics[k] for k in range(4))
+    return rays.ndc_rays(origins, directions, fx, fy, w, h, near=1.0, xp=jnp)
+
+
+def targets(data: RayData, frame, v, u):
+    """Targets and masks at integer pixels: (..., 3) float32 each (mask 0/1)."""
+    if not data.mosaic:
+        y = data.pixels[frame, v, u] * data.inv_exposure[frame][..., None]
+        return y, data.valid[frame, v, u].astype(jnp.float32)
+    raw = data.pixels[frame, v, u].astype(jnp.float32)
+    black = data.black[frame, v % 2, u % 2]
+    y = (raw - black) / (data.white[frame] - black) * data.inv_exposure[frame]
+    ok = (raw < data.white[frame]).astype(jnp.float32)
+    mask = jax.nn.one_hot(data.cfa[v % 2, u % 2], 3) * ok[..., None]
+    return y[..., None] * mask, mask
+
+
+def sample_patches(data: RayData, key, n_patches: int, patch: int):
+    """Random square ray patches: frame (P,), v, u (P, patch, patch) integer pixels."""
+    h, w = data.image_hw
+    n = data.c2w.shape[0]
+    kf, kv, ku = jax.random.split(key, 3)
+    frame = jax.random.randint(kf, (n_patches,), 0, n)
+    v0 = jax.random.randint(kv, (n_patches,), 0, h - patch + 1)
+    u0 = jax.random.randint(ku, (n_patches,), 0, w - patch + 1)
+    dv, du = jnp.meshgrid(jnp.arange(patch), jnp.arange(patch), indexing="ij")
+    return frame, v0[:, None, None] + dv, u0[:, None, None] + du
+
+
+def batch(data: RayData, key, n_patches: int, patch: int) -> dict:
+    """One training batch of (P, patch, patch) rays: origins, directions, target, mask."""
+    frame, v, u = sample_patches(data, key, n_patches, patch)
+    fr = jnp.broadcast_to(frame[:, None, None], v.shape)
+    uf, vf = u.astype(jnp.float32), v.astype(jnp.float32)
+    o, d = pixel_rays(data.c2w[fr], data.intrinsics[fr], uf, vf)
+    o, d = to_grid_space(data.ndc, data.ndc_intrinsics, o, d)
+    y, m = targets(data, fr, v, u)
+    return {"origins": o, "directions": d, "target": y, "mask": m}
+
+
+def image_rays(data_c2w: np.ndarray, intrinsics: np.ndarray, height: int, width: int):
+    """Rays of a whole image (H, W, 3) each, for rendering (world space)."""
+    v, u = jnp.meshgrid(jnp.arange(height), jnp.arange(width), indexing="ij")
+    c2w = jnp.broadcast_to(jnp.asarray(data_c2w, jnp.float32), (height, width, 3, 4))
+    intr = jnp.broadcast_to(jnp.asarray(intrinsics, jnp.float32), (height, width, 4))
+    return pixel_rays(c2w, intr, u.astype(jnp.float32), v.astype(jnp.float32))

@@ -1,0 +1,183 @@
+"""Evaluate and render a trained run: test views vs gt/, baselines, camera paths.
+
+eval/metrics.json holds per-view and mean PSNR / SSIM / CIEDE2000 on sRGB,
+raw and after a per-channel affine alignment in linear space, for
+- `gridnerf`: our bright render with the colour matrix (or without, if the
+  run's config says so),
+- `gridnerf_matrix_free`: the same radiance field shown the paper's way,
+- `baseline_dark_frame`: the plain demosaic + grey-world + gamma of the dark test frame,
+plus train_seconds, rays_per_second and peak memory.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gridnerf import baseline, color, dataset, evaluate, exposure, image_io, raw, render
+from gridnerf import config as cfgmod
+from gridnerf.checkpoint import atomic_write_text
+from gridnerf.errors import SceneError
+from gridnerf.scene import load_scene
+from gridnerf.train import CHECKPOINT, grid_box, load_state
+
+
+def load_run(run: Path):
+    """(cfg, scene, structure, params, summary) of a finished run."""
+    if not (run / "summary.json").exists() or not (run / CHECKPOINT).exists():
+        raise SceneError(
+            run, "no finished training run here", f"run `gridnerf train <scene> --out {run}`"
+        )
+    cfg = cfgmod.load(run / "config.json")
+    summary = json.loads((run / "summary.json").read_text())
+    scene = load_scene(Path(summary["scene"]))
+    structure, params, _, _ = load_state(run)
+    return cfg, scene, structure, params, summary
+
+
+def render_rays_chunked(structure, params, origins, directions, near_t, far_t, cfg) -> dict:
+    """Render (n, 3) rays in fixed-size chunks (one compile); returns host arrays."""
+    chunk = cfg.render.chunk
+    fn = jax.jit(
+        lambda o, d: render.render_rays(structure, params, o, d, near_t, far_t, cfg.render)
+    )
+    n = origins.shape[0]
+    outs = []
+    for s in range(0, n, chunk):
+        o, d = origins[s : s + chunk], directions[s : s + chunk]
+        pad = chunk - o.shape[0]
+        if pad:
+            o = jnp.concatenate([o, jnp.broadcast_to(o[-1:], (pad, 3))])
+            d = jnp.concatenate([d, jnp.broadcast_to(d[-1:], (pad, 3))])
+        out = fn(o, d)
+        outs.append({k: np.asarray(v)[: chunk - pad] for k, v in out.items()})
+    return {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}
+
+
+def render_view(structure, params, scene, cfg, c2w, intrinsics, height, width) -> dict:
+    """Render one camera: dict of (H, W, ...) host arrays (rgb_low, gain, rgb_restored, ...)."""
+    near_t, far_t = grid_box(scene)[2:]
+    o, d = dataset.image_rays(c2w, intrinsics, height, width)
+    o, d = dataset.to_grid_space(scene.forward_facing, _ndc_intrinsics(scene), o, d)
+    out = render_rays_chunked(
+        structure, params, o.reshape(-1, 3), d.reshape(-1, 3), near_t, far_t, cfg
+    )
+    return {k: v.reshape(height, width, *v.shape[1:]) for k, v in out.items()}
+
+
+def _ndc_intrinsics(scene):
+    c = scene.cameras
+    return jnp.asarray([c.fx[0], c.fy[0], c.width, c.height], jnp.float32)
+
+
+def exposures(structure, params, scene, cfg) -> dict[str, float]:
+    """Auto exposure alpha for the colour-matrix and the matrix-free outputs (training renders)."""
+    data = dataset.build(scene, scene.train_idx, cfg.data.binning, cfg.data.downscale)
+    rays = dataset.batch(data, jax.random.PRNGKey(cfg.train.seed + 7), 128, 8)
+    near_t, far_t = grid_box(scene)[2:]
+    out = render_rays_chunked(
+        structure,
+        params,
+        rays["origins"].reshape(-1, 3),
+        rays["directions"].reshape(-1, 3),
+        near_t,
+        far_t,
+        cfg,
+    )
+    rgb_cam = out["rgb_restored"] if cfg.loss.use_gains else out["rgb_low"]
+    target = cfg.output.target_luminance
+    return {
+        "matrix": exposure.alpha_for_luminance(
+            rgb_cam @ exposure.display_matrix(scene.xyz_to_cam, True).T, target
+        ),
+        "matrix_free": exposure.alpha_for_luminance(rgb_cam, target),
+    }
+
+
+def evaluate_run(run: Path) -> dict:
+    """Render the test views, compare with gt/, write eval/ images and eval/metrics.json."""
+    t0 = time.perf_counter()
+    cfg, scene, structure, params, summary = load_run(run)
+    out_dir = run / "eval"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    alphas = exposures(structure, params, scene, cfg)
+    main_key = "matrix" if cfg.output.use_color_matrix else "matrix_free"
+    mats = {
+        "matrix": exposure.display_matrix(scene.xyz_to_cam, True),
+        "matrix_free": np.eye(3),
+    }
+    methods = {"gridnerf": main_key, "gridnerf_matrix_free": "matrix_free"}
+    per_view: dict[str, dict[str, dict]] = {m: {} for m in [*methods, "baseline_dark_frame"]}
+    cams = scene.cameras
+    ds = cfg.data.eval_downscale
+    h, w = cams.height // ds, cams.width // ds
+    for i in scene.test_idx:
+        name = scene.names[i]
+        intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]]) / ds
+        out = render_view(structure, params, scene, cfg, cams.c2w[i], intr, h, w)
+        rgb_cam = out["rgb_restored"] if cfg.loss.use_gains else out["rgb_low"]
+        gt_linear = _gt(scene, name, h, w)
+        for method, which in methods.items():
+            pred_linear, pred_srgb = exposure.to_display(rgb_cam, alphas[which], mats[which])
+            if method == "gridnerf":
+                image_io.write_png(out_dir / f"{name}_pred.png", pred_srgb)
+                image_io.write_exr(out_dir / f"{name}_pred.exr", pred_linear)
+                depth = out["depth"] / max(float(np.percentile(out["depth"], 99)), 1e-6)
+                image_io.write_png(
+                    out_dir / f"{name}_depth.png", np.repeat(depth[..., None], 3, -1)
+                )
+            if gt_linear is not None:
+                per_view[method][name] = evaluate.image_metrics(pred_linear, gt_linear)
+                if method == "gridnerf":
+                    gt_srgb = color.srgb_encode(gt_linear)
+                    image_io.write_png(out_dir / f"{name}_gt.png", gt_srgb)
+                    image_io.write_png(
+                        out_dir / f"{name}_error.png", evaluate.error_image(pred_srgb, gt_srgb)
+                    )
+        if gt_linear is not None:
+            dark_linear = baseline.process_dark_frame(
+                scene.raw_normalized(i), scene.cfa, scene.xyz_to_cam
+            )
+            dark_linear = raw.downscale(dark_linear, ds) if ds > 1 else dark_linear
+            image_io.write_png(out_dir / f"{name}_baseline.png", color.srgb_encode(dark_linear))
+            per_view["baseline_dark_frame"][name] = evaluate.image_metrics(dark_linear, gt_linear)
+    result = {
+        "scene": str(scene.path),
+        "run": str(run),
+        "test_views": [scene.names[i] for i in scene.test_idx],
+        "alpha": alphas,
+        "train_seconds": summary["train_seconds"],
+        "rays_per_second": summary["rays_per_second"],
+        "train_peak_rss_mb": summary.get("peak_rss_mb"),
+        "eval_seconds": time.perf_counter() - t0,
+        "eval_peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "lpips": evaluate.lpips_status(),
+        "liqe": evaluate.lpips_status(),
+        "per_view": per_view,
+        "summary": {m: evaluate.summarize(v) for m, v in per_view.items() if v},
+    }
+    atomic_write_text(out_dir / "metrics.json", json.dumps(result, indent=2))
+    return result
+
+
+def _gt(scene, name: str, h: int, w: int):
+    path = scene.gt_linear_paths.get(name)
+    if path is None:
+        return None
+    gt_linear = image_io.read_exr(path)
+    if gt_linear.shape[0] != h or gt_linear.shape[1] != w:
+        factor = gt_linear.shape[0] // h
+        if factor < 1 or gt_linear.shape[1] // factor != w:
+            raise SceneError(
+                path,
+                f"reference is {gt_linear.shape[:2]}, renders are {(h, w)}",
+                "write gt/ at the raw frames' size",
+            )
+        gt_linear = raw.downscale(gt_linear, factor)
+    return gt_linear

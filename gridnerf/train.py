@@ -1,0 +1,285 @@
+"""Training: scene -> rays -> grid render -> losses -> optax step, coarse to fine.
+
+One jitted step per resolution stage (shapes change only between stages).
+The run folder holds config.json, checkpoint.npz (atomic, finite-only,
+resumed automatically) and metrics.jsonl. A non-finite loss stops training
+with a clear message; the last good checkpoint is kept.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import time
+from functools import partial
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from tqdm import tqdm
+
+from gridnerf import checkpoint, dataset, exposure, grid, losses, render
+from gridnerf import config as cfgmod
+from gridnerf.config import Config
+from gridnerf.errors import NumericsError
+from gridnerf.scene import Scene, load_scene
+
+CHECKPOINT = "checkpoint.npz"
+
+
+def grid_box(scene: Scene) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Grid bounding box and ray t-range in grid space.
+
+    Forward-facing: NDC box; z runs from the near plane (-1) to just past the
+    far bound. Otherwise a world AABB around the cameras' far bound.
+    Returns bbox_min (3,), bbox_max (3,), near_t, far_t.
+    """
+    if scene.forward_facing:
+        z_far = min(1.0 - 2.0 / (1.25 * scene.far), 0.999) if scene.far > 1.0 else 0.999
+        return np.array([-1.25, -1.25, -1.0]), np.array([1.25, 1.25, z_far]), 0.0, 1.0
+    centre = scene.cameras.c2w[:, :, 3].mean(axis=0)
+    r = float(scene.far)
+    return centre - r, centre + r, float(scene.near), float(scene.far)
+
+
+def make_optimizer(cfg: Config, steps: int) -> optax.GradientTransformation:
+    """Adam per field with an exponential decay to lr * lr_decay over the stage."""
+
+    def adam(lr):
+        sched = optax.exponential_decay(
+            lr, transition_steps=max(steps, 1), decay_rate=cfg.train.lr_decay
+        )
+        return optax.adam(sched, b1=0.9, b2=0.99, eps=1e-8)
+
+    gain_tx = adam(cfg.train.lr_gain) if cfg.loss.use_gains else optax.set_to_zero()
+    return optax.multi_transform(
+        {"density": adam(cfg.train.lr_density), "rgb": adam(cfg.train.lr_rgb), "log_gain": gain_tx},
+        {"density": "density", "rgb": "rgb", "log_gain": "log_gain"},
+    )
+
+
+def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_t: float):
+    """Total loss and its terms for one batch of (P, p, p) ray patches."""
+    shape = rays["target"].shape  # (P, p, p, 3)
+    flat = {k: v.reshape(-1, 3) for k, v in rays.items()}
+    out = render.render_rays(
+        structure, params, flat["origins"], flat["directions"], near_t, far_t, cfg.render
+    )
+    terms = {"data": losses.data_loss(out["rgb_low"], flat["target"], flat["mask"])}
+    lc = cfg.loss
+    k1, k2 = jax.random.split(key)
+    if lc.use_gains:
+        terms["ca"] = losses.ca_loss(out["rgb_low"], out["gain"], stop_grad_mean=lc.ca_stop_grad)
+        smooth = 0.0
+        if lc.smooth_mode in ("patch", "both"):
+            smooth = smooth + losses.smooth_loss_patch(
+                out["gain"].reshape(shape), out["rgb_low"].reshape(shape)
+            )
+        if lc.smooth_mode in ("tv", "both"):
+            smooth = smooth + losses.edge_aware_gain_tv(
+                structure, params, sample_key=k1, fraction=lc.tv_fraction
+            )
+        terms["smooth"] = smooth
+    terms["tv_density"] = losses.tv_loss(
+        structure, params["density"][:, None], sample_key=k2, fraction=lc.tv_fraction
+    )
+    terms["tv_rgb"] = losses.tv_loss(
+        structure, params["rgb"], sample_key=k2, fraction=lc.tv_fraction
+    )
+    weights = {
+        "data": lc.w_data,
+        "ca": lc.w_ca,
+        "smooth": lc.w_smooth,
+        "tv_density": lc.tv_density,
+        "tv_rgb": lc.tv_rgb,
+    }
+    total = sum(weights[k] * v for k, v in terms.items())
+    return total, terms
+
+
+def make_step(cfg: Config, tx, near_t: float, far_t: float):
+    """Jitted step: (params, opt_state, structure, data, key) -> (params, opt_state, loss, aux)."""
+
+    @jax.jit
+    def step(params, opt_state, structure, data, key):
+        kb, kl = jax.random.split(key)
+        rays = dataset.batch(data, kb, cfg.train.batch_patches, cfg.train.patch_size)
+        (total, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+            params, structure, rays, kl, cfg, near_t, far_t
+        )
+        updates, opt_state = tx.update(grads, opt_state, params)
+        params = optax.apply_updates(params, updates)
+        return params, opt_state, total, terms
+
+    return step
+
+
+def data_statistics(data: dataset.RayData, key, n_patches: int = 256) -> tuple[float, np.ndarray]:
+    """Mean target level and grey-world log gains (3,) of the training data (masked means)."""
+    sample = jax.jit(partial(dataset.batch, n_patches=n_patches, patch=8))(data, key)
+    y = np.asarray(sample["target"]).reshape(-1, 3)
+    m = np.asarray(sample["mask"]).reshape(-1, 3)
+    means = (y * m).sum(0) / np.maximum(m.sum(0), 1.0)
+    means = np.maximum(means, 1e-6 * max(float(means.max()), 1e-12) + 1e-12)
+    log_gain = np.log(means.mean() / means)
+    return float(means.mean()), log_gain
+
+
+def auto_exposure(
+    structure,
+    params,
+    data: dataset.RayData,
+    cfg: Config,
+    scene: Scene,
+    near_t: float,
+    far_t: float,
+    key,
+) -> float:
+    """alpha making the mean luminance of bright training renders cfg.output.target_luminance."""
+    rays = jax.jit(partial(dataset.batch, n_patches=128, patch=8))(data, key)
+    out = render.render_rays(
+        structure,
+        params,
+        rays["origins"].reshape(-1, 3),
+        rays["directions"].reshape(-1, 3),
+        near_t,
+        far_t,
+        cfg.render,
+    )
+    rgb_cam = np.asarray(out["rgb_restored"] if cfg.loss.use_gains else out["rgb_low"])
+    matrix = exposure.display_matrix(scene.xyz_to_cam, cfg.output.use_color_matrix)
+    return exposure.alpha_for_luminance(rgb_cam @ matrix.T, cfg.output.target_luminance)
+
+
+def save_state(run: Path, structure, params, opt_state, header: dict) -> None:
+    checkpoint.save(
+        run / CHECKPOINT,
+        {
+            "structure": grid.structure_to_arrays(structure),
+            "params": checkpoint.flatten(params),
+            "opt_state": checkpoint.flatten(opt_state),
+        },
+        header,
+    )
+
+
+def load_state(run: Path):
+    """(structure, params, opt_leaves, header) from the run's checkpoint."""
+    groups, header = checkpoint.load(run / CHECKPOINT)
+    structure = grid.structure_from_arrays(groups["structure"])
+    params = dict(zip(["density", "log_gain", "rgb"], groups["params"], strict=True))
+    params = {k: jnp.asarray(v) for k, v in params.items()}
+    return structure, params, groups.get("opt_state", []), header
+
+
+def train(scene_dir: Path, run: Path, cfg: Config) -> dict:
+    """Train (or resume) a run; returns the summary written to run/summary.json."""
+    run.mkdir(parents=True, exist_ok=True)
+    cfgmod.save(cfg, run / "config.json")
+    scene = load_scene(scene_dir)
+    data = dataset.build(scene, scene.train_idx, cfg.data.binning, cfg.data.downscale)
+    bbox_min, bbox_max, near_t, far_t = grid_box(scene)
+    key = jax.random.PRNGKey(cfg.train.seed)
+    stages = list(zip(cfg.grid.resolutions, cfg.train.steps_per_stage, strict=True))
+
+    if (run / CHECKPOINT).exists():
+        structure, params, opt_leaves, header = load_state(run)
+        stage, start, elapsed = header["stage"], header["step"], header["train_seconds"]
+        key = jnp.asarray(np.array(header["key"], np.uint32))
+        print(f"resuming {run} at stage {stage}, step {start}")
+    else:
+        color_scale, log_gain = data_statistics(data, jax.random.fold_in(key, 1))
+        structure, params = grid.init_grid(
+            cfg.grid.resolutions[0],
+            bbox_min,
+            bbox_max,
+            sh_degree=cfg.grid.sh_degree,
+            init_density=cfg.grid.init_density,
+            init_log_gain=log_gain if cfg.loss.use_gains else np.zeros(3),
+            color_scale=color_scale,
+            key=jax.random.fold_in(key, 2),
+        )
+        stage, start, elapsed, opt_leaves = 0, 0, 0.0, []
+
+    log = open(run / "metrics.jsonl", "a")  # noqa: SIM115
+    rays_per_step = cfg.train.batch_patches * cfg.train.patch_size**2
+    total_steps = sum(s for _, s in stages)
+    done_before = sum(s for _, s in stages[:stage]) + start
+    bar = tqdm(total=total_steps, initial=done_before, unit="step", dynamic_ncols=True)
+    rate = 0.0
+    while stage < len(stages):
+        res, steps = stages[stage]
+        if tuple(structure.resolution) != tuple(res):
+            keep = grid.density_keep_mask(
+                structure, params, cfg.grid.prune_threshold, dilate=cfg.grid.prune_dilate
+            )
+            structure, params = grid.prune(structure, params, keep)
+            structure, params = grid.upsample(structure, params, res)
+            opt_leaves = []
+        tx = make_optimizer(cfg, steps)
+        opt_state = tx.init(params)
+        if opt_leaves:
+            opt_state = checkpoint.unflatten_like(opt_state, opt_leaves)
+            opt_leaves = []
+        step_fn = make_step(cfg, tx, near_t, far_t)
+        structure = grid.update_occupancy(structure, params, cfg.grid.occupancy_threshold)
+        t_stage = time.perf_counter()
+        steps_timed = 0
+        for step in range(start, steps):
+            key, sub = jax.random.split(key)
+            params, opt_state, total, terms = step_fn(params, opt_state, structure, data, sub)
+            loss = float(total)
+            steps_timed += 1
+            if not np.isfinite(loss):
+                raise NumericsError(
+                    run / CHECKPOINT,
+                    f"loss became {loss} at stage {stage} step {step}; nothing was checkpointed",
+                    "lower train.lr_* or check the frames; rerun to resume from the last save",
+                )
+            if (step + 1) % cfg.grid.occupancy_every == 0:
+                structure = grid.update_occupancy(structure, params, cfg.grid.occupancy_threshold)
+            now = time.perf_counter()
+            rate = steps_timed * rays_per_step / max(now - t_stage, 1e-9)
+            bar.update(1)
+            bar.set_postfix(stage=stage, loss=f"{loss:.4g}", rays_s=f"{rate:,.0f}")
+            if (step + 1) % cfg.train.log_every == 0 or step + 1 == steps:
+                rec = {
+                    "stage": stage,
+                    "step": step + 1,
+                    "loss": loss,
+                    "rays_per_second": rate,
+                    "train_seconds": elapsed + now - t_stage,
+                    "voxels": int(structure.n_rows),
+                }
+                rec.update({k: float(v) for k, v in terms.items()})
+                log.write(json.dumps(rec) + "\n")
+                log.flush()
+            last = step + 1 == steps
+            if (step + 1) % cfg.train.checkpoint_every == 0 or last:
+                header = {
+                    "stage": stage + 1 if last else stage,
+                    "step": 0 if last else step + 1,
+                    "train_seconds": elapsed + now - t_stage,
+                    "key": np.asarray(key).tolist(),
+                }
+                save_state(run, structure, params, [] if last else opt_state, header)
+        elapsed += time.perf_counter() - t_stage
+        stage, start = stage + 1, 0
+    bar.close()
+    log.close()
+
+    alpha = auto_exposure(
+        structure, params, data, cfg, scene, near_t, far_t, jax.random.fold_in(key, 3)
+    )
+    summary = {
+        "scene": str(scene_dir),
+        "train_seconds": elapsed,
+        "rays_per_second": rate,
+        "alpha": alpha,
+        "voxels": int(structure.n_rows),
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+    checkpoint.atomic_write_text(run / "summary.json", json.dumps(summary, indent=2))
+    return summary
