@@ -14,8 +14,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import convolve
 
-from gridnerf.color import luminance, srgb_from_cam
+from gridnerf.color import srgb_from_cam
 from gridnerf.errors import RawError
+from gridnerf.exposure import alpha_for_luminance
 
 # Bilinear interpolation kernel for normalised convolution: cross neighbours
 # weigh twice the diagonal ones, the centre four times.
@@ -111,26 +112,11 @@ def grey_world_gains(rgb_cam, mask=None) -> np.ndarray:
     return (means.mean() / means).astype(np.float32)
 
 
-def auto_exposure(rgb_linear, target_mean_luminance: float = 0.18) -> float:
-    """Scalar alpha with `mean(luminance(alpha * rgb_linear)) == target_mean_luminance`.
-
-    The mean includes negative noise (an unbiased brightness estimate). An image
-    with no positive mean luminance gets alpha = 1.
-
-    Args:
-      rgb_linear: (H, W, 3) float, linear sRGB.
-    """
-    mean_y = float(np.mean(luminance(np.asarray(rgb_linear, np.float64))))
-    if not mean_y > 0.0:
-        return 1.0
-    return float(target_mean_luminance / mean_y)
-
-
 def process_dark_frame(raw_bayer, cfa, xyz_to_cam, use_matrix: bool = True) -> np.ndarray:
     """Brighten one dark RAW frame: the 2D baseline.
 
     demosaic_bilinear -> grey_world_gains -> (srgb_from_cam(xyz_to_cam) when
-    use_matrix) -> auto_exposure (mean luminance 0.18) -> clip negatives to 0.
+    use_matrix) -> exposure.alpha_for_luminance (mean luminance 0.18) -> clip negatives to 0.
 
     Args:
       raw_bayer: (H, W) float, normalised mosaic (negatives kept).
@@ -156,5 +142,5 @@ def process_dark_frame(raw_bayer, cfa, xyz_to_cam, use_matrix: bool = True) -> n
                 "pass the DNG ColorMatrix, or use_matrix=False",
             )
         rgb = rgb @ srgb_from_cam(matrix).T
-    rgb = rgb * auto_exposure(rgb)
+    rgb = rgb * alpha_for_luminance(rgb)
     return np.maximum(rgb, 0.0).astype(np.float32)

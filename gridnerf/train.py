@@ -20,7 +20,7 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
-from gridnerf import checkpoint, dataset, exposure, grid, losses, render
+from gridnerf import checkpoint, dataset, grid, losses, render
 from gridnerf import config as cfgmod
 from gridnerf.config import Config
 from gridnerf.errors import NumericsError
@@ -125,32 +125,6 @@ def data_statistics(data: dataset.RayData, key, n_patches: int = 256) -> tuple[f
     means = np.maximum(means, 1e-6 * max(float(means.max()), 1e-12) + 1e-12)
     log_gain = np.log(means.mean() / means)
     return float(means.mean()), log_gain
-
-
-def auto_exposure(
-    structure,
-    params,
-    data: dataset.RayData,
-    cfg: Config,
-    scene: Scene,
-    near_t: float,
-    far_t: float,
-    key,
-) -> float:
-    """alpha making the mean luminance of bright training renders cfg.output.target_luminance."""
-    rays = jax.jit(partial(dataset.batch, n_patches=128, patch=8))(data, key)
-    out = render.render_rays(
-        structure,
-        params,
-        rays["origins"].reshape(-1, 3),
-        rays["directions"].reshape(-1, 3),
-        near_t,
-        far_t,
-        cfg.render,
-    )
-    rgb_cam = np.asarray(out["rgb_restored"] if cfg.loss.use_gains else out["rgb_low"])
-    matrix = exposure.display_matrix(scene.xyz_to_cam, cfg.output.use_color_matrix)
-    return exposure.alpha_for_luminance(rgb_cam @ matrix.T, cfg.output.target_luminance)
 
 
 def save_state(run: Path, structure, params, opt_state, header: dict) -> None:
@@ -270,14 +244,10 @@ def train(scene_dir: Path, run: Path, cfg: Config) -> dict:
     bar.close()
     log.close()
 
-    alpha = auto_exposure(
-        structure, params, data, cfg, scene, near_t, far_t, jax.random.fold_in(key, 3)
-    )
     summary = {
         "scene": str(scene_dir),
         "train_seconds": elapsed,
         "rays_per_second": rate,
-        "alpha": alpha,
         "voxels": int(structure.n_rows),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }

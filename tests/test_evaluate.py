@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from gridnerf.baseline import (
-    auto_exposure,
     cfa_masks,
     demosaic_bilinear,
     grey_world_gains,
@@ -29,6 +28,7 @@ from gridnerf.evaluate import (
     summarize,
     white_balance_angular_error,
 )
+from gridnerf.exposure import alpha_for_luminance
 
 SONY = CAMERA_XYZ_TO_CAM["Sony ILCE-7SM2"]
 PATTERNS = {
@@ -240,11 +240,11 @@ def test_grey_world_gains_equalise_means():
 
 def test_auto_exposure_hits_target():
     rgb_linear = _textured() * 0.01
-    alpha = auto_exposure(rgb_linear)
+    alpha = alpha_for_luminance(rgb_linear)
     assert np.mean(luminance(alpha * rgb_linear)) == pytest.approx(0.18, rel=1e-9)
-    alpha = auto_exposure(rgb_linear, target_mean_luminance=0.4)
+    alpha = alpha_for_luminance(rgb_linear, target=0.4)
     assert np.mean(luminance(alpha * rgb_linear)) == pytest.approx(0.4, rel=1e-9)
-    assert auto_exposure(np.zeros((3, 3, 3))) == 1.0
+    assert alpha_for_luminance(np.zeros((3, 3, 3))) == 1.0
 
 
 def test_process_dark_frame_restores_colour_and_exposure():
@@ -259,7 +259,7 @@ def test_process_dark_frame_restores_colour_and_exposure():
     assert np.all(out >= 0) and np.all(np.isfinite(out))
     assert np.mean(luminance(out.astype(np.float64))) == pytest.approx(0.18, rel=0.02)
     # Grey-world on a scene whose own means are unequal still leaves it near the truth.
-    gt = rgb_linear * auto_exposure(rgb_linear)
+    gt = rgb_linear * alpha_for_luminance(rgb_linear)
     assert white_balance_angular_error(out, gt) < 8.0
     without = process_dark_frame(raw_bayer, cfa, None, use_matrix=False)
     assert np.all(np.isfinite(without)) and not np.allclose(without, out)

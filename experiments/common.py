@@ -1,0 +1,43 @@
+"""Shared helpers for experiment scripts: train-and-evaluate one variant, table formatting."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from gridnerf import config as cfgmod
+from gridnerf.eval_run import evaluate_run
+from gridnerf.sim import SCENES, simulate_scene
+from gridnerf.train import train
+
+
+def scene_dir(scene: str) -> Path:
+    """A built-in scene name (simulated on first use) or a folder path."""
+    if scene in SCENES:
+        return simulate_scene(scene, Path("data/sim") / scene)
+    return Path(scene)
+
+
+def run_variant(scene: str, name: str, preset: str, overrides: list[str]) -> dict:
+    """Train (resuming if possible) and evaluate runs/<scene>/<name>; returns eval metrics."""
+    sdir = scene_dir(scene)
+    run = Path("runs") / sdir.name / name
+    cfg = cfgmod.override(cfgmod.preset(preset), overrides)
+    if (run / "config.json").exists() and cfgmod.load(run / "config.json") != cfg:
+        raise SystemExit(f"{run} holds a different config; delete it to re-run this variant")
+    if not (run / "summary.json").exists():
+        train(sdir, run, cfg)
+    metrics_path = run / "eval" / "metrics.json"
+    if metrics_path.exists():
+        return json.loads(metrics_path.read_text())
+    return evaluate_run(run)
+
+
+def fmt(x, nd=2) -> str:
+    return "n/a" if x is None or isinstance(x, str) else f"{x:.{nd}f}"
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)

@@ -1,0 +1,145 @@
+"""A dark-scene camera: warm illuminant, camera colour response, Bayer mosaic, ELD noise.
+
+Pipeline for one view (REFERENCE.md section 3):
+  rgb_linear (reflectance x shading, linear sRGB, as if lit by D65)
+  -> XYZ under a dim blackbody at `kelvin`:  CA(D65 -> T) @ XYZ_FROM_SRGB @ rgb_linear
+  -> rgb_cam = xyz_to_cam @ XYZ             (real DNG ColorMatrix, D65)
+  -> expected electrons = scale * mosaic(rgb_cam), negatives clipped at 0
+  -> DN = K * Poisson(e) + TukeyLambda(sigma, lambda) + row noise + bias, rounded,
+     + black level 512, clipped to [0, 16383] -> uint16.
+The per-CFA-position black-level `bias` is an unknown sensor offset: it is NOT in the
+DNG BlackLevel tag (which says 512), exactly like a real sensor's drift.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gridnerf.color import (
+    CAMERA_XYZ_TO_CAM,
+    D65_XYZ,
+    XYZ_FROM_SRGB,
+    blackbody_xyz_white,
+    chromatic_adaptation,
+)
+
+BLACK_LEVEL = 512
+WHITE_LEVEL = 16383
+K_PER_ISO = 9.56e-4  # system gain K (DN/e-) per ISO step, Sony A7S2 (ELD)
+
+# CFA pattern name -> colour index per position (0=R 1=G 2=B), indexed [y % 2, x % 2].
+CFA_PATTERNS = {
+    "RGGB": ((0, 1), (1, 2)),
+    "GRBG": ((1, 0), (2, 1)),
+    "GBRG": ((1, 2), (0, 1)),
+    "BGGR": ((2, 1), (1, 0)),
+}
+
+
+@dataclass(frozen=True)
+class SensorParams:
+    """Illuminant, camera and noise settings of one simulated capture.
+
+    electrons: target MEAN expected green signal in electrons per pixel over all
+      pixels of all frames (sets the photon budget); lux: the nominal light level
+      class it stands for; k_gain: system gain K in DN per electron;
+      read_sigma, tl_lambda: Tukey-lambda read noise scale (DN) and shape;
+      row_sigma: std of the per-row offset (DN); bias: (2, 2) per-CFA-position
+      black-level offset in DN (not recorded in the DNG).
+    """
+
+    camera_model: str = "Sony ILCE-7SM2"
+    cfa_pattern: str = "RGGB"
+    kelvin: float = 2800.0
+    electrons: float = 10.0
+    lux: float = 0.02
+    k_gain: float = 5.0
+    read_sigma: float = 3.5
+    tl_lambda: float = -0.075
+    row_sigma: float = 0.7
+    bias: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 0.0), (0.0, 0.0))
+    exposure_time: float = 1.0 / 30.0
+
+    @property
+    def iso(self) -> float:
+        """ISO that gives this system gain (K = 9.56e-4 * ISO)."""
+        return self.k_gain / K_PER_ISO
+
+    @property
+    def cfa(self) -> np.ndarray:
+        """(2, 2) int colour index per CFA position."""
+        return np.array(CFA_PATTERNS[self.cfa_pattern], np.int64)
+
+    @property
+    def xyz_to_cam(self) -> np.ndarray:
+        """(3, 3) XYZ -> camera matrix (DNG ColorMatrix1, D65)."""
+        return CAMERA_XYZ_TO_CAM[self.camera_model]
+
+
+def cam_from_scene(params: SensorParams) -> np.ndarray:
+    """(3, 3) matrix: D65-lit linear sRGB reflectance x shading -> camera RGB under `kelvin`."""
+    adapt = chromatic_adaptation(D65_XYZ, blackbody_xyz_white(params.kelvin))
+    return params.xyz_to_cam @ adapt @ XYZ_FROM_SRGB
+
+
+def illuminant_neutral(params: SensorParams) -> np.ndarray:
+    """(3,) camera RGB of a white surface under the scene illuminant, green = 1."""
+    white = cam_from_scene(params) @ np.ones(3)
+    return white / white[1]
+
+
+def scene_to_cam(rgb_linear: np.ndarray, params: SensorParams) -> np.ndarray:
+    """rgb_linear: (..., 3) -> rgb_cam: (..., 3) float32, relative (unscaled) camera signal."""
+    m = cam_from_scene(params).astype(np.float32)
+    return np.asarray(rgb_linear, np.float32) @ m.T
+
+
+def cfa_index(height: int, width: int, cfa: np.ndarray) -> np.ndarray:
+    """(H, W) int colour index (0=R 1=G 2=B) of each photosite."""
+    rows = np.arange(height)[:, None] % 2
+    cols = np.arange(width)[None, :] % 2
+    return np.asarray(cfa)[rows, cols]
+
+
+def mosaic(rgb_cam: np.ndarray, cfa: np.ndarray) -> np.ndarray:
+    """rgb_cam: (H, W, 3) -> raw_bayer: (H, W), keeping the CFA colour at each photosite."""
+    idx = cfa_index(rgb_cam.shape[0], rgb_cam.shape[1], cfa)
+    return np.take_along_axis(rgb_cam, idx[..., None], axis=-1)[..., 0]
+
+
+def tukey_lambda(rng: np.random.Generator, shape, lam: float, sigma: float) -> np.ndarray:
+    """Tukey-lambda samples sigma * (U^lam - (1 - U)^lam) / lam (logistic at lam = 0)."""
+    u = np.clip(rng.random(shape), 1e-12, 1.0 - 1e-12)
+    if abs(lam) < 1e-8:
+        return sigma * np.log(u / (1.0 - u))
+    return sigma * (u**lam - (1.0 - u) ** lam) / lam
+
+
+def expose(electrons_bayer: np.ndarray, params: SensorParams,
+           rng: np.random.Generator) -> np.ndarray:
+    """Expected electrons (H, W) -> noisy raw_bayer (H, W) uint16, black level included.
+
+    Shot noise K * Poisson(e) (e clipped at 0), Tukey-lambda read noise, one
+    Gaussian offset per row, the fixed per-CFA-position bias, rounding to DN,
+    black level 512 and clipping to [0, WHITE_LEVEL].
+    """
+    e = np.maximum(np.asarray(electrons_bayer, np.float64), 0.0)
+    h, w = e.shape
+    dn = params.k_gain * rng.poisson(e).astype(np.float64)
+    dn += tukey_lambda(rng, (h, w), params.tl_lambda, params.read_sigma)
+    dn += rng.normal(0.0, params.row_sigma, (h, 1))
+    bias = np.asarray(params.bias, np.float64)
+    dn += bias[np.arange(h)[:, None] % 2, np.arange(w)[None, :] % 2]
+    dn = np.round(dn) + BLACK_LEVEL
+    return np.clip(dn, 0, WHITE_LEVEL).astype(np.uint16)
+
+
+def grey_world_neutral(rgb_cam: np.ndarray) -> np.ndarray:
+    """AsShotNeutral a camera's grey-world AWB would record: (3,) channel means / green mean.
+
+    rgb_cam: (..., 3) clean camera signal. Clipped to [0.02, 50] so the tag stays valid.
+    """
+    means = np.asarray(rgb_cam, np.float64).reshape(-1, 3).mean(axis=0)
+    return np.clip(means / max(means[1], 1e-12), 0.02, 50.0)
