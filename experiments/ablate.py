@@ -35,13 +35,31 @@ def main() -> None:
         baseline = m["summary"].get("baseline_dark_frame", baseline)
         for method in ("gridnerf", "gridnerf_matrix_free"):
             s = m["summary"][method]
-            rows.append([name, method, fmt(s["psnr"]), fmt(s["ssim"], 3), fmt(s["delta_e"]),
-                         fmt(s["psnr_aligned"]), fmt(s["ssim_aligned"], 3),
-                         fmt(m["train_seconds"], 0)])
+            rows.append(
+                [
+                    name,
+                    method,
+                    fmt(s["psnr"]),
+                    fmt(s["ssim"], 3),
+                    fmt(s["delta_e"]),
+                    fmt(s["psnr_aligned"]),
+                    fmt(s["ssim_aligned"], 3),
+                    fmt(m["train_seconds"], 0),
+                ]
+            )
     if baseline:
-        rows.append(["dark frame: demosaic+grey-world+gamma", "-", fmt(baseline["psnr"]),
-                     fmt(baseline["ssim"], 3), fmt(baseline["delta_e"]),
-                     fmt(baseline["psnr_aligned"]), fmt(baseline["ssim_aligned"], 3), "-"])
+        rows.append(
+            [
+                "dark frame: demosaic+grey-world+gamma",
+                "-",
+                fmt(baseline["psnr"]),
+                fmt(baseline["ssim"], 3),
+                fmt(baseline["delta_e"]),
+                fmt(baseline["psnr_aligned"]),
+                fmt(baseline["ssim_aligned"], 3),
+                "-",
+            ]
+        )
     table = markdown_table(
         ["variant", "output", "PSNR", "SSIM", "CIEDE2000", "PSNR al.", "SSIM al.", "train s"], rows
     )

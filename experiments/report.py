@@ -36,15 +36,41 @@ def table_for(preset: str, metrics: dict[str, dict]) -> str:
                 continue
             for k in cols:
                 cols[k].append(s[k])
-            rows.append([scene, fmt(s["psnr"]), fmt(s["ssim"], 3), m.get("lpips", "n/a"),
-                         fmt(s["delta_e"]), fmt(s["psnr_aligned"]), fmt(m["train_seconds"], 0),
-                         fmt(m["rays_per_second"], 0)])
+            rows.append(
+                [
+                    scene,
+                    fmt(s["psnr"]),
+                    fmt(s["ssim"], 3),
+                    m.get("lpips", "n/a"),
+                    fmt(s["delta_e"]),
+                    fmt(s["psnr_aligned"]),
+                    fmt(m["train_seconds"], 0),
+                    fmt(m["rays_per_second"], 0),
+                ]
+            )
         if rows:
-            rows.append(["**mean**", fmt(np.mean(cols["psnr"])), fmt(np.mean(cols["ssim"]), 3),
-                         "n/a", fmt(np.mean(cols["delta_e"])), fmt(np.mean(cols["psnr_aligned"])),
-                         "", ""])
-            header = ["scene", "PSNR", "SSIM", "LPIPS", "CIEDE2000", "PSNR al.", "train s",
-                      "rays/s"]
+            rows.append(
+                [
+                    "**mean**",
+                    fmt(np.mean(cols["psnr"])),
+                    fmt(np.mean(cols["ssim"]), 3),
+                    "n/a",
+                    fmt(np.mean(cols["delta_e"])),
+                    fmt(np.mean(cols["psnr_aligned"])),
+                    "",
+                    "",
+                ]
+            )
+            header = [
+                "scene",
+                "PSNR",
+                "SSIM",
+                "LPIPS",
+                "CIEDE2000",
+                "PSNR al.",
+                "train s",
+                "rays/s",
+            ]
             out.append(f"### {label}\n\n{markdown_table(header, rows)}\n")
     return "\n".join(out)
 
@@ -53,7 +79,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default=None, help="only this preset (default: all found)")
     ap.add_argument(
-        "--run-missing", default="", help="scenes to train first: a,b,c or all",
+        "--run-missing",
+        default="",
+        help="scenes to train first: a,b,c or all",
     )
     args = ap.parse_args()
     names = [s for s in args.run_missing.split(",") if s]

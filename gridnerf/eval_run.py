@@ -181,3 +181,65 @@ def _gt(scene, name: str, h: int, w: int):
             )
         gt_linear = raw.downscale(gt_linear, factor)
     return gt_linear
+
+
+def camera_path(scene, kind: str, n_frames: int) -> np.ndarray:
+    """(n, 3, 4) camera-to-world poses around the capture (normalised world).
+
+    spiral: LLFF-style spiral around the mean camera, looking at the focus point
+    (the mean of near and far along the mean view); ellipse: a flat ellipse in
+    the mean camera's image plane; radii from the 90th percentile of camera offsets.
+    """
+    c2w = scene.cameras.c2w
+    centre = c2w[:, :, 3].mean(0)
+    rot = c2w[:, :, :3].mean(0)
+    u, _, vt = np.linalg.svd(rot)
+    rot = u @ vt
+    focus = centre - rot[:, 2] * 0.5 * (scene.near + scene.far) * 0.5
+    offsets = (c2w[:, :, 3] - centre) @ rot
+    radii = np.percentile(np.abs(offsets), 90, axis=0) + 1e-3
+    t = np.linspace(0.0, 2 * np.pi, n_frames, endpoint=False)
+    if kind == "spiral":
+        local = np.stack(
+            [np.cos(t) * radii[0], -np.sin(t) * radii[1], np.sin(0.5 * t) * radii[2]], 1
+        )
+    else:
+        local = np.stack([np.cos(t) * radii[0], np.sin(t) * radii[1], np.zeros_like(t)], 1)
+    poses = []
+    for p in centre + local @ rot.T:
+        back = p - focus
+        back /= np.linalg.norm(back)
+        right = np.cross(rot[:, 1], back)
+        right /= np.linalg.norm(right)
+        up = np.cross(back, right)
+        poses.append(np.stack([right, up, back, p], 1))
+    return np.stack(poses)
+
+
+def render_run(run: Path, path: str = "spiral", n_frames: int = 60) -> Path:
+    """Render test views (`path='test'`) or a camera path to run/render/: PNG, EXR, mp4."""
+    cfg, scene, structure, params, _ = load_run(run)
+    alphas = exposures(structure, params, scene, cfg)
+    which = "matrix" if cfg.output.use_color_matrix else "matrix_free"
+    matrix = exposure.display_matrix(scene.xyz_to_cam, cfg.output.use_color_matrix)
+    cams = scene.cameras
+    ds = cfg.data.eval_downscale
+    h, w = cams.height // ds, cams.width // ds
+    intr0 = np.array([cams.fx[0], cams.fy[0], cams.cx[0], cams.cy[0]]) / ds
+    if path == "test":
+        views = [(scene.names[i], cams.c2w[i]) for i in scene.test_idx]
+    else:
+        views = [(f"{path}_{k:03d}", p) for k, p in enumerate(camera_path(scene, path, n_frames))]
+    out_dir = run / "render"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    frames = []
+    for name, c2w in views:
+        out = render_view(structure, params, scene, cfg, c2w, intr0, h, w)
+        rgb_cam = out["rgb_restored"] if cfg.loss.use_gains else out["rgb_low"]
+        rgb_linear, rgb_srgb = exposure.to_display(rgb_cam, alphas[which], matrix)
+        image_io.write_png(out_dir / f"{name}.png", rgb_srgb)
+        image_io.write_exr(out_dir / f"{name}.exr", rgb_linear)
+        frames.append(rgb_srgb)
+    video = out_dir / f"{path}.mp4"
+    image_io.write_mp4(video, frames, fps=30)
+    return video
