@@ -223,7 +223,11 @@ def _read_near_far(meta: dict, path) -> tuple[float, float] | None:
 
 
 def write_transforms(path, cams: Cameras, train_names, test_names, near_far=None) -> None:
-    """Write cams as a nerfstudio transforms.json (atomic). file_path is raw/<name>.dng."""
+    """Write cams as a nerfstudio transforms.json (atomic). file_path is raw/<name>.dng.
+
+    train_names/test_names: stems; both None writes no split (the loader then takes every
+    8th frame as a test frame). near_far: (near, far) in world units or None.
+    """
     path = Path(path)
     shared = all(np.allclose(a, a[0]) for a in (cams.fx, cams.fy, cams.cx, cams.cy))
     meta: dict = {"camera_model": "OPENCV", "w": cams.width, "h": cams.height}
@@ -240,8 +244,9 @@ def write_transforms(path, cams: Cameras, train_names, test_names, near_far=None
                          cx=float(cams.cx[i]), cy=float(cams.cy[i]))
         frames.append(frame)
     meta["frames"] = frames
-    meta["train_filenames"] = [f"raw/{n}.dng" for n in train_names]
-    meta["test_filenames"] = [f"raw/{n}.dng" for n in test_names]
+    if train_names is not None or test_names is not None:
+        meta["train_filenames"] = [f"raw/{n}.dng" for n in train_names or []]
+        meta["test_filenames"] = [f"raw/{n}.dng" for n in test_names or []]
     if near_far is not None:
         meta["near_far"] = [float(near_far[0]), float(near_far[1])]
     tmp = path.with_name(path.name + ".tmp")
@@ -255,6 +260,7 @@ def load_colmap(sparse_dir, names=None) -> tuple[Cameras, np.ndarray]:
     names: frame stems to return, in that order (PoseError if one is not registered);
     None returns every registered image sorted by name. OpenCV world-to-camera poses
     become OpenGL camera-to-world. Distortion parameters are ignored (module docstring).
+    points3d keeps the points seen by 3+ images when the model has any.
     """
     import pycolmap
 
@@ -294,6 +300,9 @@ def load_colmap(sparse_dir, names=None) -> tuple[Cameras, np.ndarray]:
                          "use previews of one size")
     (w, h), intr = sizes.pop(), np.stack(intr)
     points = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
+    track = np.array([p.track.length() for p in rec.points3D.values()], dtype=int)
+    if np.any(track >= 3):  # two-view points of small-baseline captures are the noisiest
+        points = points[track >= 3]
     cams = make_cameras(names, np.stack(c2w), intr[:, 0], intr[:, 1], intr[:, 2], intr[:, 3], w, h)
     return cams, points
 

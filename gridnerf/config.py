@@ -25,8 +25,8 @@ class GridConfig:
     # Coarse-to-fine vertex resolutions (x, y, z); one stage per entry.
     resolutions: tuple[tuple[int, int, int], ...] = ((64, 64, 32), (128, 128, 64))
     sh_degree: int = 0  # spherical-harmonic degree of the low-light colour (0 = no view dependence)
-    init_density: float = 0.1  # raw density of every vertex at initialisation
-    prune_threshold: float = 0.02  # prune vertices whose alpha (sigma * step) falls below this
+    init_density: float = -4.0  # raw density at init (softplus: sigma 0.018 per voxel)
+    prune_threshold: float = 0.01  # prune vertices whose alpha over half a voxel is below this
     prune_dilate: int = 1  # keep this many vertices around survivors when pruning
     occupancy_threshold: float = 0.005  # cells whose max alpha is below this are skipped
     occupancy_every: int = 100  # refresh the empty-space bitmask every this many steps

@@ -12,7 +12,7 @@ ratio), and negative values are kept.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import jax
 import jax.numpy as jnp
@@ -36,8 +36,8 @@ class RayData:
     white: jax.Array  # (N,) white level (mosaic)
     inv_exposure: jax.Array  # (N,) 1 / relative exposure of each frame
     cfa: jax.Array  # (2, 2) int32 colour index per CFA position
-    mosaic: bool = jax.tree_util.field(default=False, metadata=dict(static=True))  # type: ignore
-    ndc: bool = jax.tree_util.field(default=True, metadata=dict(static=True))  # type: ignore
+    mosaic: bool = field(default=False, metadata={"static": True})
+    ndc: bool = field(default=True, metadata={"static": True})
 
     @property
     def image_hw(self) -> tuple[int, int]:

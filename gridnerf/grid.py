@@ -145,7 +145,7 @@ def _cells_to_blocks(cells: np.ndarray, f: int) -> np.ndarray:
 
 
 def init_grid(resolution, bbox_min, bbox_max, sh_degree: int = 0, init_density: float = -4.0,
-              init_log_gain=np.zeros(3), key=None, color_scale: float = 1.0,
+              init_log_gain=(0.0, 0.0, 0.0), key=None, color_scale: float = 1.0,
               occ_factor: int = 1, init_rgb_noise: float = 0.0):
     """Dense grid, every vertex occupied -> (structure, params).
 

@@ -64,8 +64,9 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
     """Total loss and its terms for one batch of (P, p, p) ray patches."""
     shape = rays["target"].shape  # (P, p, p, 3)
     flat = {k: v.reshape(-1, 3) for k, v in rays.items()}
+    k0, key = jax.random.split(key)
     out = render.render_rays(
-        structure, params, flat["origins"], flat["directions"], near_t, far_t, cfg.render
+        structure, params, flat["origins"], flat["directions"], near_t, far_t, cfg.render, key=k0
     )
     terms = {"data": losses.data_loss(out["rgb_low"], flat["target"], flat["mask"])}
     lc = cfg.loss
@@ -128,23 +129,20 @@ def data_statistics(data: dataset.RayData, key, n_patches: int = 256) -> tuple[f
 
 
 def save_state(run: Path, structure, params, opt_state, header: dict) -> None:
+    """Atomic checkpoint: grid layout + params, optimiser state, progress header."""
+    state = grid.to_state(structure, params)
+    keys = sorted(state)
     checkpoint.save(
         run / CHECKPOINT,
-        {
-            "structure": grid.structure_to_arrays(structure),
-            "params": checkpoint.flatten(params),
-            "opt_state": checkpoint.flatten(opt_state),
-        },
-        header,
+        {"grid": [state[k] for k in keys], "opt_state": checkpoint.flatten(opt_state)},
+        {**header, "grid_keys": keys},
     )
 
 
 def load_state(run: Path):
     """(structure, params, opt_leaves, header) from the run's checkpoint."""
     groups, header = checkpoint.load(run / CHECKPOINT)
-    structure = grid.structure_from_arrays(groups["structure"])
-    params = dict(zip(["density", "log_gain", "rgb"], groups["params"], strict=True))
-    params = {k: jnp.asarray(v) for k, v in params.items()}
+    structure, params = grid.from_state(dict(zip(header["grid_keys"], groups["grid"], strict=True)))
     return structure, params, groups.get("opt_state", []), header
 
 
@@ -181,7 +179,9 @@ def train(scene_dir: Path, run: Path, cfg: Config) -> dict:
     rays_per_step = cfg.train.batch_patches * cfg.train.patch_size**2
     total_steps = sum(s for _, s in stages)
     done_before = sum(s for _, s in stages[:stage]) + start
-    bar = tqdm(total=total_steps, initial=done_before, unit="step", dynamic_ncols=True)
+    bar = tqdm(
+        total=total_steps, initial=done_before, unit="step", dynamic_ncols=True, mininterval=2.0
+    )
     rate = 0.0
     while stage < len(stages):
         res, steps = stages[stage]
@@ -215,7 +215,10 @@ def train(scene_dir: Path, run: Path, cfg: Config) -> dict:
             if (step + 1) % cfg.grid.occupancy_every == 0:
                 structure = grid.update_occupancy(structure, params, cfg.grid.occupancy_threshold)
             now = time.perf_counter()
-            rate = steps_timed * rays_per_step / max(now - t_stage, 1e-9)
+            if steps_timed == 1:  # the first step of a stage includes compilation
+                t_rate = now
+            else:
+                rate = (steps_timed - 1) * rays_per_step / max(now - t_rate, 1e-9)
             bar.update(1)
             bar.set_postfix(stage=stage, loss=f"{loss:.4g}", rays_s=f"{rate:,.0f}")
             if (step + 1) % cfg.train.log_every == 0 or step + 1 == steps:

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 T_EPS = 1e-6  # smallest accepted hit distance (shadow rays start offset from the surface)
+GROUP_RADIUS = 3.0  # primitives with smaller bounding spheres are culled as one group
 
 
 @dataclass(frozen=True, eq=False)
@@ -108,13 +109,19 @@ def tube(points, radius: float, material) -> list[Primitive]:
 
 
 def _to_local(prim: Primitive, origins: np.ndarray, dirs: np.ndarray):
+    if np.array_equal(prim.rot, np.eye(3)):
+        return origins - prim.center, dirs
     o = (origins - prim.center) @ prim.rot
     d = dirs @ prim.rot
     return o, d
 
 
-def _ellipsoid(prim: Primitive, o: np.ndarray, d: np.ndarray):
-    """Nearest hit with the ellipsoid; returns t (inf = miss), local normal, uv, face."""
+# Each kind has a hit test `(prim, o, d) -> (t (N,), face (N,) int)` in the local frame
+# (t = inf for a miss) and a surface function `(prim, p, face) -> (normal, uv, face)` at
+# local hit points p, evaluated only for the rays a primitive finally wins.
+
+
+def _ellipsoid_hit(prim: Primitive, o: np.ndarray, d: np.ndarray):
     r = np.asarray(prim.size, np.float64)
     os_, ds = o / r, d / r
     a = np.einsum("ij,ij->i", ds, ds)
@@ -124,48 +131,56 @@ def _ellipsoid(prim: Primitive, o: np.ndarray, d: np.ndarray):
     sq = np.sqrt(np.maximum(disc, 0.0))
     t0, t1 = (-b - sq) / a, (-b + sq) / a
     t = np.where(t0 > T_EPS, t0, np.where(t1 > T_EPS, t1, np.inf))
-    t = np.where(disc >= 0.0, t, np.inf)
-    p = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
-    n = p / (r * r)
+    return np.where(disc >= 0.0, t, np.inf), np.zeros(len(t), np.int64)
+
+
+def _ellipsoid_surface(prim: Primitive, p: np.ndarray, face: np.ndarray):
+    r = np.asarray(prim.size, np.float64)
     q = p / r
     u = np.arctan2(q[:, 2], q[:, 0]) / (2.0 * np.pi) + 0.5
     v = 1.0 - np.arccos(np.clip(q[:, 1], -1.0, 1.0)) / np.pi
-    return t, n, np.stack([u, v], -1), np.zeros(len(t), np.int64)
+    return p / (r * r), np.stack([u, v], -1), face
 
 
-def _box(prim: Primitive, o: np.ndarray, d: np.ndarray):
-    """Slab test; face index 0..5 = -x, +x, -y, +y, -z, +z."""
+def _box_hit(prim: Primitive, o: np.ndarray, d: np.ndarray):
+    """Slab test."""
     h = np.asarray(prim.size, np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = 1.0 / d
         ta, tb = (-h - o) * inv, (h - o) * inv
-    tmin, tmax = np.minimum(ta, tb), np.maximum(ta, tb)
-    tmin = np.nan_to_num(tmin, nan=-np.inf)
-    tmax = np.nan_to_num(tmax, nan=np.inf)
+    tmin = np.nan_to_num(np.minimum(ta, tb), nan=-np.inf)
+    tmax = np.nan_to_num(np.maximum(ta, tb), nan=np.inf)
     t_near, t_far = tmin.max(axis=1), tmax.min(axis=1)
     ok = t_far >= np.maximum(t_near, T_EPS)
     t = np.where(ok, np.where(t_near > T_EPS, t_near, t_far), np.inf)
-    p = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
-    q = np.clip(p / h, -1.0, 1.0)
+    return t, np.zeros(len(t), np.int64)
+
+
+def _box_surface(prim: Primitive, p: np.ndarray, face: np.ndarray):
+    """Face index 0..5 = -x, +x, -y, +y, -z, +z (from the hit point)."""
+    q = np.clip(p / np.asarray(prim.size, np.float64), -1.0, 1.0)
+    rows = np.arange(len(q))
     axis = np.argmax(np.abs(q), axis=1)
-    sign = np.sign(q[np.arange(len(q)), axis])
+    sign = np.sign(q[rows, axis])
     n = np.zeros_like(p)
-    n[np.arange(len(q)), axis] = sign
-    face = 2 * axis + (sign > 0)
+    n[rows, axis] = sign
     # uv on each face: x-faces use (z, y), y-faces (x, z), z-faces (x, y); u right, v up.
     uv_axes = np.array([[2, 1], [0, 2], [0, 1]])[axis]
     uv = (np.take_along_axis(q, uv_axes, axis=1) + 1.0) * 0.5
-    return t, n, uv, face
+    return n, uv, 2 * axis + (sign > 0)
 
 
-def _frustum(prim: Primitive, o: np.ndarray, d: np.ndarray):
+def _frustum_coeffs(prim: Primitive):
+    r0, hh, r1 = (float(x) for x in prim.size)
+    return r0, hh, r1, (r1 - r0) / (2.0 * hh), 0.5 * (r0 + r1)
+
+
+def _frustum_hit(prim: Primitive, o: np.ndarray, d: np.ndarray):
     """Truncated cone x^2 + z^2 = (a + b y)^2, |y| <= hh, with optional caps.
 
     face 0 = side, 1 = bottom cap, 2 = top cap.
     """
-    r0, hh, r1 = (float(x) for x in prim.size)
-    b = (r1 - r0) / (2.0 * hh)
-    a = 0.5 * (r0 + r1)
+    r0, hh, r1, b, a = _frustum_coeffs(prim)
     ra = a + b * o[:, 1]
     qa = d[:, 0] ** 2 + d[:, 2] ** 2 - (b * d[:, 1]) ** 2
     qb = o[:, 0] * d[:, 0] + o[:, 2] * d[:, 2] - b * ra * d[:, 1]
@@ -175,10 +190,10 @@ def _frustum(prim: Primitive, o: np.ndarray, d: np.ndarray):
     with np.errstate(divide="ignore", invalid="ignore"):
         roots = np.stack([(-qb - sq) / qa, (-qb + sq) / qa], axis=1)
     roots = np.where((disc >= 0.0)[:, None] & np.isfinite(roots), roots, np.inf)
-    y = o[:, 1:2] + roots * d[:, 1:2]
-    valid = (roots > T_EPS) & (np.abs(y) <= hh) & (a + b * y >= 0.0)
-    t_side = np.where(valid, roots, np.inf).min(axis=1)
-    cands = [t_side]
+    with np.errstate(invalid="ignore"):  # inf * 0 for missed roots of axis-parallel rays
+        y = o[:, 1:2] + roots * d[:, 1:2]
+        valid = (roots > T_EPS) & (np.abs(y) <= hh) & (a + b * y >= 0.0)
+    cands = [np.where(valid, roots, np.inf).min(axis=1)]
     for k, (yc, rc) in enumerate(((-hh, r0), (hh, r1))):
         if not prim.caps[k]:
             cands.append(np.full(len(o), np.inf))
@@ -190,33 +205,54 @@ def _frustum(prim: Primitive, o: np.ndarray, d: np.ndarray):
         cands.append(np.where((tc > T_EPS) & inside, tc, np.inf))
     cands = np.stack(cands, axis=1)
     face = np.argmin(cands, axis=1)
-    t = cands[np.arange(len(o)), face]
-    p = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+    return cands[np.arange(len(o)), face], face
+
+
+def _frustum_surface(prim: Primitive, p: np.ndarray, face: np.ndarray):
+    r0, hh, r1, b, a = _frustum_coeffs(prim)
+    side = (face == 0)[:, None]
     n_side = np.stack([p[:, 0], -b * (a + b * p[:, 1]), p[:, 2]], axis=1)
     n_cap = np.zeros_like(p)
     n_cap[:, 1] = np.where(face == 1, -1.0, 1.0)
-    n = np.where((face == 0)[:, None], n_side, n_cap)
     u_side = np.arctan2(p[:, 2], p[:, 0]) / (2.0 * np.pi) + 0.5
     v_side = (p[:, 1] + hh) / (2.0 * hh)
-    rmax = max(r0, r1, 1e-9)
-    uv_cap = np.stack([p[:, 0], p[:, 2]], axis=1) / (2.0 * rmax) + 0.5
-    uv = np.where((face == 0)[:, None], np.stack([u_side, v_side], 1), uv_cap)
-    return t, n, uv, face
+    uv_cap = np.stack([p[:, 0], p[:, 2]], axis=1) / (2.0 * max(r0, r1, 1e-9)) + 0.5
+    uv = np.where(side, np.stack([u_side, v_side], 1), uv_cap)
+    return np.where(side, n_side, n_cap), uv, face
 
 
-_INTERSECT = {"ellipsoid": _ellipsoid, "box": _box, "frustum": _frustum}
+_HIT = {"ellipsoid": _ellipsoid_hit, "box": _box_hit, "frustum": _frustum_hit}
+_SURFACE = {"ellipsoid": _ellipsoid_surface, "box": _box_surface, "frustum": _frustum_surface}
 
 
-def _candidates(prim: Primitive, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    """Indices of rays that pass within the primitive's bounding sphere (ahead of origin)."""
-    r = prim.bound_radius()
-    oc = origins - prim.center
-    a = np.einsum("ij,ij->i", dirs, dirs)
+def _sphere_candidates(center: np.ndarray, radius: float, origins: np.ndarray,
+                       dirs: np.ndarray, dd: np.ndarray) -> np.ndarray:
+    """Indices of rays (dd = |dirs|^2) that pass within a sphere, ahead of their origin."""
+    oc = origins - center
     b = np.einsum("ij,ij->i", oc, dirs)
-    c = np.einsum("ij,ij->i", oc, oc) - r * r
-    disc = b * b - a * c
-    far = (-b + np.sqrt(np.maximum(disc, 0.0))) / a
-    return np.nonzero((disc >= 0.0) & (far > T_EPS))[0]
+    c = np.einsum("ij,ij->i", oc, oc) - radius * radius
+    disc = b * b - dd * c
+    return np.nonzero((disc >= 0.0) & ((disc > b * np.abs(b)) | (b < 0.0)))[0]
+
+
+def _culled(prims: list[Primitive], origins: np.ndarray, dirs: np.ndarray):
+    """Yield (k, prim, ray indices near prim). Small primitives share one bounding sphere,
+    tested once, so their own tests only see the rays that come near the group."""
+    dd = np.einsum("ij,ij->i", dirs, dirs)
+    radii = np.array([p.bound_radius() for p in prims])
+    centers = np.array([p.center for p in prims], np.float64).reshape(-1, 3)
+    small = radii < GROUP_RADIUS
+    near = np.arange(len(origins))
+    if small.any():
+        g_center = centers[small].mean(axis=0)
+        g_radius = float(np.max(np.linalg.norm(centers[small] - g_center, axis=1) + radii[small]))
+        near = _sphere_candidates(g_center, g_radius, origins, dirs, dd)
+    o_near, d_near, dd_near = origins[near], dirs[near], dd[near]
+    for k, prim in enumerate(prims):
+        if small[k]:
+            yield k, prim, near[_sphere_candidates(prim.center, radii[k], o_near, d_near, dd_near)]
+        else:
+            yield k, prim, _sphere_candidates(prim.center, radii[k], origins, dirs, dd)
 
 
 def cast(prims: list[Primitive], origins: np.ndarray, dirs: np.ndarray) -> Hits:
@@ -230,29 +266,27 @@ def cast(prims: list[Primitive], origins: np.ndarray, dirs: np.ndarray) -> Hits:
     n = len(origins)
     t_best = np.full(n, np.inf)
     prim_best = np.full(n, -1, np.int64)
-    normal = np.zeros((n, 3))
-    p_local = np.zeros((n, 3))
-    uv_best = np.zeros((n, 2))
     face_best = np.zeros(n, np.int64)
-    for k, prim in enumerate(prims):
-        idx = _candidates(prim, origins, dirs)
+    for k, prim, idx in _culled(prims, origins, dirs):
         if idx.size == 0:
             continue
-        o, d = _to_local(prim, origins[idx], dirs[idx])
-        t, n_local, uv, face = _INTERSECT[prim.kind](prim, o, d)
+        t, face = _HIT[prim.kind](prim, *_to_local(prim, origins[idx], dirs[idx]))
         closer = t < t_best[idx]
         sel = idx[closer]
         t_best[sel] = t[closer]
         prim_best[sel] = k
-        normal[sel] = n_local[closer] @ prim.rot.T
-        p_local[sel] = o[closer] + t[closer][:, None] * d[closer]
-        uv_best[sel] = uv[closer]
         face_best[sel] = face[closer]
+    normal = np.zeros((n, 3))
     albedo = np.zeros((n, 3))
     for k, prim in enumerate(prims):
         sel = np.nonzero(prim_best == k)[0]
-        if sel.size:
-            albedo[sel] = prim.material(p_local[sel], uv_best[sel], face_best[sel])
+        if sel.size == 0:
+            continue
+        o, d = _to_local(prim, origins[sel], dirs[sel])
+        p_local = o + t_best[sel, None] * d
+        n_local, uv, face = _SURFACE[prim.kind](prim, p_local, face_best[sel])
+        normal[sel] = n_local @ prim.rot.T
+        albedo[sel] = prim.material(p_local, uv, face)
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
     facing = np.einsum("ij,ij->i", normal, dirs) > 0.0
     normal[facing] *= -1.0
@@ -266,12 +300,11 @@ def occluded(prims: list[Primitive], origins: np.ndarray, dirs: np.ndarray) -> n
     origins = np.asarray(origins, np.float64)
     dirs = np.asarray(dirs, np.float64)
     blocked = np.zeros(len(origins), bool)
-    for prim in prims:
-        idx = _candidates(prim, origins, dirs)
+    for _, prim, idx in _culled(prims, origins, dirs):
         idx = idx[~blocked[idx]]
         if idx.size == 0:
             continue
         o, d = _to_local(prim, origins[idx], dirs[idx])
-        t = _INTERSECT[prim.kind](prim, o, d)[0]
+        t = _HIT[prim.kind](prim, o, d)[0]
         blocked[idx[np.isfinite(t)]] = True
     return blocked

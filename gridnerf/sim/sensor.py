@@ -9,6 +9,13 @@ Pipeline for one view (REFERENCE.md section 3):
      + black level 512, clipped to [0, 16383] -> uint16.
 The per-CFA-position black-level `bias` is an unknown sensor offset: it is NOT in the
 DNG BlackLevel tag (which says 512), exactly like a real sensor's drift.
+
+`preview_srgb` is the camera's in-body JPEG pipeline for the `images/` previews:
+subtract the black level it knows (the tag, not the unknown bias), demosaic by 2x2
+binning, grey-world auto white balance, camera -> sRGB matrix, light noise reduction
+(a small Gaussian, which is what lets feature matching work on dark frames), digital
+gain to a normal brightness, upsample to full size, sRGB curve. It stays visibly
+noisy and is used for pose estimation only, never as a reference.
 """
 
 from __future__ import annotations
@@ -16,6 +23,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.ndimage
+import skimage.transform
 
 from gridnerf.color import (
     CAMERA_XYZ_TO_CAM,
@@ -23,6 +32,9 @@ from gridnerf.color import (
     XYZ_FROM_SRGB,
     blackbody_xyz_white,
     chromatic_adaptation,
+    luminance,
+    srgb_encode,
+    srgb_from_cam,
 )
 
 BLACK_LEVEL = 512
@@ -143,3 +155,55 @@ def grey_world_neutral(rgb_cam: np.ndarray) -> np.ndarray:
     """
     means = np.asarray(rgb_cam, np.float64).reshape(-1, 3).mean(axis=0)
     return np.clip(means / max(means[1], 1e-12), 0.02, 50.0)
+
+
+# ---------------------------------------------------------------- in-camera JPEG preview
+
+PREVIEW_MEAN_LUMINANCE = 0.18
+
+
+def bin2x2(raw_norm: np.ndarray, cfa: np.ndarray) -> np.ndarray:
+    """Half-resolution demosaic: raw_norm (H, W) -> rgb_cam (H // 2, W // 2, 3).
+
+    Each output pixel averages the photosites of each colour in one 2x2 CFA block
+    (the two greens are averaged). Odd trailing rows/columns are dropped.
+    """
+    h2, w2 = raw_norm.shape[0] // 2, raw_norm.shape[1] // 2
+    blocks = raw_norm[: 2 * h2, : 2 * w2].reshape(h2, 2, w2, 2)
+    rgb_cam = np.zeros((h2, w2, 3), np.float64)
+    count = np.zeros(3)
+    for dy in range(2):
+        for dx in range(2):
+            c = int(cfa[dy, dx])
+            rgb_cam[..., c] += blocks[:, dy, :, dx]
+            count[c] += 1
+    return rgb_cam / count
+
+
+def preview_srgb(raw_bayer: np.ndarray, cfa: np.ndarray, black_level: np.ndarray,
+                 white_level: int, xyz_to_cam: np.ndarray, nr_sigma: float = 0.8) -> np.ndarray:
+    """Camera-style preview of one dark frame.
+
+    raw_bayer: (H, W) uint16 mosaic; cfa: (2, 2) colour index per CFA position;
+    black_level: (2, 2) per CFA position (as in the DNG); xyz_to_cam: (3, 3).
+    Returns rgb_srgb: (H, W, 3) float32 in [0, 1].
+    """
+    h, w = raw_bayer.shape
+    black = np.asarray(black_level, np.float64)
+    black_map = np.tile(black, (h // 2 + 1, w // 2 + 1))[:h, :w]
+    raw_norm = (raw_bayer.astype(np.float64) - black_map) / (white_level - black_map)
+    rgb_cam = bin2x2(raw_norm, cfa)
+    means = np.maximum(rgb_cam.reshape(-1, 3).mean(axis=0), 1e-6)
+    rgb_cam_wb = rgb_cam * (means[1] / means)
+    rgb_linear = rgb_cam_wb @ srgb_from_cam(xyz_to_cam).T
+    if nr_sigma > 0:
+        rgb_linear = scipy.ndimage.gaussian_filter(rgb_linear, (nr_sigma, nr_sigma, 0))
+    gain = PREVIEW_MEAN_LUMINANCE / max(float(luminance(np.maximum(rgb_linear, 0)).mean()), 1e-6)
+    rgb_linear = np.clip(rgb_linear * gain, 0.0, 1.0)
+    rgb_linear = skimage.transform.resize(rgb_linear, (h, w, 3), order=1, mode="edge")
+    return srgb_encode(rgb_linear).astype(np.float32)
+
+
+def to_uint8(rgb_srgb: np.ndarray) -> np.ndarray:
+    """(H, W, 3) float in [0, 1] -> uint8, rounded."""
+    return np.round(np.clip(rgb_srgb, 0.0, 1.0) * 255.0).astype(np.uint8)

@@ -117,34 +117,42 @@ def checker(c1: Sequence[float], c2: Sequence[float], n: tuple[int, int] = (8, 8
 
 
 def stripes(colors: Sequence[Sequence[float]], n: float = 8.0, angle_deg: float = 0.0,
-            wobble: float = 0.0) -> Material:
+            wobble: float = 0.0, grain: float = 0.0, seed: int = 0) -> Material:
     """Bands cycling through `colors`, `n` bands per uv unit, tilted by `angle_deg`.
 
-    wobble > 0 bends the bands with a sine (a wood-grain-like look).
+    wobble > 0 bends the bands with a sine; grain > 0 darkens them by up to that
+    fraction with fine random streaks (together: a wood-like look).
     """
     cols = np.stack([_linear(c) for c in colors])
     ang = np.deg2rad(angle_deg)
+    streaks = np.random.default_rng(seed).random((256, 64, 1))
 
     def m(p_local, uv, face):
         s = uv[:, 0] * np.cos(ang) + uv[:, 1] * np.sin(ang)
         s = s + wobble * np.sin(2 * np.pi * (3.0 * uv[:, 1] + 1.7 * uv[:, 0]))
         k = np.floor(s * n).astype(np.int64) % len(cols)
-        return cols[k]
+        out = cols[k]
+        if grain > 0:
+            out = out * (1.0 - grain * _bilinear_wrap(streaks, 4.0 * s, 2.0 * uv[:, 1]))
+        return out
 
     return m
 
 
-def noise(c1: Sequence[float], c2: Sequence[float], cells: int = 12, seed: int = 0) -> Material:
-    """Smooth value noise blending two colours (two octaves, tiled over the uv square)."""
+def noise(c1: Sequence[float], c2: Sequence[float], cells: int = 12, seed: int = 0,
+          octaves: int = 4) -> Material:
+    """Fractal value noise blending two colours (`octaves` octaves from `cells` cells per
+    uv unit up, each half the size and weight of the one before), tiled over uv."""
     a, b = _linear(c1), _linear(c2)
     rng = np.random.default_rng(seed)
-    g1 = rng.random((cells, cells, 1))
-    g2 = rng.random((2 * cells, 2 * cells, 1))
+    grids = [rng.random((cells * 2**i, cells * 2**i, 1)) for i in range(octaves)]
+    weights = 0.5 ** np.arange(octaves)
+    weights /= weights.sum()
 
     def m(p_local, uv, face):
         u, v = uv[:, 0], uv[:, 1]
-        f = 0.65 * _bilinear_wrap(g1, u, v) + 0.35 * _bilinear_wrap(g2, u, v)
-        f = np.clip((f - 0.5) * 1.8 + 0.5, 0.0, 1.0)
+        f = sum(wt * _bilinear_wrap(g, u, v) for wt, g in zip(weights, grids, strict=True))
+        f = np.clip((f - 0.5) * 2.2 + 0.5, 0.0, 1.0)
         return a * (1 - f) + b * f
 
     return m

@@ -1,0 +1,132 @@
+"""Losses of Bright-NeRF on the grid (REFERENCE.md section 1, paper eqs. 14-17).
+
+All losses are means (not the paper's sums over rays), so their weights do not depend on
+the batch size. Low-light colours are tiny (~1e-3); every ratio that would otherwise
+depend on that scale is normalised by a stop-gradient batch mean.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+
+from gridnerf import grid as gridlib
+from gridnerf.grid import GridStructure
+
+_TINY = 1e-30
+
+
+def data_loss(rgb_low: jax.Array, target: jax.Array, mask: jax.Array) -> jax.Array:
+    """RawNeRF linearised log-L2 (eq. 16 as RawNeRF implements it).
+
+    rgb_low: (n, 3) rendered low-light camera RGB; target: (n, 3) normalised raw, may be
+    negative (never logged, never clipped); mask: (n, 3) weights, 0 for unmeasured Bayer
+    channels and saturated pixels.
+    Returns sum m (min(C,1) - y)^2 / (sg(min(C,1)) + 1e-3)^2 / sum m, a scalar.
+    """
+    c = jnp.minimum(rgb_low, 1.0)
+    diff = jnp.where(mask > 0, c - target, 0.0)  # masked targets may hold anything, even NaN
+    scaled = diff / (jax.lax.stop_gradient(c) + 1e-3)
+    return jnp.sum(mask * scaled**2) / jnp.maximum(jnp.sum(mask), _TINY)
+
+
+def ca_loss(rgb_low: jax.Array, gain: jax.Array, eps: float = 1e-6,
+            stop_grad_mean: bool = True) -> jax.Array:
+    """Chromatic adaptation loss (eq. 14), averaged over the rays of the batch.
+
+    rgb_low: (n, 3) rendered low-light camera RGB; gain: (n, 3) rendered gains S.
+    Target gain K_avg / Cbar_k (grey world) with Cbar_k the batch mean of channel k,
+    guarded as max(Cbar_k, eps * K_avg + 1e-30): a black channel gives a large finite
+    target, never Inf/NaN. stop_grad_mean: the means are constants (default).
+    """
+    cbar = jnp.mean(rgb_low, axis=0)
+    if stop_grad_mean:
+        cbar = jax.lax.stop_gradient(cbar)
+    k_avg = jnp.mean(cbar)
+    target = k_avg / jnp.maximum(cbar, eps * k_avg + _TINY)
+    return jnp.mean(jnp.sum((target - gain) ** 2, axis=-1)) / 3.0
+
+
+def smooth_loss_patch(gain: jax.Array, rgb: jax.Array, eps: float = 1e-2, gamma1: float = 1.0,
+                      gamma2: float = 1.0, stop_grad_color: bool = True) -> jax.Array:
+    """Local smoothness (eq. 15) on patches of adjacent rays.
+
+    gain: (p, h, w, 3) rendered gains; rgb: (p, h, w, 3) rendered low-light colour.
+    Per neighbour pair: gamma * sum_k dS_k^2 / (|dC|^2 / mu^2 + eps), with dS and dC taken
+    between the *same* neighbours (vertical pairs weighted by gamma1, horizontal by gamma2)
+    as in the edge-aware reading of REFERENCE.md (eq. 15 as printed divides the vertical
+    gain step by the horizontal colour step). mu is the stop-gradient batch mean intensity,
+    so eps is relative to the image level. Colour is a constant here (stop_grad_color):
+    otherwise the loss would reward sharper colour edges. Mean over pairs.
+    """
+    if stop_grad_color:
+        rgb = jax.lax.stop_gradient(rgb)
+    mu2 = jnp.maximum(jax.lax.stop_gradient(jnp.mean(rgb)), 1e-12) ** 2  # float32-safe
+
+    def term(axis: int, gamma: float) -> jax.Array:
+        ds2 = jnp.sum(jnp.diff(gain, axis=axis) ** 2, axis=-1)
+        dc2 = jnp.sum(jnp.diff(rgb, axis=axis) ** 2, axis=-1) / mu2
+        return gamma * jnp.mean(ds2 / (dc2 + eps))
+
+    total = jnp.zeros((), gain.dtype)
+    if gain.shape[1] > 1:
+        total = total + term(1, gamma1)
+    if gain.shape[2] > 1:
+        total = total + term(2, gamma2)
+    return total
+
+
+def _sample_rows(m: int, sample_key, fraction: float) -> jax.Array | None:
+    if sample_key is None or fraction >= 1.0:
+        return None
+    return jax.random.randint(sample_key, (max(1, int(m * fraction)),), 0, m)
+
+
+def _forward_diffs(structure: GridStructure, values: jax.Array, rows) -> jax.Array:
+    """(M, C) -> (r, 3, C): value at the +x/+y/+z neighbour minus own value, 0 if absent."""
+    m = values.shape[0]
+    nb = structure.neighbors if rows is None else structure.neighbors[rows]
+    own_rows = jnp.arange(m, dtype=jnp.int32) if rows is None else rows
+    nb = jnp.where(nb == m, own_rows[:, None], nb)
+    own = values if rows is None else values[rows]
+    return values[nb] - own[:, None, :]
+
+
+def tv_loss(structure: GridStructure, values: jax.Array, eps: float = 1e-8, sample_key=None,
+            fraction: float = 1.0) -> jax.Array:
+    """Plenoxels TV: mean over rows of sum_c sqrt(eps + dx_c^2 + dy_c^2 + dz_c^2).
+
+    values: (M,) or (M, C) compact rows (e.g. params["density"]); differences to the +x,
+    +y, +z neighbours that exist (absent ones count 0). sample_key and fraction < 1: a
+    uniform random subset (with replacement) of int(M * fraction) rows. M = 0 gives 0.
+    """
+    values = values.reshape(values.shape[0], math.prod(values.shape[1:]))
+    m = values.shape[0]
+    if m == 0:
+        return jnp.zeros((), values.dtype)
+    rows = _sample_rows(m, sample_key, fraction)
+    d = _forward_diffs(structure, values, rows)
+    return jnp.mean(jnp.sum(jnp.sqrt(eps + jnp.sum(d**2, axis=1)), axis=-1))
+
+
+def edge_aware_gain_tv(structure: GridStructure, params, scale: float = 0.5, eps: float = 1e-8,
+                       sample_key=None, fraction: float = 1.0) -> jax.Array:
+    """Grid form of the local smoothness loss: TV of log_gain, weighted per vertex by
+    exp(-|grad c| / scale), |grad c| the forward-difference norm of the vertex low-light
+    colour (DC term) divided by its mean over rows, so `scale` is relative. Weights are
+    constants (stop-gradient). Rows sampled as in tv_loss. M = 0 gives 0.
+    """
+    log_gain = params["log_gain"]
+    m = log_gain.shape[0]
+    if m == 0:
+        return jnp.zeros((), log_gain.dtype)
+    rows = _sample_rows(m, sample_key, fraction)
+    n_sh = gridlib.n_sh_coeffs(structure.sh_degree)
+    color = jax.nn.softplus(params["rgb"].reshape(m, 3, n_sh)[..., 0])
+    color = jax.lax.stop_gradient(color / jnp.maximum(jnp.mean(color), _TINY))
+    grad_c = jnp.sqrt(jnp.sum(_forward_diffs(structure, color, rows) ** 2, axis=(1, 2)))
+    weight = jnp.exp(-grad_c / scale)
+    d = _forward_diffs(structure, log_gain, rows)
+    return jnp.mean(weight * jnp.sum(jnp.sqrt(eps + jnp.sum(d**2, axis=1)), axis=-1))

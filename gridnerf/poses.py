@@ -1,0 +1,246 @@
+"""Camera poses from the JPEG previews in images/ with pycolmap (SIFT, exhaustive matching,
+incremental mapping), on the CPU.
+
+Writes `sparse/0` (the largest model, COLMAP binary) and a gridnerf `transforms.json` with
+the registered frames, intrinsics in raw-frame pixels, the previous train/test split (if
+any) and `near_far` from the sparse points. An existing `transforms.json` is first moved
+to `transforms.prev.json`, an existing `sparse/0` to `sparse/0.prev`; the previous poses
+are compared with the new ones (rotation error after the best global rotation, camera
+centre error after a similarity alignment). The shared camera's distortion (SIMPLE_RADIAL
+k) is not written: gridnerf renders pinhole rays.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from gridnerf import cameras as cam_mod
+from gridnerf import raw
+from gridnerf.errors import PoseError, SceneError
+from gridnerf.scene import raw_files
+
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png")
+_FIX = ("brighten the previews in images/ (more gain, stronger denoising) or capture with "
+        "more overlap between neighbouring views, then re-run `gridnerf poses`")
+
+
+def _previews(images_dir: Path) -> dict[str, str]:
+    """stem -> file name of the preview images."""
+    if not images_dir.is_dir():
+        raise PoseError(images_dir, "images/ folder is missing",
+                        "put JPEG previews named like the raw files (images/<name>.jpg) there")
+    return {p.stem: p.name for p in sorted(images_dir.iterdir())
+            if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS}
+
+
+def _run_colmap(images_dir: Path, image_names: list[str], work: Path, camera_model: str,
+                known: tuple[float, float, float, float] | None):
+    """SIFT + exhaustive matching + incremental mapping -> the largest Reconstruction.
+
+    known: (fx, fy, cx, cy) in preview pixels, kept fixed (PINHOLE); None lets COLMAP
+    estimate a shared `camera_model` (EXIF focal or 1.2 x image size as the start).
+    Inlier thresholds scale with the preview size (2 px at 320 px, COLMAP's 4 px from
+    640 px up): on small noisy previews COLMAP's defaults admit enough outliers to bend
+    forward-facing reconstructions by degrees.
+    """
+    import pycolmap
+
+    max_error = float(np.clip(max(_preview_size(images_dir, image_names[0])) / 160.0, 2.0, 4.0))
+
+    db = work / "database.db"
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "PINHOLE" if known else camera_model
+    if known:
+        reader.camera_params = ",".join(f"{x:.6f}" for x in known)
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.peak_threshold = 0.002  # dark, denoised previews have low contrast
+    pycolmap.extract_features(db, images_dir, image_names=image_names,
+                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.guided_matching = True
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = 0
+    verification.ransac.max_error = max_error
+    pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
+                              device=pycolmap.Device.cpu)
+    options = pycolmap.IncrementalPipelineOptions()
+    options.min_model_size = 2
+    options.random_seed = 0
+    options.mapper.random_seed = 0
+    options.triangulation.random_seed = 0
+    # Forward-facing captures have small baselines and few features per preview.
+    options.mapper.init_min_tri_angle = 4.0
+    options.mapper.init_min_num_inliers = 50
+    options.mapper.abs_pose_min_num_inliers = 15
+    options.mapper.init_max_error = max_error
+    options.mapper.abs_pose_max_error = 3.0 * max_error
+    options.mapper.filter_max_reproj_error = max_error
+    if known:
+        options.ba_refine_focal_length = False
+        options.ba_refine_extra_params = False
+        options.mapper.abs_pose_refine_focal_length = False
+        options.mapper.abs_pose_refine_extra_params = False
+    (work / "models").mkdir()
+    models = pycolmap.incremental_mapping(db, images_dir, work / "models", options=options)
+    if not models:
+        return None
+    return max(models.values(), key=lambda rec: rec.num_reg_images())
+
+
+def _preview_size(images_dir: Path, name: str) -> tuple[int, int]:
+    """(width, height) of a preview image, read from its header."""
+    import imageio.v3 as iio
+
+    shape = iio.improps(images_dir / name).shape
+    return int(shape[1]), int(shape[0])
+
+
+def _rotation_fit(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rotation R (3, 3) minimising sum ||a_i - R b_i||^2 for stacked matrices a, b (N, 3, k)."""
+    u, _, vt = np.linalg.svd(np.einsum("nik,njk->ij", a, b))
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Similarity (s, R, t) minimising sum ||dst_i - (s R src_i + t)||^2; src, dst: (N, 3)."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    u, sig, vt = np.linalg.svd(xd.T @ xs / len(src))
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    rot = u @ d @ vt
+    var = (xs**2).sum() / len(src)
+    scale = float(np.trace(np.diag(sig) @ d) / var) if var > 0 else 1.0
+    return scale, rot, mu_d - scale * rot @ mu_s
+
+
+def pose_agreement(prev: cam_mod.Cameras, new: cam_mod.Cameras) -> dict:
+    """Compare new poses with previous ones (frames in both, in any world frame).
+
+    Rotation error: angle of R_prev^T (R_align R_new) per frame, R_align the best global
+    rotation between the two frames' orientations. Position error: camera-centre distance
+    after a similarity (Umeyama) alignment, in previous world units and relative to the
+    mean distance of the previous centres from their centroid.
+    """
+    common = [n for n in new.names if n in prev.names]
+    if len(common) < 3:
+        return {"compared_frames": len(common)}
+    p = prev.take([prev.names.index(n) for n in common]).c2w
+    q = new.take([new.names.index(n) for n in common]).c2w
+    r_align = _rotation_fit(p[:, :, :3], q[:, :, :3])
+    rel = np.einsum("nji,jk,nkl->nil", p[:, :, :3], r_align, q[:, :, :3])
+    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    rot_err = np.degrees(np.arccos(cos))
+    s, rot, t = umeyama(q[:, :, 3], p[:, :, 3])
+    pos_err = np.linalg.norm(p[:, :, 3] - (s * q[:, :, 3] @ rot.T + t), axis=1)
+    extent = np.linalg.norm(p[:, :, 3] - p[:, :, 3].mean(0), axis=1).mean()
+    return {
+        "compared_frames": len(common),
+        "rotation_error_deg": float(rot_err.mean()),
+        "rotation_error_deg_max": float(rot_err.max()),
+        "position_error": float(pos_err.mean()),
+        "position_error_relative": float(pos_err.mean() / extent) if extent > 0 else None,
+    }
+
+
+def _previous(transforms: Path):
+    """(cameras, split) of an existing transforms.json, or (None, None) if unreadable."""
+    if not transforms.is_file():
+        return None, None
+    try:
+        cams, split, _ = cam_mod.load_transforms(transforms)
+    except SceneError:
+        return None, None
+    return cams, split
+
+
+def _known_intrinsics(prev: cam_mod.Cameras | None, images_dir: Path, preview: str):
+    """Shared (fx, fy, cx, cy) of the previous transforms.json in preview pixels, or None."""
+    if prev is None or not all(np.allclose(a, a[0]) for a in (prev.fx, prev.fy, prev.cx, prev.cy)):
+        return None
+    width, height = _preview_size(images_dir, preview)
+    sx, sy = width / prev.width, height / prev.height
+    if abs(sx / sy - 1.0) > 0.02:
+        return None
+    return prev.fx[0] * sx, prev.fy[0] * sy, prev.cx[0] * sx, prev.cy[0] * sy
+
+
+def estimate_poses(scene_dir, min_registered_fraction: float = 0.5,
+                   camera_model: str = "SIMPLE_RADIAL", use_known_intrinsics: bool = True) -> dict:
+    """Estimate poses from images/ and write sparse/0 and transforms.json (module docstring).
+
+    use_known_intrinsics: when a transforms.json already gives one shared camera, keep its
+    intrinsics fixed (calibrated SfM; small forward-facing baselines constrain the focal
+    length poorly); otherwise COLMAP estimates a shared `camera_model`.
+    Returns {"registered": k, "total": n, "dropped": [stems], "seconds": t, "intrinsics":
+    "known" | "estimated", "near_far": ...} plus the pose agreement with a previous
+    transforms.json. Raises PoseError naming images/ when fewer than 2 or fewer than
+    min_registered_fraction of the frames register.
+    """
+    start = time.perf_counter()
+    scene = Path(scene_dir)
+    if not scene.is_dir():
+        raise SceneError(scene, "scene folder does not exist", "check the path")
+    files = raw_files(scene)
+    images_dir = scene / "images"
+    previews = _previews(images_dir)
+    names = sorted(files)
+    with_preview = [n for n in names if n in previews]
+    if len(with_preview) < 2:
+        raise PoseError(images_dir, f"{len(with_preview)} of {len(names)} raw frames have a "
+                        "preview image", "put JPEG previews named like the raw files there")
+    transforms = scene / "transforms.json"
+    prev_cams, prev_split = _previous(transforms)
+    known = None
+    if use_known_intrinsics:
+        known = _known_intrinsics(prev_cams, images_dir, previews[with_preview[0]])
+    with tempfile.TemporaryDirectory(prefix="gridnerf-colmap-") as tmp:
+        work = Path(tmp)
+        rec = _run_colmap(images_dir, [previews[n] for n in with_preview], work, camera_model,
+                          known)
+        registered = set() if rec is None else {
+            Path(im.name).stem for im in rec.images.values() if im.has_pose}
+        registered_names = [n for n in names if n in registered]
+        k, n = len(registered_names), len(names)
+        if k < 2 or k < min_registered_fraction * n:
+            raise PoseError(images_dir, f"COLMAP registered only {k} of {n} frames", _FIX)
+        sparse = scene / "sparse" / "0"
+        sparse.parent.mkdir(exist_ok=True)
+        staging = scene / "sparse" / "0.tmp"
+        shutil.rmtree(staging, ignore_errors=True)
+        staging.mkdir()
+        rec.write(staging)
+    if sparse.exists():
+        shutil.rmtree(scene / "sparse" / "0.prev", ignore_errors=True)
+        os.replace(sparse, scene / "sparse" / "0.prev")
+    os.replace(staging, sparse)
+
+    cams_colmap, points = cam_mod.load_colmap(sparse, registered_names)
+    height, width = raw.read_raw(files[registered_names[0]]).raw_bayer.shape
+    cams = cam_mod.resize_to(cams_colmap, width, height, images_dir)
+    near_far = cam_mod.bounds_from_points(cams_colmap, points, margin=0.1)
+    train = test = None
+    if prev_split is not None:
+        train = [x for x in prev_split["train"] if x in registered]
+        test = [x for x in prev_split["test"] if x in registered]
+    if transforms.exists():
+        os.replace(transforms, scene / "transforms.prev.json")
+    cam_mod.write_transforms(transforms, cams, train, test, near_far)
+    report = {
+        "registered": k,
+        "total": n,
+        "dropped": [x for x in names if x not in registered],
+        "seconds": round(time.perf_counter() - start, 2),
+        "intrinsics": "known" if known else "estimated",
+        "near_far": None if near_far is None else [round(v, 4) for v in near_far],
+    }
+    if prev_cams is not None:
+        report.update(pose_agreement(prev_cams, cams))
+    return report

@@ -1,0 +1,254 @@
+"""Ray marching through the sparse grid with empty-space skipping, and compositing.
+
+Rays are given in the grid's coordinate space (NDC rays with t in [0, 1] for
+forward-facing scenes, or world rays with near/far). Marching happens in index space
+(see grid.py), where one unit is one voxel on every axis:
+
+1. clip the ray to the box and to [near_t, far_t];
+2. place N candidate samples at the midpoints of equal steps of
+   max(1 / samples_per_voxel, segment / N) voxels (N is static);
+3. test each candidate against the occupancy bitmask (one cheap gather) and keep the
+   first K = max_samples occupied ones per ray (fixed shapes for jit);
+4. trilinear lookup (one flat gather) and activations for the K kept samples only;
+5. composite with alpha_i = 1 - exp(-sigma_i * step_i), step in voxels: every kept sample
+   carries its own step, so dropping empty candidates changes nothing (exact skipping).
+
+Rays with more than K occupied candidates are truncated after the K-th (`n_occupied` in
+the output says how many there were). The options object may be this module's
+RenderOptions or gridnerf.config.RenderConfig: fields are read by name, with defaults.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gridnerf import grid as gridlib
+from gridnerf.grid import GridStructure
+
+_TINY = 1e-12
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    samples_per_voxel: float = 2.0  # candidate density along a ray (cheap bitmask test)
+    max_samples: int = 64  # K: occupied samples kept per ray (expensive gather)
+    chunk: int = 8192  # rays per jitted call in render_image
+    skip_empty: bool = True  # False: every candidate is shaded (K = N)
+    n_candidates: int | None = None  # N; None: enough to cross the box diagonal
+
+
+def n_candidates(structure: GridStructure, cfg) -> int:
+    """Static candidate count N: cfg.n_candidates or the box diagonal in voxels x spv."""
+    n = getattr(cfg, "n_candidates", None)
+    if n:
+        return int(n)
+    diag = math.sqrt(sum((r - 1) ** 2 for r in structure.resolution))
+    return int(math.ceil(diag * float(cfg.samples_per_voxel)))
+
+
+def _ray_segments(structure: GridStructure, origins, directions, near_t, far_t, n_cand, spv):
+    """Index-space rays and their candidate spacing.
+
+    Returns o_u (n,3), d_u (n,3), t_enter (n,), dt (n,) in t units, step_vox (n,) in voxels,
+    seg_vox (n,) in voxels (0 for a miss).
+    """
+    hi = jnp.asarray(structure.resolution, jnp.float32) - 1.0
+    scale = hi / (structure.bbox_max - structure.bbox_min)
+    o_u = (origins - structure.bbox_min) * scale
+    d_u = directions * scale
+    d_safe = jnp.where(jnp.abs(d_u) < _TINY, _TINY, d_u)
+    t0, t1 = (0.0 - o_u) / d_safe, (hi - o_u) / d_safe
+    t_enter = jnp.maximum(jnp.max(jnp.minimum(t0, t1), axis=-1), near_t)
+    t_exit = jnp.minimum(jnp.min(jnp.maximum(t0, t1), axis=-1), far_t)
+    speed = jnp.maximum(jnp.linalg.norm(d_u, axis=-1), _TINY)  # voxels per unit t
+    seg_vox = jnp.where(t_exit > t_enter, (t_exit - t_enter) * speed, 0.0)
+    step_vox = jnp.maximum(1.0 / spv, seg_vox / n_cand)
+    t_enter = jnp.where(seg_vox > 0.0, t_enter, 0.0)
+    return o_u, d_u, t_enter, step_vox / speed, step_vox, seg_vox
+
+
+def _first_k(occupied: jax.Array, k: int) -> jax.Array:
+    """(n, N) bool -> (n, k) int32 candidate ids of the first k True entries, N = none.
+
+    Binary search of the running count (measured 2-3x faster than a scatter, 15x faster
+    than top_k on 2 CPU cores for 4096 x 381 -> 64).
+    """
+    count = jnp.cumsum(occupied, axis=1, dtype=jnp.int32)
+    want = jnp.arange(1, k + 1, dtype=jnp.int32)
+    find = jax.vmap(lambda c: jnp.searchsorted(c, want, side="left", method="scan_unrolled"))
+    return find(count).astype(jnp.int32)
+
+
+def _occupied(structure: GridStructure, u: jax.Array) -> jax.Array:
+    """(..., 3) index-space points -> (...,) bool from the occupancy bitmask."""
+    rx, ry, rz = structure.resolution
+    cell = jnp.clip(jnp.floor(u).astype(jnp.int32), 0, jnp.asarray([rx - 2, ry - 2, rz - 2]))
+    b = cell // structure.occ_factor
+    bx, by, bz = structure.occupancy.shape
+    return structure.occupancy.reshape(-1)[(b[..., 0] * by + b[..., 1]) * bz + b[..., 2]]
+
+
+def composite(sigma, step_vox, values: dict) -> tuple[jax.Array, dict]:
+    """Weights w_i = T_i alpha_i and weighted sums.
+
+    sigma: (n, K) per voxel; step_vox: (n, K) voxels (0 for invalid samples);
+    values: name -> (n, K, ...) -> (w (n, K), name -> (n, ...)).
+    """
+    tau = sigma * step_vox
+    alpha = 1.0 - jnp.exp(-tau)
+    trans = jnp.exp(-(jnp.cumsum(tau, axis=-1) - tau))
+    w = trans * alpha
+    return w, {k: jnp.einsum("nk,nk...->n...", w, v) for k, v in values.items()}
+
+
+def render_rays(structure: GridStructure, params, origins, directions, near_t, far_t, cfg,
+                key=None) -> dict:
+    """Render rays through the grid.
+
+    origins, directions: (n, 3) grid coordinates (directions need not be unit);
+    near_t, far_t: scalars or (n,); cfg: RenderOptions-like (static under jit);
+    key: optional PRNG key -> one random offset per ray for the candidate grid (training).
+    Returns rgb_low (n,3) low-light camera RGB, gain (n,3) = sum w s, rgb_restored (n,3) =
+    sum w c_l s, depth (n,) expected t (not divided by acc), acc (n,), n_occupied (n,) int32.
+    """
+    n = origins.shape[0]
+    n_cand = n_candidates(structure, cfg)
+    spv = float(cfg.samples_per_voxel)
+    near_t = jnp.broadcast_to(jnp.asarray(near_t, jnp.float32), (n,))
+    far_t = jnp.broadcast_to(jnp.asarray(far_t, jnp.float32), (n,))
+    o_u, d_u, t_enter, dt, step_vox, seg_vox = _ray_segments(
+        structure, origins, directions, near_t, far_t, n_cand, spv)
+    offset = (jnp.full((n,), 0.5) if key is None
+              else jax.random.uniform(key, (n,), jnp.float32))
+    pos = jnp.arange(n_cand, dtype=jnp.float32)[None, :] + offset[:, None]  # (n, N) in steps
+    inside = pos * step_vox[:, None] < seg_vox[:, None]
+    if getattr(cfg, "skip_empty", True):
+        t_cand = t_enter[:, None] + pos * dt[:, None]
+        u_cand = o_u[:, None, :] + t_cand[..., None] * d_u[:, None, :]
+        occupied = inside & _occupied(structure, u_cand)
+        k = min(int(cfg.max_samples), n_cand)
+        cand = _first_k(occupied, k)
+        valid = cand < n_cand
+        n_occupied = jnp.sum(occupied, axis=1, dtype=jnp.int32)
+        pos = cand.astype(jnp.float32) + offset[:, None]
+    else:
+        valid = inside
+        n_occupied = jnp.sum(inside, axis=1, dtype=jnp.int32)
+    t = t_enter[:, None] + pos * dt[:, None]  # (n, K)
+    u = o_u[:, None, :] + t[..., None] * d_u[:, None, :]
+    feats = gridlib.trilinear_index_space(structure, gridlib.feature_table(structure, params), u)
+    unit_dirs = directions / jnp.maximum(jnp.linalg.norm(directions, axis=-1, keepdims=True),
+                                         _TINY)
+    sigma, rgb_low, gain = gridlib.decode(structure, feats, unit_dirs[:, None, :])
+    step = jnp.where(valid, step_vox[:, None], 0.0)
+    w, sums = composite(sigma, step, {"rgb_low": rgb_low, "gain": gain,
+                                      "rgb_restored": rgb_low * gain, "depth": t})
+    return {**sums, "acc": jnp.sum(w, axis=-1), "n_occupied": n_occupied}
+
+
+_render_jit = jax.jit(render_rays, static_argnames=("cfg",))
+
+
+def render_image(structure: GridStructure, params, origins, directions, near_t, far_t, cfg,
+                 chunk: int | None = None) -> dict:
+    """Chunked render of (H, W, 3) rays -> dict of (H, W, ...) numpy arrays.
+
+    near_t, far_t: scalars or (H, W). One jit per chunk shape: the last chunk is padded.
+    """
+    shape = origins.shape[:-1]
+    chunk = int(chunk or getattr(cfg, "chunk", 8192))
+    o = np.asarray(origins, np.float32).reshape(-1, 3)
+    d = np.asarray(directions, np.float32).reshape(-1, 3)
+    near = np.broadcast_to(np.asarray(near_t, np.float32), shape).reshape(-1)
+    far = np.broadcast_to(np.asarray(far_t, np.float32), shape).reshape(-1)
+    n = o.shape[0]
+    chunk = max(1, min(chunk, n))
+    outs: dict[str, list] = {}
+    for start in range(0, n, chunk):
+        sl = slice(start, min(start + chunk, n))
+        pad = chunk - (sl.stop - sl.start)
+        args = [np.pad(a[sl], [(0, pad)] + [(0, 0)] * (a.ndim - 1), mode="edge")
+                for a in (o, d, near, far)]
+        res = _render_jit(structure, params, *args, cfg=cfg)
+        for name, v in res.items():
+            outs.setdefault(name, []).append(np.asarray(v)[: chunk - pad])
+    return {k: np.concatenate(v, 0).reshape(*shape, *v[0].shape[1:]) for k, v in outs.items()}
+
+
+def render_rays_reference(structure: GridStructure, params, origins, directions, near_t, far_t,
+                          cfg) -> dict:
+    """Slow float64 reference: every candidate shaded (no skipping), own trilinear, loops.
+
+    Same candidate placement as render_rays with key=None. For tests on small inputs.
+    """
+    res = np.asarray(structure.resolution)
+    index = np.asarray(structure.index)
+    m = structure.n_rows
+    dens = np.asarray(params["density"], np.float64)
+    rgb = np.asarray(params["rgb"], np.float64).reshape(m, 3, -1)
+    lg = np.asarray(params["log_gain"], np.float64)
+    lo, hi = np.asarray(structure.bbox_min, np.float64), np.asarray(structure.bbox_max, np.float64)
+    n_cand = n_candidates(structure, cfg)
+    spv = float(cfg.samples_per_voxel)
+    origins, directions = np.asarray(origins, np.float64), np.asarray(directions, np.float64)
+    n = origins.shape[0]
+    near = np.broadcast_to(np.asarray(near_t, np.float64), (n,))
+    far = np.broadcast_to(np.asarray(far_t, np.float64), (n,))
+    out = {k: np.zeros((n, 3)) for k in ("rgb_low", "gain", "rgb_restored")}
+    out.update(depth=np.zeros(n), acc=np.zeros(n))
+
+    def vertex_features(ijk):
+        row = index[tuple(ijk)]
+        if row == m:
+            return gridlib.EMPTY_DENSITY_RAW, np.zeros(rgb.shape[1:]), np.zeros(3)
+        return dens[row], rgb[row], lg[row]
+
+    for r in range(n):
+        o_u = (origins[r] - lo) / (hi - lo) * (res - 1)
+        d_u = directions[r] / (hi - lo) * (res - 1)
+        t_in, t_out = near[r], far[r]
+        for a in range(3):
+            if abs(d_u[a]) < _TINY:
+                if not 0.0 <= o_u[a] <= res[a] - 1:
+                    t_out = -np.inf
+                continue
+            ta, tb = -o_u[a] / d_u[a], (res[a] - 1 - o_u[a]) / d_u[a]
+            t_in, t_out = max(t_in, min(ta, tb)), min(t_out, max(ta, tb))
+        speed = np.linalg.norm(d_u)
+        if not t_out > t_in or speed < _TINY:
+            continue
+        seg = (t_out - t_in) * speed
+        step = max(1.0 / spv, seg / n_cand)
+        unit = directions[r] / np.linalg.norm(directions[r])
+        basis = np.asarray(gridlib.sh_basis(jnp.asarray(unit, jnp.float32),
+                                            structure.sh_degree), np.float64)
+        trans = 1.0
+        for i in range(n_cand):
+            if (i + 0.5) * step >= seg:
+                break
+            t = t_in + (i + 0.5) * step / speed
+            u = np.clip(o_u + t * d_u, 0.0, res - 1)
+            base = np.minimum(np.floor(u).astype(int), res - 2)
+            f = u - base
+            d_raw, c_raw, g_raw = 0.0, np.zeros(rgb.shape[1:]), np.zeros(3)
+            for corner in np.ndindex(2, 2, 2):
+                wgt = np.prod([f[a] if corner[a] else 1.0 - f[a] for a in range(3)])
+                vd, vc, vg = vertex_features(base + np.asarray(corner))
+                d_raw, c_raw, g_raw = d_raw + wgt * vd, c_raw + wgt * vc, g_raw + wgt * vg
+            sigma = np.logaddexp(0.0, d_raw)
+            c_low = structure.color_scale * np.logaddexp(0.0, c_raw @ basis)
+            gain = np.exp(np.clip(g_raw, -30.0, 30.0))
+            alpha = 1.0 - np.exp(-sigma * step)
+            w = trans * alpha
+            trans *= 1.0 - alpha
+            out["rgb_low"][r] += w * c_low
+            out["gain"][r] += w * gain
+            out["rgb_restored"][r] += w * c_low * gain
+            out["depth"][r] += w * t
+            out["acc"][r] += w
+    return out

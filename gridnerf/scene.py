@@ -1,0 +1,260 @@
+"""Scene folder -> `Scene`: uint16 frame cache, cameras in a normalised world, split, gt paths.
+
+Layouts, in priority order for the poses:
+1. `transforms.json` (nerfstudio; gridnerf's own format, see cameras.load_transforms),
+2. `sparse/0` (COLMAP, the RawNeRF layout; frames = sorted raw files),
+3. `poses_bounds.npy` (LLFF; one row per sorted raw file).
+near/far: transforms.json `near_far`, else the poses_bounds bounds, else the depths of the
+COLMAP points, else an error asking for `gridnerf poses`. Without a split, every 8th frame
+(0, 8, 16, ...) is a test frame. Exposure: exposure time x ISO from the raw metadata or an
+exiftool `raw/<name>.json`, relative to the median; a factor unknown for some frame is
+left out for all frames (1.0 when nothing is known).
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+from dataclasses import dataclass
+
+import numpy as np
+
+from gridnerf import cameras as cam_mod
+from gridnerf import raw, rays
+from gridnerf.cameras import Cameras
+from gridnerf.errors import PoseError, SceneError
+
+RAW_EXTENSIONS = (".dng", ".arw", ".cr2", ".cr3", ".nef", ".nrw", ".raf", ".orf", ".rw2",
+                  ".pef", ".srw", ".3fr", ".iiq", ".erf", ".kdc", ".dcr", ".mrw", ".raw")
+_POSES_FIX = "run `gridnerf poses <scene>` to estimate poses from images/"
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """A loaded scene. Arrays are indexed like `names`.
+
+    raw_bayer: (N, H, W) uint16 mosaics, black NOT removed; black_level: (N, 2, 2) float32
+    per CFA position; white_level: (N,) float32; cfa: (2, 2) int; xyz_to_cam: (3, 3) of
+    frame 0; as_shot_neutral: (N, 3); exposure: (N,) relative exposure; cameras and
+    near/far live in the normalised world (rays.normalize_world), which maps back to the
+    input world by world_from_normalized (4, 4).
+    """
+
+    path: pathlib.Path
+    names: tuple[str, ...]
+    cameras: Cameras
+    raw_bayer: np.ndarray
+    black_level: np.ndarray
+    white_level: np.ndarray
+    cfa: np.ndarray
+    xyz_to_cam: np.ndarray
+    as_shot_neutral: np.ndarray
+    exposure: np.ndarray
+    train_idx: np.ndarray
+    test_idx: np.ndarray
+    near: float
+    far: float
+    forward_facing: bool
+    gt_srgb_paths: dict[str, pathlib.Path]
+    gt_linear_paths: dict[str, pathlib.Path]
+    world_from_normalized: np.ndarray | None = None
+
+    def raw_normalized(self, i: int) -> np.ndarray:
+        """raw_bayer (H, W) float32: (raw - black) / (white - black), negatives kept."""
+        height, width = self.raw_bayer.shape[1:]
+        black = np.tile(self.black_level[i], ((height + 1) // 2, (width + 1) // 2))
+        black = black[:height, :width].astype(np.float32)
+        white = np.float32(self.white_level[i])
+        return (self.raw_bayer[i].astype(np.float32) - black) / (white - black)
+
+    def saturated(self, i: int) -> np.ndarray:
+        """(H, W) bool: pixels at or above the white level."""
+        return self.raw_bayer[i] >= self.white_level[i]
+
+    def rgb_cam_binned(self, i: int, downscale: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """2x2-binned then box-downscaled frame i: rgb_cam (H/2/d, W/2/d, 3) float32 and a
+        valid mask of the same shape (False where any source pixel is saturated)."""
+        rgb_cam = raw.bin2x2(self.raw_normalized(i), self.cfa)
+        valid = raw.bin2x2_mask(~self.saturated(i), self.cfa)
+        if downscale > 1:
+            rgb_cam = raw.downscale(rgb_cam, downscale)
+            valid = raw.downscale(valid, downscale) >= 1.0
+        return rgb_cam, valid
+
+
+def raw_files(scene: pathlib.Path) -> dict[str, pathlib.Path]:
+    raw_dir = scene / "raw"
+    if not raw_dir.is_dir():
+        raise SceneError(raw_dir, "raw/ folder is missing",
+                         "put the RAW frames (.dng or camera raw) into <scene>/raw/")
+    files: dict[str, pathlib.Path] = {}
+    for p in sorted(raw_dir.iterdir()):
+        if p.is_file() and p.suffix.lower() in RAW_EXTENSIONS:
+            if p.stem not in files or p.suffix.lower() == ".dng":
+                files[p.stem] = p
+    if not files:
+        raise SceneError(raw_dir, "raw/ holds no RAW frames",
+                         f"put the RAW frames ({', '.join(RAW_EXTENSIONS[:5])}, ...) into it")
+    return files
+
+
+def _exiftool_exposure(path: pathlib.Path) -> tuple[float | None, float | None]:
+    """(ExposureTime, ISO) from an exiftool JSON sidecar; (None, None) when absent."""
+    if not path.is_file():
+        return None, None
+    try:
+        meta = json.loads(path.read_text())
+        meta = meta[0] if isinstance(meta, list) else meta
+    except (OSError, ValueError, IndexError, KeyError) as exc:
+        raise SceneError(path, f"cannot read the exiftool JSON ({exc})",
+                         "re-create it with `exiftool -json` or delete it") from None
+
+    def number(x):
+        if x is None:
+            return None
+        if isinstance(x, str) and "/" in x:
+            num, den = x.split("/", 1)
+            return float(num) / float(den)
+        value = float(x)
+        return value if value > 0 else None
+
+    try:
+        return number(meta.get("ExposureTime")), number(meta.get("ISO"))
+    except (TypeError, ValueError, ZeroDivisionError, AttributeError):
+        raise SceneError(path, "ExposureTime/ISO are not numbers",
+                         "re-create it with `exiftool -json` or delete it") from None
+
+
+def _relative_exposure(times, isos) -> np.ndarray:
+    exposure = np.ones(len(times))
+    for values in (times, isos):
+        if all(v is not None and v > 0 for v in values):
+            exposure *= np.asarray(values, dtype=np.float64)
+    return exposure / np.median(exposure)
+
+
+def _read_frames(names, files: dict[str, pathlib.Path]):
+    """Read every frame into one (N, H, W) uint16 array plus per-frame metadata."""
+    first = None
+    meta = {"black": [], "white": [], "neutral": [], "time": [], "iso": []}
+    raw_bayer = None
+    for k, name in enumerate(names):
+        frame = raw.read_raw(files[name])
+        if first is None:
+            first = frame
+            if sorted(frame.cfa.ravel().tolist()) != [0, 1, 1, 2]:
+                raise SceneError(frame.path, f"unsupported CFA {frame.cfa.tolist()}",
+                                 "use a 2x2 RGB Bayer sensor")
+            raw_bayer = np.empty((len(names), *frame.raw_bayer.shape), np.uint16)
+        elif frame.raw_bayer.shape != first.raw_bayer.shape:
+            h, w = frame.raw_bayer.shape
+            raise SceneError(frame.path, f"frame is {w}x{h} but {pathlib.Path(first.path).name} "
+                             f"is {first.raw_bayer.shape[1]}x{first.raw_bayer.shape[0]}",
+                             "all frames must have one size: remove or re-export this frame")
+        elif not np.array_equal(frame.cfa, first.cfa):
+            raise SceneError(frame.path, f"CFA pattern {frame.cfa.tolist()} differs from "
+                             f"{first.cfa.tolist()} of {pathlib.Path(first.path).name}",
+                             "use frames from one camera (one CFA layout)")
+        raw_bayer[k] = frame.raw_bayer
+        sidecar_time, sidecar_iso = _exiftool_exposure(files[name].with_suffix(".json"))
+        meta["black"].append(frame.black_level)
+        meta["white"].append(frame.white_level)
+        meta["neutral"].append(frame.as_shot_neutral)
+        meta["time"].append(sidecar_time or frame.exposure_time)
+        meta["iso"].append(sidecar_iso or frame.iso)
+    return first, raw_bayer, meta
+
+
+def _poses(scene: pathlib.Path, files):
+    """(names, cameras or None, split, near_far, source, colmap points or None)."""
+    transforms, sparse, llff = (scene / "transforms.json", scene / "sparse" / "0",
+                                scene / "poses_bounds.npy")
+    if transforms.is_file():
+        cams, split, near_far = cam_mod.load_transforms(transforms)
+        missing = [n for n in cams.names if n not in files]
+        if missing:
+            raise SceneError(transforms, f"frames {missing[:5]} have no raw file in raw/",
+                             "add the raw files or remove those frames from transforms.json")
+        return cams.names, cams, split, near_far, transforms, None
+    names = tuple(sorted(files))
+    if sparse.is_dir():
+        cams, points = cam_mod.load_colmap(sparse, names)
+        return names, cams, None, None, sparse, points
+    if llff.is_file():
+        return names, None, None, None, llff, None
+    raise PoseError(scene, "no camera poses (transforms.json, sparse/0 or poses_bounds.npy)",
+                    _POSES_FIX)
+
+
+def _near_far(scene: pathlib.Path, near_far, colmap_points, colmap_cams) -> tuple[float, float]:
+    if near_far is not None:
+        return near_far
+    llff = scene / "poses_bounds.npy"
+    if llff.is_file():
+        arr = np.load(llff)
+        if arr.ndim == 2 and arr.shape[1] == 17:
+            near, far = float(arr[:, 15].min()), float(arr[:, 16].max())
+            if 0 < near < far and np.isfinite(far):
+                return near, far
+        raise SceneError(llff, "bounds are not positive, finite near < far",
+                         "fix poses_bounds.npy or add near_far to transforms.json")
+    sparse = scene / "sparse" / "0"
+    if colmap_points is None and sparse.is_dir():
+        colmap_cams, colmap_points = cam_mod.load_colmap(sparse)
+    if colmap_points is not None and len(colmap_points):
+        bounds = cam_mod.bounds_from_points(colmap_cams, colmap_points)
+        if bounds is not None and 0 < bounds[0] < bounds[1]:
+            return bounds
+    raise PoseError(scene, "no near/far scene bounds (no near_far in transforms.json, no "
+                    "poses_bounds.npy, no COLMAP points)", _POSES_FIX)
+
+
+def load_scene(path) -> Scene:
+    """Load a scene folder (module docstring). Raises SceneError/PoseError/RawError."""
+    scene = pathlib.Path(path)
+    if not scene.is_dir():
+        raise SceneError(scene, "scene folder does not exist",
+                         "check the path, or create one with `gridnerf simulate`")
+    files = raw_files(scene)
+    names, cams, split, near_far, source, points = _poses(scene, files)
+    first, raw_bayer, meta = _read_frames(names, files)
+    height, width = raw_bayer.shape[1:]
+    if cams is None:
+        cams, _ = cam_mod.load_llff(source, names, width, height)
+    colmap_cams = cams
+    cams = cam_mod.resize_to(cams, width, height, source)
+    cam_mod.validate(cams, source)
+    near, far = _near_far(scene, near_far, points, colmap_cams)
+
+    c2w, near_n, far_n, world_from_norm = rays.normalize_world(cams.c2w, near, far)
+    if split is None:
+        test = np.arange(0, len(names), 8)
+        train = np.setdiff1d(np.arange(len(names)), test)
+    else:
+        index = {n: k for k, n in enumerate(names)}
+        train = np.array([index[n] for n in split["train"]], dtype=int)
+        test = np.array([index[n] for n in split["test"]], dtype=int)
+    if train.size == 0:
+        raise SceneError(source, "the training split is empty",
+                         "list some frames in train_filenames (or remove the split)")
+    gt = scene / "gt"
+    return Scene(
+        path=scene,
+        names=tuple(names),
+        cameras=cams.with_c2w(c2w),
+        raw_bayer=raw_bayer,
+        black_level=np.stack(meta["black"]).astype(np.float32),
+        white_level=np.asarray(meta["white"], np.float32),
+        cfa=np.asarray(first.cfa, int),
+        xyz_to_cam=np.asarray(first.xyz_to_cam, np.float64),
+        as_shot_neutral=np.stack(meta["neutral"]).astype(np.float64),
+        exposure=_relative_exposure(meta["time"], meta["iso"]),
+        train_idx=train,
+        test_idx=test,
+        near=float(near_n),
+        far=float(far_n),
+        forward_facing=rays.forward_facing(c2w),
+        gt_srgb_paths={n: gt / f"{n}.png" for n in names if (gt / f"{n}.png").is_file()},
+        gt_linear_paths={n: gt / f"{n}.exr" for n in names if (gt / f"{n}.exr").is_file()},
+        world_from_normalized=world_from_norm,
+    )

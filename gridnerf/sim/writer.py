@@ -1,0 +1,202 @@
+"""simulate_scene: render a procedural scene and write an LMRAW-like scene folder.
+
+Folder layout (the contract every loader follows):
+  raw/<name>.dng       noisy dark RAW frames frame_000 ... (16-bit DNG, black 512, white 16383)
+  images/<name>.jpg    camera-style previews of the dark frames (for pose estimation)
+  transforms.json      nerfstudio cameras (OpenGL camera-to-world), train/test split
+                       (every 8th frame is test) and "near_far" (true min/max z-depth)
+  gt/<name>.exr|.png   clean normal-light references (linear float32 / sRGB 8-bit)
+  sim.json             manifest, written LAST (its presence marks a complete scene)
+
+Exposure convention of the references: they are linear sRGB (the scene's
+reflectance x shading as if lit by D65, no noise), multiplied by ONE scale factor per
+scene chosen so that the mean luminance (color.luminance) over all views is 0.18.
+The EXR stores that linear image unclipped; the PNG is srgb_encode(clip(., 0, 1)).
+
+The folder is built in `<out_dir>.tmp-<pid>` and renamed into place at the end, so a
+half-written scene never looks valid.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import zlib
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+
+from gridnerf.color import luminance, srgb_encode
+from gridnerf.dng import write_dng
+from gridnerf.errors import SceneError
+from gridnerf.image_io import write_exr, write_png
+from gridnerf.sim import sensor
+from gridnerf.sim.capture import HFOV_DEG, camera_path, intrinsics, render_view
+from gridnerf.sim.scenes import SCENES, build_scene
+
+SIM_VERSION = 1
+GT_MEAN_LUMINANCE = 0.18
+SSAA = 2  # sub-rays per pixel side (pixel-area integration)
+TEST_EVERY = 8
+JPEG_QUALITY = 90
+EXPOSURE_CONVENTION = (
+    "references are linear sRGB (reflectance x shading under D65, no noise); one scale "
+    "factor per scene so that the mean luminance (color.luminance) over all views is 0.18; "
+    "EXR unclipped, PNG = srgb_encode(clip(x, 0, 1))"
+)
+
+
+def frame_names(n_frames: int) -> list[str]:
+    """Frame stems: frame_000, frame_001, ..."""
+    return [f"frame_{i:03d}" for i in range(n_frames)]
+
+
+def _key(name: str, width: int, height: int, n_frames: int, seed: int) -> dict:
+    return {"version": SIM_VERSION, "scene": name, "seed": int(seed), "width": int(width),
+            "height": int(height), "n_frames": int(n_frames)}
+
+
+def _is_complete(out: Path, key: dict) -> bool:
+    """True when out/sim.json matches `key` and every listed file exists."""
+    try:
+        manifest = json.loads((out / "sim.json").read_text())
+    except (OSError, ValueError):
+        return False
+    if not isinstance(manifest, dict) or {k: manifest.get(k) for k in key} != key:
+        return False
+    names = frame_names(key["n_frames"])
+    files = ["transforms.json"] + [f"{d}/{n}.{e}" for n in names
+                                   for d, e in (("raw", "dng"), ("images", "jpg"),
+                                                ("gt", "exr"), ("gt", "png"))]
+    return all((out / f).is_file() for f in files)
+
+
+def _write_json(path: Path, data: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    os.replace(tmp, path)
+
+
+def _render_all(spec, poses, intr):
+    """Clean renders of every view: rgb_linear (N, H, W, 3) float32 and [near, far]."""
+    frames = np.zeros((len(poses), intr.h, intr.w, 3), np.float32)
+    near, far = np.inf, 0.0
+    for i, c2w in enumerate(poses):
+        frames[i], depth = render_view(spec, c2w, intr, ssaa=SSAA)
+        finite = depth[np.isfinite(depth)]
+        if finite.size:
+            near, far = min(near, float(finite.min())), max(far, float(finite.max()))
+    return frames, [near, far]
+
+
+def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed: int) -> None:
+    spec = build_scene(name)
+    params = spec.sensor
+    salt = zlib.crc32(name.encode())
+    intr = intrinsics(width, height)
+    poses = camera_path(spec, n_frames, np.random.default_rng([seed, salt, 0]))
+    frames, near_far = _render_all(spec, poses, intr)
+
+    mean_rgb_linear = frames.reshape(-1, 3).mean(axis=0, dtype=np.float64)
+    gt_scale = GT_MEAN_LUMINANCE / float(luminance(mean_rgb_linear))
+    mean_green = float(sensor.cam_from_scene(params)[1] @ mean_rgb_linear)
+    e_scale = params.electrons / mean_green  # electrons per unit of relative camera signal
+
+    names = frame_names(n_frames)
+    for sub in ("raw", "images", "gt"):
+        (folder / sub).mkdir(parents=True)
+    black = np.full((2, 2), float(sensor.BLACK_LEVEL))
+    for i, stem in enumerate(names):
+        rgb_cam = sensor.scene_to_cam(frames[i], params)
+        electrons = sensor.mosaic(rgb_cam, params.cfa) * e_scale
+        raw_bayer = sensor.expose(electrons, params, np.random.default_rng([seed, salt, 1, i]))
+        write_dng(folder / "raw" / f"{stem}.dng", raw_bayer, params.cfa, black,
+                  sensor.WHITE_LEVEL, params.xyz_to_cam, sensor.grey_world_neutral(rgb_cam),
+                  exposure_time=params.exposure_time, iso=params.iso,
+                  camera_model=params.camera_model)
+        preview = sensor.preview_srgb(raw_bayer, params.cfa, black, sensor.WHITE_LEVEL,
+                                      params.xyz_to_cam)
+        iio.imwrite(folder / "images" / f"{stem}.jpg", sensor.to_uint8(preview),
+                    extension=".jpg", quality=JPEG_QUALITY)
+        rgb_linear = frames[i] * np.float32(gt_scale)
+        write_exr(folder / "gt" / f"{stem}.exr", rgb_linear)
+        write_png(folder / "gt" / f"{stem}.png", srgb_encode(np.clip(rgb_linear, 0.0, 1.0)))
+
+    test = [i for i in range(n_frames) if i % TEST_EVERY == 0]
+    paths = [f"raw/{stem}.dng" for stem in names]
+    _write_json(folder / "transforms.json", {
+        "camera_model": "OPENCV", "fl_x": intr.fx, "fl_y": intr.fy, "cx": intr.cx,
+        "cy": intr.cy, "w": intr.w, "h": intr.h, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
+        "frames": [{"file_path": p, "transform_matrix": pose.tolist()}
+                   for p, pose in zip(paths, poses, strict=True)],
+        "train_filenames": [p for i, p in enumerate(paths) if i not in test],
+        "test_filenames": [paths[i] for i in test],
+        "near_far": near_far,
+    })
+    _write_json(folder / "sim.json", {
+        **_key(name, width, height, n_frames, seed),
+        "frames": names, "test_frames": [names[i] for i in test],
+        "illuminant_kelvin": params.kelvin,
+        "illuminant_neutral_cam": sensor.illuminant_neutral(params).tolist(),
+        "lux": params.lux, "exposure_time_s": params.exposure_time, "iso": params.iso,
+        "electrons_mean_green": params.electrons, "electrons_per_unit_signal": e_scale,
+        "K_dn_per_electron": params.k_gain,
+        "noise": {"model": "K*Poisson(e) + TukeyLambda + row + bias, rounded",
+                  "read_tukey_sigma_dn": params.read_sigma,
+                  "read_tukey_lambda": params.tl_lambda, "row_sigma_dn": params.row_sigma,
+                  "black_bias_dn_per_cfa_position": [list(r) for r in params.bias]},
+        "black_level": sensor.BLACK_LEVEL, "white_level": sensor.WHITE_LEVEL,
+        "camera_model": params.camera_model, "cfa_pattern": params.cfa_pattern,
+        "cfa": params.cfa.tolist(), "xyz_to_cam": params.xyz_to_cam.tolist(),
+        "hfov_deg": HFOV_DEG, "ssaa": SSAA, "near_far": near_far,
+        "depth_convention": "z-depth along the camera's -z axis, world units",
+        "exposure_convention": EXPOSURE_CONVENTION, "gt_scale": gt_scale,
+        "gt_mean_luminance": GT_MEAN_LUMINANCE,
+    })
+
+
+def simulate_scene(name: str, out_dir, width: int = 480, height: int = 270,
+                   n_frames: int = 24, seed: int = 0, overwrite: bool = False) -> Path:
+    """Write scene `name` (one of SCENES) into out_dir and return out_dir.
+
+    If out_dir already holds a complete scene written with the same parameters
+    (checked against the `sim.json` manifest, written last), it is reused and
+    returned at once; `overwrite=True` rebuilds it anyway. A folder holding anything
+    else is only replaced with `overwrite=True`. The scene is built in
+    `<out_dir>.tmp-<pid>` and renamed at the end. Deterministic for a seed.
+    """
+    out = Path(out_dir)
+    if name not in SCENES:
+        raise SceneError(out, f"unknown simulated scene {name!r}",
+                         f"choose one of {', '.join(SCENES)}")
+    if width < 8 or height < 8 or n_frames < 1:
+        raise SceneError(out, f"cannot simulate {width}x{height} with {n_frames} frames",
+                         "use width and height of at least 8 pixels and at least 1 frame")
+    key = _key(name, width, height, n_frames, seed)
+    if out.exists():
+        if not out.is_dir():
+            raise SceneError(out, "exists and is not a folder", "choose another output folder")
+        if not overwrite and _is_complete(out, key):
+            return out
+        if not overwrite and any(out.iterdir()):
+            raise SceneError(out, "already holds files that are not this simulated scene "
+                             f"({name}, {width}x{height}, {n_frames} frames, seed {seed})",
+                             "pass overwrite=True (gridnerf simulate --overwrite) or choose "
+                             "another output folder")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f"{out.name}.tmp-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        _build(tmp, name, width, height, n_frames, seed)
+        if out.exists():
+            old = out.with_name(f"{out.name}.old-{os.getpid()}")
+            os.replace(out, old)
+            os.replace(tmp, out)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return out

@@ -1,0 +1,175 @@
+"""Loss hard cases: negative targets, black channels, tiny exposures, masks, TV."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from gridnerf import grid, losses
+
+
+def finite(*xs) -> bool:
+    return all(bool(np.all(np.isfinite(np.asarray(x)))) for x in jax.tree_util.tree_leaves(xs))
+
+
+def test_data_loss_matches_formula_and_ignores_masked_entries():
+    c = np.array([[0.01, 0.2, 3.0]], np.float32)
+    y = np.array([[-0.005, 0.25, 0.5]], np.float32)
+    m = np.array([[1.0, 1.0, 0.0]], np.float32)
+    expect = ((0.01 + 0.005) / 0.011) ** 2 + ((0.2 - 0.25) / 0.201) ** 2
+    np.testing.assert_allclose(losses.data_loss(c, y, m), expect / 2, rtol=1e-5)
+    # saturated / unmeasured entries, even NaN, change nothing under a zero mask
+    y_bad = y.copy()
+    y_bad[0, 2] = np.nan
+    assert float(losses.data_loss(c, y_bad, m)) == float(losses.data_loss(c, y, m))
+    g = jax.grad(losses.data_loss)(jnp.asarray(c), jnp.asarray(y_bad), jnp.asarray(m))
+    assert finite(g) and g[0, 2] == 0.0 and g[0, 0] > 0.0 and g[0, 1] < 0.0
+    assert float(losses.data_loss(c, y, np.zeros_like(m))) == 0.0
+
+
+@settings(max_examples=25, deadline=None)
+@given(rgb=arrays(np.float32, (16, 3), elements=st.floats(0, 2, width=32)),
+       target=arrays(np.float32, (16, 3), elements=st.floats(-0.0625, 1.5, width=32)),
+       mask=arrays(np.float32, (16, 3), elements=st.sampled_from([0.0, 1.0])),
+       ratio=st.sampled_from([1.0, 0.05]))
+def test_data_loss_finite_with_negative_targets_and_exposure_ratio(rgb, target, mask, ratio):
+    args = (jnp.asarray(rgb * ratio), jnp.asarray(target * ratio), jnp.asarray(mask))
+    value, g = jax.value_and_grad(losses.data_loss)(*args)
+    assert finite(value, g) and float(value) >= 0.0
+
+
+def test_data_loss_is_relative_error_at_any_exposure():
+    # linearised log-L2: the same 10% error costs about the same at 1x and 0.05x exposure
+    y = np.full((8, 3), 0.4, np.float32)
+    m = np.ones_like(y)
+    full = float(losses.data_loss(1.1 * y, y, m))
+    dark = float(losses.data_loss(1.1 * 0.05 * y, 0.05 * y, m))
+    assert 0.005 < full < 0.01 and 0.7 < dark / full < 1.0
+    assert float(losses.data_loss(0.05 * y, 0.05 * y, m)) == 0.0
+
+
+def test_ca_loss_grey_world_target():
+    rgb = np.array([[0.02, 0.01, 0.005], [0.04, 0.01, 0.015]], np.float32)
+    cbar = rgb.mean(0)
+    target = cbar.mean() / cbar
+    gain = np.broadcast_to(target, rgb.shape)
+    assert abs(float(losses.ca_loss(rgb, gain))) < 1e-10
+    np.testing.assert_allclose(losses.ca_loss(rgb, np.ones_like(rgb)),
+                               np.sum((target - 1) ** 2) / 3, rtol=1e-5)
+    # averaged over rays: duplicating the batch leaves it unchanged
+    np.testing.assert_allclose(losses.ca_loss(np.tile(rgb, (3, 1)), np.ones((6, 3))),
+                               losses.ca_loss(rgb, np.ones_like(rgb)), rtol=1e-6)
+
+
+def test_ca_loss_black_channel_is_finite():
+    rng = np.random.default_rng(0)
+    rgb = rng.uniform(0.001, 0.01, (32, 3)).astype(np.float32)
+    rgb[:, 2] = 0.0  # a blue channel that renders black
+    gain = rng.uniform(0.5, 2.0, (32, 3)).astype(np.float32)
+    for flag in (True, False):
+        value, (g_rgb, g_gain) = jax.value_and_grad(losses.ca_loss, argnums=(0, 1))(
+            jnp.asarray(rgb), jnp.asarray(gain), 1e-6, flag)
+        assert finite(value, g_rgb, g_gain) and float(value) > 1e6  # large finite target
+    all_black = jax.value_and_grad(losses.ca_loss, argnums=(0, 1))(
+        jnp.zeros((4, 3)), jnp.ones((4, 3)))
+    assert finite(all_black)
+
+
+def test_ca_loss_stop_gradient_flag():
+    rgb = jnp.asarray(np.random.default_rng(1).uniform(0.001, 0.01, (8, 3)), jnp.float32)
+    gain = jnp.ones((8, 3))
+    g_stop = jax.grad(losses.ca_loss)(rgb, gain, stop_grad_mean=True)
+    g_flow = jax.grad(losses.ca_loss)(rgb, gain, stop_grad_mean=False)
+    assert np.all(np.asarray(g_stop) == 0.0) and np.abs(np.asarray(g_flow)).max() > 0.0
+
+
+def patches(seed=0):
+    rng = np.random.default_rng(seed)
+    rgb = np.full((2, 4, 6, 3), 0.004, np.float32)
+    rgb[:, :, 3:, :] = 0.012  # a vertical colour edge between columns 2 and 3
+    gain = 1.0 + 0.01 * rng.normal(size=rgb.shape).astype(np.float32)
+    return gain, rgb
+
+
+def test_smooth_loss_is_edge_aware_and_scale_free():
+    gain, rgb = patches()
+    flat = np.ones_like(gain)
+    assert float(losses.smooth_loss_patch(flat, rgb, 1e-2)) == 0.0
+    step_at_edge, step_in_flat = flat.copy(), flat.copy()
+    step_at_edge[:, :, 3:, :] = 1.5
+    step_in_flat[:, :, 1:, :] = 1.5  # the same step where colour is flat
+    at_edge = float(losses.smooth_loss_patch(step_at_edge, rgb, 1e-2))
+    in_flat = float(losses.smooth_loss_patch(step_in_flat, rgb, 1e-2))
+    assert 0.0 < at_edge < 0.05 * in_flat
+    # normalised by the mean intensity: 20x darker colour, same loss
+    np.testing.assert_allclose(losses.smooth_loss_patch(step_in_flat, 0.05 * rgb, 1e-2), in_flat,
+                               rtol=1e-4)
+    value, (g_gain, g_rgb) = jax.value_and_grad(losses.smooth_loss_patch, argnums=(0, 1))(
+        jnp.asarray(gain), jnp.zeros_like(jnp.asarray(rgb)), 1e-2)
+    assert finite(value, g_gain, g_rgb) and np.all(np.asarray(g_rgb) == 0.0)
+
+
+def test_smooth_loss_gammas_weight_directions():
+    gain, rgb = patches()
+    rgb = np.full_like(rgb, 0.01)
+    v_only = gain.copy()
+    v_only[:, 2:, :, :] += 0.5  # a horizontal line: vertical differences only
+    base = float(losses.smooth_loss_patch(v_only, rgb, 1e-2, gamma1=1.0, gamma2=0.0))
+    doubled = float(losses.smooth_loss_patch(v_only, rgb, 1e-2, gamma1=2.0, gamma2=0.0))
+    np.testing.assert_allclose(doubled, 2 * base, rtol=1e-6)
+    assert base > 10 * float(losses.smooth_loss_patch(v_only, rgb, 1e-2, gamma1=0.0))
+
+
+def small_grid(res=(5, 4, 3)):
+    return grid.init_grid(res, -np.ones(3), np.ones(3))
+
+
+def test_tv_loss_on_constant_and_linear_values():
+    structure, params = small_grid()
+    m = structure.n_rows
+    np.testing.assert_allclose(losses.tv_loss(structure, jnp.zeros(m), eps=1e-8), 1e-4, rtol=1e-3)
+    slope = 0.3
+    values = jnp.asarray(np.asarray(structure.coords)[:, 0] * slope, jnp.float32)
+    has_x = np.asarray(structure.coords)[:, 0] < structure.resolution[0] - 1
+    expect = (has_x.sum() * slope + (~has_x).sum() * 1e-4) / m
+    np.testing.assert_allclose(losses.tv_loss(structure, values[:, None], eps=1e-8), expect,
+                               rtol=1e-4)
+    sub = losses.tv_loss(structure, values, sample_key=jax.random.PRNGKey(0), fraction=0.5)
+    assert 0.0 < float(sub) <= slope + 1e-4
+    g = jax.grad(losses.tv_loss, argnums=1)(structure, jnp.zeros((m, 3)))
+    assert finite(g)
+
+
+def test_tv_loss_skips_absent_neighbours_and_empty_grids():
+    structure, params = small_grid()
+    values = jnp.asarray(np.random.default_rng(2).normal(size=structure.n_rows), jnp.float32)
+    pruned, pp = grid.prune(structure, {"v": values}, np.asarray(structure.coords)[:, 0] != 2)
+    # columns x <= 1 and x >= 3 are now disconnected: no difference across the gap
+    left = np.asarray(pruned.coords)[:, 0] == 1
+    assert np.all(np.asarray(pruned.neighbors)[left, 0] == pruned.n_rows)
+    assert np.isfinite(float(losses.tv_loss(pruned, pp["v"])))
+    empty, pe = grid.prune(structure, params, np.zeros(structure.n_rows, bool))
+    assert float(losses.tv_loss(empty, pe["density"])) == 0.0
+    assert float(losses.edge_aware_gain_tv(empty, pe)) == 0.0
+
+
+def test_edge_aware_gain_tv_prefers_gain_steps_at_colour_edges():
+    structure, params = small_grid((8, 4, 3))
+    x = np.asarray(structure.coords)[:, 0]
+    rgb = np.where(x[:, None] >= 4, 2.0, -1.0).astype(np.float32)  # colour edge between 3 and 4
+    params["rgb"] = jnp.asarray(np.repeat(rgb, 3, axis=1))
+    at_edge = dict(params, log_gain=jnp.asarray(np.where(x[:, None] >= 4, 0.5, 0.0) *
+                                                np.ones((1, 3)), jnp.float32))
+    in_flat = dict(params, log_gain=jnp.asarray(np.where(x[:, None] >= 2, 0.5, 0.0) *
+                                                np.ones((1, 3)), jnp.float32))
+    e = float(losses.edge_aware_gain_tv(structure, at_edge))
+    f = float(losses.edge_aware_gain_tv(structure, in_flat))
+    assert 0.0 < e < 0.5 * f
+    assert float(losses.edge_aware_gain_tv(structure, params)) < 1e-3  # constant gains
+    g = jax.grad(lambda p: losses.edge_aware_gain_tv(structure, p, fraction=0.5,
+                                                     sample_key=jax.random.PRNGKey(1)))(at_edge)
+    assert finite(g) and np.all(np.asarray(g["rgb"]) == 0.0)

@@ -1,0 +1,222 @@
+"""Renderer invariants: agreement with the slow reference, compositing, hard rays."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gridnerf import grid, render
+from gridnerf.config import RenderConfig
+
+LO, HI = -np.ones(3), np.ones(3)
+KEYS = ("rgb_low", "gain", "rgb_restored", "depth", "acc")
+
+
+def random_scene(sh_degree=0, res=(8, 7, 6), seed=0, prune_half=True):
+    """Random grid on [-1, 1]^3; the x > 0.2 half pruned (empty) when prune_half."""
+    rng = np.random.default_rng(seed)
+    structure, params = grid.init_grid(res, LO, HI, sh_degree=sh_degree)
+    params = {k: v + jnp.asarray(rng.normal(0, 0.7, v.shape), jnp.float32)
+              for k, v in params.items()}
+    params["density"] = params["density"] + 4.0
+    if prune_half:
+        x = np.asarray(structure.coords)[:, 0] / (res[0] - 1) * 2 - 1
+        structure, params = grid.prune(structure, params, x < 0.2)
+    return structure, params
+
+
+def random_rays(n=24, seed=1):
+    """Rays from z = -1.5 towards +z, spread in x/y; some miss the box."""
+    rng = np.random.default_rng(seed)
+    origins = np.concatenate([rng.uniform(-1.6, 1.6, (n, 2)), np.full((n, 1), -1.5)], 1)
+    directions = np.concatenate([rng.normal(0, 0.4, (n, 2)), np.ones((n, 1))], 1)
+    return origins.astype(np.float32), directions.astype(np.float32)
+
+
+_render = jax.jit(render.render_rays, static_argnames=("cfg",))
+
+
+def render_np(structure, params, o, d, near, far, cfg, **kw):
+    out = _render(structure, params, jnp.asarray(o), jnp.asarray(d), near, far, cfg=cfg, **kw)
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+@pytest.mark.parametrize(("sh_degree", "skip", "spv", "n_cand"), [
+    (0, True, 2.0, None), (2, True, 1.5, 12), (0, False, 1.5, 12), (2, False, 2.0, None)])
+def test_fast_renderer_matches_reference(sh_degree, skip, spv, n_cand):
+    """n_cand = 12 is fewer than most segments need: steps stretch beyond 1 / spv."""
+    structure, params = random_scene(sh_degree)
+    o, d = random_rays()
+    cfg = render.RenderOptions(samples_per_voxel=spv, max_samples=40, skip_empty=skip,
+                               n_candidates=n_cand)
+    fast = render_np(structure, params, o, d, 0.2, 3.0, cfg)
+    ref = render.render_rays_reference(structure, params, o, d, 0.2, 3.0, cfg)
+    assert fast["n_occupied"].max() <= 40  # no truncation: skipping must be exact
+    assert ref["acc"].max() > 0.5 and ref["acc"].min() == 0.0  # hits and misses
+    for k in KEYS:
+        np.testing.assert_allclose(fast[k], ref[k], atol=2e-5 * max(1.0, np.abs(ref[k]).max()),
+                                   err_msg=k)
+
+
+def test_skipping_with_density_occupancy_is_exact_at_threshold_zero():
+    structure, params = random_scene(0, seed=3)
+    coords = np.asarray(structure.coords)
+    centres = np.array([[2, 2, 3], [1, 5, 2], [3, 1, 1]])  # three 3x3x3 blobs of density
+    hot = (np.abs(coords[:, None, :] - centres[None]).max(-1) <= 1).any(1)
+    params["density"] = jnp.where(hot, 6.0, -40.0)
+    structure = grid.update_occupancy(structure, params, threshold=1e-6)
+    assert 0.1 < np.asarray(structure.occupancy).mean() < 0.75
+    o, d = random_rays(seed=4)
+    cfg = render.RenderOptions(samples_per_voxel=2.0, max_samples=40)
+    fast = render_np(structure, params, o, d, 0.0, 4.0, cfg)
+    ref = render.render_rays_reference(structure, params, o, d, 0.0, 4.0, cfg)
+    dense = render_np(structure, params, o, d, 0.0, 4.0,
+                      render.RenderOptions(samples_per_voxel=2.0, skip_empty=False))
+    assert fast["n_occupied"].sum() < 0.6 * dense["n_occupied"].sum()  # most were skipped
+    assert ref["acc"].max() > 0.5
+    for k in KEYS:
+        np.testing.assert_allclose(fast[k], ref[k], atol=1e-5, err_msg=k)
+
+
+def test_constant_colour_and_unit_gains_composite_exactly():
+    structure, params = grid.init_grid((6, 6, 6), LO, HI, init_density=1.0, color_scale=0.02)
+    c = np.array([0.3, 1.0, 2.0], np.float32)  # c_l = 0.02 * c
+    params["rgb"] = jnp.broadcast_to(jnp.asarray(np.log(np.expm1(c))), params["rgb"].shape)
+    o, d = random_rays(32, seed=5)
+    cfg = render.RenderOptions(samples_per_voxel=2.0, max_samples=64)
+    out = render_np(structure, params, o, d, 0.0, 5.0, cfg)
+    acc = out["acc"][:, None]
+    assert 0.05 < out["acc"].max() < 1.0
+    np.testing.assert_allclose(out["rgb_low"], 0.02 * c * acc, rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(out["gain"], np.broadcast_to(acc, (32, 3)), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(out["rgb_restored"], out["rgb_low"], rtol=1e-5, atol=1e-9)
+    # opaque: acc == 1 where the ray hits, rgb_low == c there
+    params["density"] = jnp.full_like(params["density"], 50.0)
+    opaque = render_np(structure, params, o, d, 0.0, 5.0, cfg)
+    hit = opaque["acc"] > 0
+    np.testing.assert_allclose(opaque["acc"][hit], 1.0, atol=1e-6)
+    np.testing.assert_allclose(opaque["rgb_low"][hit], np.broadcast_to(0.02 * c, (hit.sum(), 3)),
+                               rtol=1e-5)
+    # gains of 2 double the restored colour
+    params["log_gain"] = jnp.full_like(params["log_gain"], np.log(2.0))
+    doubled = render_np(structure, params, o, d, 0.0, 5.0, cfg)
+    np.testing.assert_allclose(doubled["rgb_restored"], 2 * opaque["rgb_low"], rtol=1e-5)
+
+
+def _sum_outputs(params, structure, o, d, near, far, cfg):
+    out = render.render_rays(structure, params, o, d, near, far, cfg)
+    return sum(jnp.sum(out[k]) for k in KEYS)
+
+
+_value_and_grad = jax.jit(jax.value_and_grad(_sum_outputs), static_argnames=("cfg",))
+
+
+def loss_and_grads(structure, params, o, d, near, far, cfg):
+    return _value_and_grad(params, structure, jnp.asarray(o), jnp.asarray(d), near, far, cfg=cfg)
+
+
+def all_finite(tree) -> bool:
+    return all(bool(np.all(np.isfinite(np.asarray(x)))) for x in jax.tree_util.tree_leaves(tree))
+
+
+def test_missing_rays_are_zero_with_finite_gradients():
+    structure, params = random_scene(1)
+    o = np.array([[5.0, 5.0, -2.0], [0.0, 0.0, -2.0], [0.0, 0.0, 0.0], [0.0, 0.0, -2.0]],
+                 np.float32)
+    d = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]],
+                 np.float32)  # beside the box, pointing away, zero direction, parallel outside
+    cfg = render.RenderOptions(max_samples=16)
+    out = render_np(structure, params, o, d, 0.0, 10.0, cfg)
+    for k in KEYS:
+        assert np.all(out[k] == 0.0), k
+    value, grads = loss_and_grads(structure, params, o, d, 0.0, 10.0, cfg)
+    assert float(value) == 0.0 and all_finite(grads)
+
+
+def test_empty_grid_renders_zeros():
+    structure, params = random_scene(0)
+    structure, params = grid.prune(structure, params, np.zeros(structure.n_rows, bool))
+    o, d = random_rays(8)
+    for skip in (True, False):
+        cfg = render.RenderOptions(max_samples=16, skip_empty=skip)
+        out = render_np(structure, params, o, d, 0.0, 10.0, cfg)
+        assert all_finite(out)
+        for k in KEYS:
+            assert np.abs(out[k]).max() < 1e-9, k
+        value, grads = loss_and_grads(structure, params, o, d, 0.0, 10.0, cfg)
+        assert np.isfinite(float(value)) and grads["density"].shape == (0,)
+
+
+def test_long_rays_and_huge_densities_stay_finite():
+    structure, params = random_scene(2, prune_half=False)
+    params["density"] = jnp.full_like(params["density"], 1e6)
+    params["rgb"] = params["rgb"] * 50.0
+    params["log_gain"] = params["log_gain"] * 100.0
+    o, d = random_rays(16)
+    o = o * 1e3  # far away origins, very long segment limits
+    d = np.concatenate([-o[:, :2] / 1e3 * 1.0, np.ones((16, 1))], 1).astype(np.float32)
+    cfg = render.RenderOptions(max_samples=16)
+    out = render_np(structure, params, o, d, -1e7, 1e7, cfg)
+    assert all_finite(out) and np.all(out["acc"] <= 1.0 + 1e-6)
+    _, grads = loss_and_grads(structure, params, o, d, -1e7, 1e7, cfg)
+    assert all_finite(grads)
+
+
+def test_gradients_are_compact_and_local():
+    structure, params = random_scene(0, res=(8, 8, 6), prune_half=False)
+    res = np.asarray(structure.resolution)
+    # rays parallel to z through two (x, y) spots: only their cell columns can be touched
+    xy = np.array([[-0.55, 0.1], [0.4, -0.7]], np.float32)
+    o = np.concatenate([xy, np.full((2, 1), -3.0, np.float32)], 1)
+    d = np.tile(np.array([[0.0, 0.0, 1.0]], np.float32), (2, 1))
+    cfg = render.RenderOptions(max_samples=32)
+    _, grads = loss_and_grads(structure, params, o, d, 0.0, 10.0, cfg)
+    assert grads["density"].shape == (structure.n_rows,)  # compact rows
+    cell = np.floor((xy - LO[:2]) / (HI[:2] - LO[:2]) * (res[:2] - 1)).astype(int)
+    coords = np.asarray(structure.coords)
+    touched = np.zeros(structure.n_rows, bool)
+    for cx, cy in cell:
+        touched |= np.isin(coords[:, 0], [cx, cx + 1]) & np.isin(coords[:, 1], [cy, cy + 1])
+    for name in ("density", "rgb", "log_gain"):
+        g = np.abs(np.asarray(grads[name])).reshape(structure.n_rows, -1).sum(1)
+        assert np.all(g[~touched] == 0.0), name
+        assert np.count_nonzero(g[touched]) > touched.sum() // 2, name
+        assert np.all(np.isfinite(g))
+
+
+def test_overflowing_rays_are_counted_and_truncated():
+    structure, params = random_scene(0, prune_half=False)
+    o, d = random_rays(16)
+    small = render_np(structure, params, o, d, 0.0, 5.0, render.RenderOptions(max_samples=4))
+    full = render_np(structure, params, o, d, 0.0, 5.0, render.RenderOptions(max_samples=64))
+    assert np.array_equal(small["n_occupied"], full["n_occupied"])
+    over = small["n_occupied"] > 4
+    assert over.any()
+    assert np.all(small["acc"][over] < full["acc"][over] + 1e-7) and all_finite(small)
+    np.testing.assert_allclose(small["acc"][~over], full["acc"][~over], atol=1e-6)
+
+
+def test_jitter_key_and_config_dataclass():
+    structure, params = random_scene(0)
+    o, d = random_rays(16)
+    cfg = RenderConfig()  # gridnerf.config's options work too (fields read by name)
+    plain = render_np(structure, params, o, d, 0.0, 5.0, cfg)
+    a = render_np(structure, params, o, d, 0.0, 5.0, cfg, key=jax.random.PRNGKey(7))
+    b = render_np(structure, params, o, d, 0.0, 5.0, cfg, key=jax.random.PRNGKey(7))
+    np.testing.assert_array_equal(a["rgb_low"], b["rgb_low"])
+    assert all_finite(a) and not np.allclose(a["rgb_low"], plain["rgb_low"], rtol=1e-6, atol=0)
+    assert np.mean(np.abs(a["acc"] - plain["acc"])) < 0.1  # same field, another quadrature
+
+
+def test_render_image_matches_render_rays_with_padding():
+    structure, params = random_scene(1)
+    o, d = random_rays(35, seed=9)
+    cfg = render.RenderOptions(max_samples=24)
+    whole = render_np(structure, params, o, d, 0.1, 4.0, cfg)
+    img = render.render_image(structure, params, o.reshape(5, 7, 3), d.reshape(5, 7, 3), 0.1,
+                              np.full((5, 7), 4.0), cfg, chunk=16)
+    assert img["rgb_low"].shape == (5, 7, 3) and img["acc"].shape == (5, 7)
+    for k in KEYS:
+        np.testing.assert_allclose(img[k].reshape(whole[k].shape), whole[k], atol=1e-6)

@@ -1,0 +1,228 @@
+"""load_scene: the simulated scene, the three pose layouts, and every bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from gridnerf import cameras as cam_mod
+from gridnerf import raw
+from gridnerf.dng import write_dng
+from gridnerf.errors import PoseError, RawError, SceneError
+from gridnerf.scene import load_scene
+
+W, H, N = 40, 32, 10
+GRBG = np.array([[1, 0], [2, 1]])
+BLACK = np.array([[60.0, 62.0], [64.0, 66.0]])
+WHITE = 1023
+
+
+def _cameras(n=N) -> cam_mod.Cameras:
+    """Forward-facing cameras on a small grid, all looking down -z (slightly rotated)."""
+    rots = Rotation.from_euler("xy", np.linspace(-0.1, 0.1, 2 * n).reshape(n, 2)).as_matrix()
+    pos = np.stack([np.linspace(-0.5, 0.5, n), np.cos(np.arange(n)) * 0.2, np.zeros(n)], 1)
+    c2w = np.concatenate([rots, pos[:, :, None]], axis=2)
+    return cam_mod.make_cameras([f"f{k:02d}" for k in range(n)], c2w, 36.0, 36.0, 20.0, 16.0, W, H)
+
+
+def _write_frame(path, k, shape=(H, W), cfa=GRBG):
+    rng = np.random.default_rng(k)
+    raw_bayer = rng.integers(40, 400, size=shape).astype(np.uint16)
+    raw_bayer[3, 5] = WHITE  # one saturated pixel
+    write_dng(path, raw_bayer, cfa, BLACK, WHITE, np.eye(3), np.array([0.5, 1.0, 0.7]),
+              exposure_time=0.01 * (k + 1), iso=800)
+
+
+def _make_scene(root, split=True, near_far=(2.0, 10.0)):
+    """A tiny scene folder with transforms.json (written by gridnerf itself)."""
+    (root / "raw").mkdir(parents=True)
+    cams = _cameras()
+    for k, name in enumerate(cams.names):
+        _write_frame(root / "raw" / f"{name}.dng", k)
+    test = [n for k, n in enumerate(cams.names) if k % 3 == 0] if split else None
+    train = [n for n in cams.names if n not in test] if split else None
+    cam_mod.write_transforms(root / "transforms.json", cams, train, test, near_far)
+    return root, cams
+
+
+def _edit_transforms(root, edit):
+    meta = json.loads((root / "transforms.json").read_text())
+    edit(meta)
+    (root / "transforms.json").write_text(json.dumps(meta))
+
+
+def test_simulated_scene(small_scene):
+    scene = load_scene(small_scene)
+    n = len(scene.names)
+    assert n == 12 and scene.raw_bayer.dtype == np.uint16 and scene.raw_bayer.shape == (12, 90, 160)
+    np.testing.assert_array_equal(scene.test_idx, [0, 8])
+    np.testing.assert_array_equal(scene.train_idx, [k for k in range(12) if k not in (0, 8)])
+    frame = raw.read_raw(small_scene / "raw" / f"{scene.names[3]}.dng")
+    np.testing.assert_array_equal(scene.raw_normalized(3), raw.normalize(frame))
+    assert scene.raw_normalized(3).min() < 0  # dark noise below black stays negative
+    rgb_cam, valid = scene.rgb_cam_binned(3)
+    assert rgb_cam.shape == valid.shape == (45, 80, 3) and valid.dtype == bool
+    np.testing.assert_allclose(rgb_cam, raw.bin2x2(raw.normalize(frame), frame.cfa))
+    rgb_small, valid_small = scene.rgb_cam_binned(3, downscale=2)
+    assert rgb_small.shape == valid_small.shape == (22, 40, 3)
+    assert scene.cameras.c2w.shape == (12, 3, 4) and len(scene.cameras) == 12
+    assert scene.near == pytest.approx(1 / 0.75) and scene.far > scene.near
+    assert set(scene.gt_linear_paths) == set(scene.names) == set(scene.gt_srgb_paths)
+    np.testing.assert_allclose(np.median(scene.exposure), 1.0)
+
+
+def test_tiny_scene_contents(tmp_path):
+    root, cams = _make_scene(tmp_path / "s")
+    scene = load_scene(root)
+    assert scene.names == cams.names
+    np.testing.assert_array_equal(scene.test_idx, [0, 3, 6, 9])
+    np.testing.assert_array_equal(scene.cfa, GRBG)
+    np.testing.assert_allclose(scene.black_level[4], BLACK)
+    assert scene.forward_facing and scene.saturated(2)[3, 5] and scene.saturated(2).sum() == 1
+    _, valid = scene.rgb_cam_binned(2)
+    # Pixel (row 3, col 5) is a green of block (1, 2) in GRBG: only that block's G is invalid.
+    assert not valid[1, 2, 1] and valid[1, 2, 0] and valid.sum() == valid.size - 1
+    times = 0.01 * (np.arange(N) + 1)
+    np.testing.assert_allclose(scene.exposure, times / np.median(times), rtol=1e-6)
+    mosaic = raw.read_raw(root / "raw" / "f02.dng").raw_bayer
+    manual = (mosaic - BLACK[0, 1]) / (WHITE - BLACK[0, 1])
+    np.testing.assert_allclose(scene.raw_normalized(2)[0, 1::2], manual[0, 1::2], rtol=1e-6)
+    # Normalised poses map back to the input poses.
+    np.testing.assert_allclose(_world_positions(scene), cams.c2w[:, :, 3], atol=1e-9)
+    assert scene.near == pytest.approx(1 / 0.75) and scene.far == pytest.approx(10 / 1.5)
+
+
+def _world_positions(scene) -> np.ndarray:
+    c = np.concatenate([scene.cameras.c2w[:, :, 3], np.ones((len(scene.names), 1))], axis=1)
+    return (scene.world_from_normalized @ c.T)[:3].T
+
+
+def test_colmap_and_llff_layouts_match_transforms(tmp_path):
+    root, cams = _make_scene(tmp_path / "s", split=False)
+    ref = load_scene(root)
+    np.testing.assert_array_equal(ref.test_idx, [0, 8])
+    (root / "transforms.json").unlink()
+
+    sparse = root / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    (sparse / "cameras.txt").write_text(f"1 SIMPLE_RADIAL {W * 2} {H * 2} 72 40 32 0.01\n")
+    lines = []
+    for i, name in enumerate(cams.names):
+        r_cv = cams.c2w[i, :, :3] @ np.diag([1.0, -1.0, -1.0])
+        t = -r_cv.T @ cams.c2w[i, :, 3]
+        qx, qy, qz, qw = Rotation.from_matrix(r_cv.T).as_quat()
+        lines += [f"{i + 1} {qw} {qx} {qy} {qz} {t[0]} {t[1]} {t[2]} 1 {name}.jpg", ""]
+    (sparse / "images.txt").write_text("\n".join(lines) + "\n")
+    depths = np.linspace(2.0, 10.0, 200)  # points along camera 0's optical axis
+    pts = cams.c2w[0, :, 3] - depths[:, None] * cams.c2w[0, :, 2]
+    (sparse / "points3D.txt").write_text(
+        "".join(f"{k + 1} {p[0]} {p[1]} {p[2]} 1 2 3 0.1\n" for k, p in enumerate(pts)))
+    (root / "raw" / "f01.json").write_text(json.dumps([{"ExposureTime": "1/10", "ISO": 800}]))
+    colmap = load_scene(root)
+    np.testing.assert_allclose(colmap.cameras.c2w[:, :, :3], ref.cameras.c2w[:, :, :3], atol=1e-6)
+    np.testing.assert_allclose(_world_positions(colmap), cams.c2w[:, :, 3], atol=1e-6)
+    np.testing.assert_allclose(colmap.cameras.fx, 36.0)  # rescaled from 2x previews
+    # near/far from the points' depths (2..10 along camera 0's axis), with a 10% margin.
+    near_w = np.linalg.norm(colmap.world_from_normalized[:3, 0]) / 0.75  # T scales by 1 / s
+    assert 1.7 < near_w < 2.0 and colmap.far * near_w * 0.75 == pytest.approx(
+        np.percentile(depths, 99) * 1.1, rel=0.02)
+    assert colmap.exposure[1] / colmap.exposure[0] == pytest.approx(10.0)  # sidecar wins
+
+    shutil.rmtree(root / "sparse")
+    c2w = cams.c2w
+    poses = np.stack([-c2w[:, :, 1], c2w[:, :, 0], c2w[:, :, 2], c2w[:, :, 3]], axis=2)
+    hwf = np.tile([[H, W, 36.0]], (N, 1))[:, :, None]
+    arr = np.concatenate([np.concatenate([poses, hwf], 2).reshape(N, 15),
+                          np.tile([[2.0, 10.0]], (N, 1))], axis=1)
+    np.save(root / "poses_bounds.npy", arr)
+    llff = load_scene(root)
+    np.testing.assert_allclose(llff.cameras.c2w, ref.cameras.c2w, atol=1e-9)
+    assert (llff.near, llff.far) == pytest.approx((ref.near, ref.far))
+    np.save(root / "poses_bounds.npy", arr[:-1])
+    with pytest.raises(SceneError, match="9 poses for 10 raw frames"):
+        load_scene(root)
+
+
+def _drop_matrix(meta):
+    del meta["frames"][4]["transform_matrix"]
+
+
+def _nan_pose(meta):
+    meta["frames"][4]["transform_matrix"][0][3] = float("nan")
+
+
+def _scale_pose(meta):
+    m = np.array(meta["frames"][4]["transform_matrix"])
+    m[:3, :3] *= 1.01
+    meta["frames"][4]["transform_matrix"] = m.tolist()
+
+
+def _bad_split(meta):
+    meta["test_filenames"] = ["raw/f00.dng", "nope"]
+
+
+def _no_near_far(meta):
+    del meta["near_far"]
+
+
+@pytest.mark.parametrize(
+    "edit, error, words",
+    [(_drop_matrix, PoseError, ["'f04'", "gridnerf poses", "remove the frame"]),
+     (_nan_pose, PoseError, ["'f04'", "NaN"]),
+     (_scale_pose, PoseError, ["'f04'", "not rigid"]),
+     (_bad_split, SceneError, ["nope", "not frames"]),
+     (_no_near_far, PoseError, ["near/far", "gridnerf poses"])],
+)
+def test_bad_transforms(tmp_path, edit, error, words):
+    root, _ = _make_scene(tmp_path / "s")
+    _edit_transforms(root, edit)
+    with pytest.raises(error) as info:
+        load_scene(root)
+    assert "transforms.json" in str(info.value) or str(root) in str(info.value)
+    for w in words:
+        assert w in str(info.value)
+
+
+def test_bad_folders_and_frames(tmp_path, monkeypatch):
+    with pytest.raises(SceneError, match="does not exist"):
+        load_scene(tmp_path / "nowhere")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SceneError, match="raw/ folder is missing"):
+        load_scene(tmp_path / "empty")
+    (tmp_path / "empty" / "raw").mkdir()
+    with pytest.raises(SceneError, match="no RAW frames"):
+        load_scene(tmp_path / "empty")
+
+    root, _ = _make_scene(tmp_path / "s")
+    (root / "transforms.json").rename(root / "t.json")
+    with pytest.raises(PoseError, match="gridnerf poses"):
+        load_scene(root)
+    (root / "t.json").rename(root / "transforms.json")
+
+    (root / "raw" / "f07.dng").rename(root / "f07.dng")
+    with pytest.raises(SceneError, match=r"\['f07'\] have no raw file"):
+        load_scene(root)
+    (root / "raw" / "f07.dng").write_bytes(np.random.default_rng(0).bytes(5000))
+    with pytest.raises(RawError, match="f07.dng"):
+        load_scene(root)
+    _write_frame(root / "raw" / "f07.dng", 7, shape=(H, W + 2))
+    with pytest.raises(SceneError, match="f07.dng: frame is 42x32") as info:
+        load_scene(root)
+    assert "remove or re-export" in str(info.value)
+    _write_frame(root / "raw" / "f07.dng", 7, cfa=np.array([[0, 1], [1, 2]]))
+    with pytest.raises(SceneError, match="f07.dng: CFA pattern"):
+        load_scene(root)
+
+    real = raw.read_raw
+
+    def odd_cfa(path):  # a reader that lets a non-Bayer pattern through
+        frame = real(path)
+        return type(frame)(**{**frame.__dict__, "cfa": np.array([[0, 0], [1, 2]])})
+
+    monkeypatch.setattr(raw, "read_raw", odd_cfa)
+    with pytest.raises(SceneError, match="unsupported CFA"):
+        load_scene(root)

@@ -1,0 +1,257 @@
+"""Tests for the procedural scene simulator (gridnerf.sim)."""
+
+from __future__ import annotations
+
+import json
+
+import imageio.v3 as iio
+import numpy as np
+import OpenEXR
+import pytest
+import rawpy
+
+from gridnerf.color import luminance, srgb_encode
+from gridnerf.errors import SceneError
+from gridnerf.sim import SCENES, simulate_scene
+from gridnerf.sim import sensor as sn
+from gridnerf.sim import textures as tx
+from gridnerf.sim.capture import intrinsics, look_at, pixel_rays
+from gridnerf.sim.geometry import Primitive, cast, occluded, rotation
+
+WHITE = tx.solid((1.0, 1.0, 1.0))
+
+
+def _read_raw(path):
+    """(raw_bayer (H, W) uint16, cfa (2, 2) colour index, rawpy black levels, white level)."""
+    with rawpy.imread(str(path)) as r:
+        pattern = np.array(r.raw_pattern)
+        desc = r.color_desc.decode()
+        cfa = np.vectorize(lambda i: "RGB".index(desc[i]))(pattern)
+        return (r.raw_image_visible.copy(), cfa, list(r.black_level_per_channel),
+                r.white_level, np.array(r.camera_whitebalance[:3]))
+
+
+def _read_exr(path):
+    return OpenEXR.File(str(path)).channels()["RGB"].pixels
+
+
+def _manifest(scene):
+    return json.loads((scene / "sim.json").read_text())
+
+
+# ---------------------------------------------------------------- geometry
+
+
+def test_sphere_box_hits_are_analytic():
+    prims = [Primitive("ellipsoid", np.zeros(3), np.ones(3), WHITE),
+             Primitive("box", np.array([5.0, 0.0, 0.0]), np.array([1.0, 2.0, 3.0]), WHITE)]
+    origins = np.array([[0.0, 0.0, 5.0], [0.0, 0.0, 5.0], [10.0, 0.5, 0.0], [0.0, 5.0, 5.0]])
+    dirs = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, -2.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    hits = cast(prims, origins, dirs)
+    np.testing.assert_allclose(hits.t[:3], [4.0, 2.0, 4.0], atol=1e-9)
+    assert hits.prim.tolist() == [0, 0, 1, -1] and np.isinf(hits.t[3])
+    np.testing.assert_allclose(hits.normal[0], [0, 0, 1], atol=1e-9)
+    np.testing.assert_allclose(hits.normal[2], [1, 0, 0], atol=1e-9)
+    np.testing.assert_allclose(hits.point[2], [6.0, 0.5, 0.0], atol=1e-9)
+
+
+def test_rotated_box_and_open_bucket():
+    # A cube rotated 45 degrees about y shows an edge at distance sqrt(2) from its centre.
+    cube = Primitive("box", np.zeros(3), np.ones(3), WHITE, rot=rotation(yaw=np.pi / 4))
+    hits = cast([cube], np.array([[0.0, 0.0, 5.0]]), np.array([[0.0, 0.0, -1.0]]))
+    np.testing.assert_allclose(hits.t, [5.0 - np.sqrt(2.0)], atol=1e-9)
+    # Open-topped bucket: a ray from above passes the opening and hits the floor inside,
+    # whose normal faces up; a horizontal ray hits the outside wall, facing the ray.
+    bucket = Primitive("frustum", np.zeros(3), np.array([0.5, 1.0, 0.8]), WHITE,
+                       caps=(True, False))
+    hits = cast([bucket], np.array([[0.0, 5.0, 0.0], [3.0, 0.0, 0.0]]),
+                np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0]]))
+    np.testing.assert_allclose(hits.t, [6.0, 3.0 - 0.65], atol=1e-9)
+    np.testing.assert_allclose(hits.normal[0], [0, 1, 0], atol=1e-9)
+    assert hits.normal[1, 0] > 0.9
+    blocked = occluded([bucket], np.array([[3.0, 0.0, 0.0], [3.0, 3.0, 0.0]]),
+                       np.array([[-1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]))
+    assert blocked.tolist() == [True, False]
+
+
+def test_camera_rays_follow_opengl_convention():
+    intr = intrinsics(64, 36)
+    c2w = np.eye(4)
+    c2w[:3, :3] = look_at(np.array([1.0, 2.0, 5.0]), np.array([0.0, 0.5, 0.0]))
+    c2w[:3, 3] = [1.0, 2.0, 5.0]
+    rot = c2w[:3, :3]
+    np.testing.assert_allclose(rot.T @ rot, np.eye(3), atol=1e-12)
+    assert np.linalg.det(rot) == pytest.approx(1.0)
+    forward = -rot[:, 2]
+    aim = np.array([-1.0, -1.5, -5.0]) / np.linalg.norm([1.0, 1.5, 5.0])
+    np.testing.assert_allclose(forward, aim, atol=1e-12)
+    _, dirs = pixel_rays(c2w, intr, ssaa=1)
+    d_cam = dirs[..., 0, :] @ rot  # back to camera frame
+    np.testing.assert_allclose(d_cam[..., 2], -1.0, atol=1e-12)
+    assert d_cam[0, -1, 0] > 0 and d_cam[0, -1, 1] > 0  # top-right pixel: +x, +y
+    assert rot[1, 1] > 0.9  # camera up is world up (small roll only)
+
+
+# ---------------------------------------------------------------- sensor
+
+
+def test_noise_variance_follows_gain_and_read_noise():
+    params = sn.SensorParams(k_gain=5.0, bias=((1.0, -1.0), (2.0, 3.0)))
+    rng = np.random.default_rng(0)
+    levels = np.array([0.0, 2.0, 5.0, 10.0, 20.0, 40.0])
+    means, variances = [], []
+    for e in levels:
+        dn = sn.expose(np.full((256, 256), e), params, rng).astype(np.float64)
+        means.append(dn.mean())
+        variances.append(dn.var())
+    signal = np.array(means) - sn.BLACK_LEVEL - 1.25  # minus black and the mean bias
+    np.testing.assert_allclose(signal, 5.0 * levels, atol=1.0)  # linear response K * e
+    slope, read_var = np.polyfit(signal, variances, 1)
+    assert slope == pytest.approx(params.k_gain, rel=0.15)
+    # Tukey-lambda read noise (heavier tailed than a logistic) plus row noise and rounding.
+    assert params.read_sigma**2 * 3.29 < read_var < params.read_sigma**2 * 6
+
+
+def test_tukey_lambda_is_symmetric_heavy_tailed():
+    x = sn.tukey_lambda(np.random.default_rng(1), 200_000, -0.075, 3.5)
+    assert abs(np.median(x)) < 0.05
+    kurtosis = np.mean((x - x.mean()) ** 4) / x.var() ** 2
+    assert kurtosis > 4.2  # logistic (lambda = 0) has 4.2; negative lambda is heavier
+
+
+def test_mosaic_and_cfa_patterns():
+    rgb_cam = np.stack([np.full((4, 6), 1.0), np.full((4, 6), 2.0), np.full((4, 6), 3.0)], -1)
+    raw = sn.mosaic(rgb_cam, np.array(sn.CFA_PATTERNS["GRBG"]))
+    assert raw[0, :2].tolist() == [2.0, 1.0] and raw[1, :2].tolist() == [3.0, 2.0]
+    warm = sn.illuminant_neutral(sn.SensorParams(kelvin=2500.0))
+    assert warm[2] < 0.5 * warm[1]
+    np.testing.assert_allclose(sn.bin2x2(raw, np.array(sn.CFA_PATTERNS["GRBG"]))[0, 0],
+                               [1.0, 2.0, 3.0])
+
+
+def test_preview_balances_a_warm_grey_frame():
+    params = sn.SensorParams(kelvin=2600.0)
+    grey = sn.scene_to_cam(np.full((32, 48, 3), 0.5), params)  # a grey card under warm light
+    raw = sn.expose(sn.mosaic(grey, params.cfa) * 40.0, params, np.random.default_rng(0))
+    rgb_srgb = sn.preview_srgb(raw, params.cfa, np.full((2, 2), 512.0), 16383,
+                               params.xyz_to_cam)
+    assert rgb_srgb.shape == (32, 48, 3)
+    means = rgb_srgb.reshape(-1, 3).mean(axis=0)
+    assert np.ptp(means) < 0.05 and 0.3 < means.mean() < 0.6  # neutral, normal brightness
+
+
+# ---------------------------------------------------------------- scene folder
+
+
+def test_scene_folder_reads_back(small_scene):
+    tf = json.loads((small_scene / "transforms.json").read_text())
+    for key in ("fl_x", "fl_y", "cx", "cy", "w", "h", "frames", "train_filenames",
+                "test_filenames", "near_far"):
+        assert key in tf
+    assert (tf["w"], tf["h"]) == (160, 90) and len(tf["frames"]) == 12
+    paths = [f["file_path"] for f in tf["frames"]]
+    assert paths[0] == "raw/frame_000.dng"
+    assert tf["test_filenames"] == ["raw/frame_000.dng", "raw/frame_008.dng"]
+    assert sorted(tf["train_filenames"] + tf["test_filenames"]) == sorted(paths)
+    hfov = 2 * np.degrees(np.arctan(0.5 * tf["w"] / tf["fl_x"]))
+    assert 50.0 <= hfov <= 60.0
+    poses = np.array([f["transform_matrix"] for f in tf["frames"]])
+    np.testing.assert_allclose(poses[:, 3], np.tile([0, 0, 0, 1.0], (12, 1)))
+    rots = poses[:, :3, :3]
+    np.testing.assert_allclose(rots @ rots.transpose(0, 2, 1), np.tile(np.eye(3), (12, 1, 1)),
+                               atol=1e-9)
+    spread = np.ptp(poses[:, :3, 3], axis=0)
+    assert spread[0] > 0.3 and spread[1] > 0.1  # the tripod really moves
+    near, far = tf["near_far"]
+    assert 0 < near < far and 1.5 <= far / near <= 4.5
+    gt = _read_exr(small_scene / "gt" / "frame_003.exr")
+    assert gt.shape == (90, 160, 3) and gt.dtype == np.float32
+    png = iio.imread(small_scene / "gt" / "frame_003.png")
+    assert png.shape == (90, 160, 3) and png.dtype == np.uint8
+    np.testing.assert_allclose(png / 255.0, srgb_encode(gt), atol=0.51 / 255)
+    jpg = iio.imread(small_scene / "images" / "frame_003.jpg")
+    assert jpg.shape == (90, 160, 3) and 40 < jpg.mean() < 200
+    raw, cfa, black, white, wb = _read_raw(small_scene / "raw" / "frame_003.dng")
+    assert raw.shape == (90, 160) and raw.dtype == np.uint16
+    assert cfa.tolist() == [[0, 1], [1, 2]] and black == [512] * 4 and white == 16383
+    assert wb[2] > wb[1]  # camera WB boosts the weak blue channel of a warm scene
+    manifest = _manifest(small_scene)
+    assert manifest["scene"] == "bucket" and 2300 <= manifest["illuminant_kelvin"] <= 3200
+    assert "0.18" in manifest["exposure_convention"]
+
+
+def test_raw_is_dark_and_warm(small_scene):
+    manifest = _manifest(small_scene)
+    cfa = np.array(manifest["cfa"])
+    sums, counts = np.zeros(3), np.zeros(3)
+    for stem in manifest["frames"]:
+        raw = _read_raw(small_scene / "raw" / f"{stem}.dng")[0].astype(np.float64) - 512
+        colour = sn.cfa_index(*raw.shape, cfa)
+        for c in range(3):
+            sums[c] += raw[colour == c].sum()
+            counts[c] += (colour == c).sum()
+    mean = sums / counts
+    assert mean[2] / mean[1] < 0.7  # warm light: blue well below green
+    assert mean.mean() / (16383 - 512) < 0.05  # dark: a few percent of the range or less
+    k, electrons = manifest["K_dn_per_electron"], manifest["electrons_mean_green"]
+    assert mean[1] == pytest.approx(k * electrons, abs=5.0)  # photon budget as recorded
+
+
+def test_references_are_colourful_and_normalised(small_scene):
+    frames = np.stack([_read_exr(p) for p in sorted((small_scene / "gt").glob("*.exr"))])
+    assert frames.shape == (12, 90, 160, 3)
+    assert float(luminance(frames.astype(np.float64)).mean()) == pytest.approx(0.18, rel=1e-3)
+    means = frames.reshape(-1, 3).mean(axis=0)
+    assert (means.max() - means.min()) / means.mean() > 0.1  # not grey on average
+    chroma = frames.max(axis=-1) - frames.min(axis=-1)
+    assert chroma.mean() > 0.05
+
+
+def test_deterministic_and_reused(small_scene, tmp_path):
+    again = simulate_scene("bucket", tmp_path / "again", width=160, height=90, n_frames=12,
+                           seed=0)
+    for stem in ("frame_000", "frame_007"):
+        a = _read_raw(small_scene / "raw" / f"{stem}.dng")[0]
+        b = _read_raw(again / "raw" / f"{stem}.dng")[0]
+        np.testing.assert_array_equal(a, b)
+    stamps = {p: p.stat().st_mtime_ns for p in small_scene.rglob("*") if p.is_file()}
+    assert simulate_scene("bucket", small_scene, width=160, height=90, n_frames=12,
+                          seed=0) == small_scene
+    assert {p: p.stat().st_mtime_ns for p in small_scene.rglob("*") if p.is_file()} == stamps
+    assert not list(tmp_path.glob("again.tmp-*"))
+
+
+def test_seed_changes_noise_and_cameras(tmp_path):
+    a = simulate_scene("box", tmp_path / "a", width=64, height=36, n_frames=2, seed=1)
+    b = simulate_scene("box", tmp_path / "b", width=64, height=36, n_frames=2, seed=2)
+    assert not np.array_equal(_read_raw(a / "raw" / "frame_001.dng")[0],
+                              _read_raw(b / "raw" / "frame_001.dng")[0])
+    pose = [json.loads((d / "transforms.json").read_text())["frames"][1]["transform_matrix"]
+            for d in (a, b)]
+    assert not np.allclose(pose[0], pose[1])
+
+
+def test_refuses_foreign_folder_and_bad_name(tmp_path):
+    out = tmp_path / "taken"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(SceneError, match="overwrite"):
+        simulate_scene("doll", out, width=64, height=36, n_frames=1)
+    simulate_scene("doll", out, width=64, height=36, n_frames=1, overwrite=True)
+    assert not (out / "notes.txt").exists() and (out / "sim.json").is_file()
+    with pytest.raises(SceneError, match="unknown simulated scene"):
+        simulate_scene("teapot", tmp_path / "teapot")
+    with pytest.raises(SceneError, match="at least"):
+        simulate_scene("doll", tmp_path / "tiny", width=4, height=4)
+
+
+@pytest.mark.parametrize("name", SCENES)
+def test_every_scene_builds(name, tmp_path):
+    out = simulate_scene(name, tmp_path / name, width=64, height=36, n_frames=3, seed=0)
+    manifest = _manifest(out)
+    raw, cfa, *_ = _read_raw(out / "raw" / "frame_002.dng")
+    assert raw.shape == (36, 64)
+    assert cfa.tolist() == np.array(sn.CFA_PATTERNS[manifest["cfa_pattern"]]).tolist()
+    gt = _read_exr(out / "gt" / "frame_002.exr")
+    assert np.isfinite(gt).all() and gt.min() >= 0.0 and gt.max() > 0.1
+    assert len(list((out / "images").glob("*.jpg"))) == 3
