@@ -4,7 +4,8 @@ A synthetic forward-facing scene in NDC-like coordinates: a 128 x 128 x 64 verte
 [-1, 1]^3 holding a back wall and a few spheres, pruned and with a density occupancy
 bitmask. 4096 rays per step as 64 patches of 8 x 8 adjacent pixels (coherent batches),
 loss = data + 0.1 L_ca + 0.1 L_smooth(patch) + TV(density, 10% of rows).
-Prints one table row per (sh_degree, skipping) setting.
+Prints one table row per (sh_degree, skipping, candidate count) setting: N candidates per
+ray (fitted to the rays with render.fit_n_candidates, or the box diagonal), K shaded.
 
 Run: LD_PRELOAD=/usr/lib/x86_64-linux-gnu/libtcmalloc_minimal.so.4 \
      .venv/bin/python experiments/bench_render.py
@@ -46,7 +47,7 @@ def synthetic_scene(resolution, sh_degree: int, seed: int = 0):
 def patch_rays(n_patches: int, patch: int, image: int, seed: int):
     """NDC-like forward-facing rays: origins on z = -1, directions mostly +z. (n, 3) each."""
     rng = np.random.default_rng(seed)
-    corner = rng.integers(0, image - patch, (n_patches, 2))
+    corner = rng.integers(0, image - patch + 1, (n_patches, 2))
     ij = corner[:, None, None, :] + np.stack(np.meshgrid(np.arange(patch), np.arange(patch),
                                                          indexing="ij"), -1)[None]
     xy = (ij.reshape(-1, 2) + 0.5) / image * 2.0 - 1.0
@@ -78,12 +79,16 @@ def make_step(structure, cfg, n_patches, patch):
     return step, opt
 
 
-def bench(sh_degree: int, skip: bool, args) -> dict:
+def bench(sh_degree: int, skip: bool, fitted: bool, args) -> dict:
     structure, params = synthetic_scene(tuple(args.resolution), sh_degree)
-    cfg = render.RenderOptions(samples_per_voxel=args.spv, max_samples=args.k, skip_empty=skip,
-                               n_candidates=args.n_candidates)
-    n_cand = render.n_candidates(structure, cfg)
     origins, directions = patch_rays(args.patches, args.patch, 512, 0)
+    # fitted: N from the longest ray of a full 512 x 512 view; else the box diagonal
+    o_all, d_all = patch_rays(1, 512, 512, 0)
+    n_fit = (render.fit_n_candidates(structure, o_all, d_all, 0.0, 1.0, args.spv)
+             if fitted else None)
+    cfg = render.RenderOptions(samples_per_voxel=args.spv, max_samples=args.k, skip_empty=skip,
+                               n_candidates=n_fit)
+    n_cand = render.n_candidates(structure, cfg)
     target = np.full((origins.shape[0], 3), 5e-3, np.float32)
     step, opt = make_step(structure, cfg, args.patches, args.patch)
     opt_state = opt.init(params)
@@ -116,7 +121,6 @@ def main() -> None:
     p.add_argument("--patch", type=int, default=8)
     p.add_argument("--spv", type=float, default=2.0, help="candidate samples per voxel")
     p.add_argument("--k", type=int, default=64, help="kept samples per ray when skipping")
-    p.add_argument("--n-candidates", type=int, default=None, help="default: box diagonal")
     p.add_argument("--iters", type=int, default=5)
     p.add_argument("--sh", type=int, nargs="+", default=[0, 2])
     args = p.parse_args()
@@ -126,8 +130,8 @@ def main() -> None:
             f"{'shaded/s':>9} {'occ/ray':>7} {'overflow':>8}")
     print(head)
     for sh in args.sh:
-        for skip in (True, False):
-            r = bench(sh, skip, args)
+        for skip, fitted in ((True, True), (True, False), (False, True)):
+            r = bench(sh, skip, fitted, args)
             print(f"{r['sh']:>2} {str(r['skip']):>5} {r['rows']:>8} {r['N']:>4} {r['K']:>4} "
                   f"{r['ms']:>8.1f} {r['rays_s']:>8.0f} {r['shaded_s'] / 1e6:>8.2f}M "
                   f"{r['occ_mean']:>7.1f} {r['overflow']:>8.3f}", flush=True)

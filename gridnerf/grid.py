@@ -92,8 +92,8 @@ def _check_layout(resolution, bbox_min, bbox_max, sh_degree, occ_factor) -> None
         raise GridNerfError(None, f"grid resolution {tuple(resolution)} is invalid",
                             "give three vertex counts, each >= 2 (grid.resolutions)")
     lo, hi = np.asarray(bbox_min, np.float64), np.asarray(bbox_max, np.float64)
-    if lo.shape != (3,) or hi.shape != (3,) or not (np.all(np.isfinite(lo + hi)) and
-                                                    np.all(hi > lo)):
+    ok = lo.shape == hi.shape == (3,) and np.all(np.isfinite(lo + hi)) and np.all(hi > lo)
+    if not ok:
         raise GridNerfError(None, f"grid box {lo} .. {hi} is empty or not finite",
                             "pass finite bbox_min < bbox_max on every axis")
     if not 0 <= sh_degree <= MAX_SH_DEGREE:

@@ -64,7 +64,6 @@ def _run_colmap(images_dir: Path, image_names: list[str], work: Path, camera_mod
                               camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
                               extraction_options=extraction, device=pycolmap.Device.cpu)
     matching = pycolmap.FeatureMatchingOptions()
-    matching.guided_matching = True
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = 0
     verification.ransac.max_error = max_error

@@ -51,6 +51,25 @@ def n_candidates(structure: GridStructure, cfg) -> int:
     return int(math.ceil(diag * float(cfg.samples_per_voxel)))
 
 
+def fit_n_candidates(structure: GridStructure, origins, directions, near_t, far_t,
+                     samples_per_voxel: float, chunk: int = 1 << 16) -> int:
+    """Smallest static N that gives every one of these rays its full 1/spv spacing.
+
+    origins, directions: (n, 3) (e.g. all training rays, host arrays); near_t, far_t: scalars
+    or (n,). Forward-facing NDC rays cross ~Rz voxels, far fewer than the box diagonal that
+    n_candidates() assumes, so this saves candidate work; pass it as cfg.n_candidates.
+    """
+    o, d = np.asarray(origins, np.float32), np.asarray(directions, np.float32)
+    near = np.broadcast_to(np.asarray(near_t, np.float32), o.shape[:1])
+    far = np.broadcast_to(np.asarray(far_t, np.float32), o.shape[:1])
+    longest = 0.0
+    for s in range(0, o.shape[0], chunk):
+        sl = slice(s, s + chunk)
+        seg = _ray_segments(structure, o[sl], d[sl], near[sl], far[sl], 1, samples_per_voxel)[5]
+        longest = max(longest, float(jnp.max(seg)) if seg.size else 0.0)
+    return max(1, int(math.ceil(longest * samples_per_voxel)))
+
+
 def _ray_segments(structure: GridStructure, origins, directions, near_t, far_t, n_cand, spv):
     """Index-space rays and their candidate spacing.
 

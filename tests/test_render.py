@@ -210,6 +210,19 @@ def test_jitter_key_and_config_dataclass():
     assert np.mean(np.abs(a["acc"] - plain["acc"])) < 0.1  # same field, another quadrature
 
 
+def test_fitted_candidate_count_renders_the_same():
+    structure, params = random_scene(0)
+    o, d = random_rays(24, seed=11)
+    n_fit = render.fit_n_candidates(structure, o, d, 0.2, 3.0, 2.0)
+    diag = render.n_candidates(structure, render.RenderOptions(samples_per_voxel=2.0))
+    assert 0 < n_fit < diag
+    a = render_np(structure, params, o, d, 0.2, 3.0, render.RenderOptions(max_samples=40))
+    b = render_np(structure, params, o, d, 0.2, 3.0,
+                  render.RenderOptions(max_samples=40, n_candidates=n_fit))
+    for k in KEYS:
+        np.testing.assert_allclose(a[k], b[k], atol=1e-6, err_msg=k)
+
+
 def test_render_image_matches_render_rays_with_padding():
     structure, params = random_scene(1)
     o, d = random_rays(35, seed=9)
