@@ -32,7 +32,7 @@ def _simulate(args) -> None:
 def _poses(args) -> None:
     from gridnerf.poses import estimate_poses
 
-    report = estimate_poses(Path(args.scene))
+    report = estimate_poses(Path(args.scene), source=args.source)
     print(json.dumps(report, indent=2))
 
 
@@ -82,6 +82,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("poses", help="estimate camera poses with COLMAP (pycolmap)")
     s.add_argument("scene")
+    s.add_argument(
+        "--source",
+        default="images",
+        choices=["images", "raw"],
+        help="images/ previews (default) or previews made from the raw frames",
+    )
     s.set_defaults(func=_poses)
 
     s = sub.add_parser("train", help="train a grid on a scene folder (resumes automatically)")

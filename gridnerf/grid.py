@@ -173,12 +173,17 @@ def init_grid(resolution, bbox_min, bbox_max, sh_degree: int = 0, init_density: 
     return structure, params
 
 
-def feature_table(structure: GridStructure, params) -> jax.Array:
-    """(M + 1, C) float32 [density | rgb | log_gain] with the empty row appended."""
+def feature_table(structure: GridStructure, params, pad_to: int = 1) -> jax.Array:
+    """(M + 1, C') float32 [density | rgb | log_gain | zeros] with the empty row appended.
+
+    C' is C rounded up to a multiple of pad_to: gathers of 8 or 32 floats per row ran
+    about 2x faster than of 7 or 31 on this CPU (render pads to 8, then drops the padding).
+    """
     body = jnp.concatenate(
         [params["density"][:, None], params["rgb"], params["log_gain"]], axis=1)
-    empty = jnp.zeros((1, body.shape[1]), body.dtype).at[0, 0].set(EMPTY_DENSITY_RAW)
-    return jnp.concatenate([body, empty], axis=0)
+    width = -(-body.shape[1] // pad_to) * pad_to
+    body = jnp.pad(body, ((0, 1), (0, width - body.shape[1])))
+    return body.at[-1, 0].set(EMPTY_DENSITY_RAW)
 
 
 def to_index_space(structure: GridStructure, points: jax.Array) -> jax.Array:
@@ -202,7 +207,7 @@ def trilinear_index_space(structure: GridStructure, table: jax.Array, u: jax.Arr
     corner = np.array([(dx * ry + dy) * rz + dz for dx in (0, 1) for dy in (0, 1)
                        for dz in (0, 1)], np.int32)
     flat = ((base[..., 0] * ry + base[..., 1]) * rz + base[..., 2])[..., None] + corner
-    rows = structure.index.reshape(-1)[flat]  # (..., 8)
+    rows = jnp.take(structure.index.reshape(-1), flat, mode="clip")  # (..., 8), in range
     if outside_empty:
         outside = jnp.any((u < 0.0) | (u > hi), axis=-1, keepdims=True)
         rows = jnp.where(outside, table.shape[0] - 1, rows)
@@ -211,7 +216,7 @@ def trilinear_index_space(structure: GridStructure, table: jax.Array, u: jax.Arr
     wy = jnp.stack([1.0 - fy, fy], -1)[..., None, :, None]
     wz = jnp.stack([1.0 - fz, fz], -1)[..., None, None, :]
     weights = (wx * wy * wz).reshape(*u.shape[:-1], 8)
-    return jnp.einsum("...k,...kc->...c", weights, table[rows])
+    return jnp.einsum("...k,...kc->...c", weights, jnp.take(table, rows, axis=0, mode="clip"))
 
 
 def interpolate(structure: GridStructure, params, points: jax.Array) -> jax.Array:

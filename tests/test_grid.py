@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from gridnerf import grid
 from gridnerf.errors import GridNerfError
 
+interpolate = jax.jit(grid.interpolate)  # one compile per grid shape
 LO = np.array([-1.0, -2.0, 0.5])
 HI = np.array([2.0, 1.0, 3.0])
 
@@ -51,20 +52,20 @@ def test_trilinear_exact_on_linear_fields(seed, sh_degree, res):
     coef = rng.normal(size=(structure.n_channels, 4))
     params = linear_params(structure, coef)
     pts = random_points(rng, 64)
-    got = np.asarray(grid.interpolate(structure, params, jnp.asarray(pts)))
+    got = np.asarray(interpolate(structure, params, jnp.asarray(pts)))
     np.testing.assert_allclose(got, linear_truth(pts, coef), atol=2e-5 * (1 + np.abs(coef).sum()))
 
 
 def test_vertices_and_outside_points():
     structure, params = make()
     params = linear_params(structure, np.random.default_rng(0).normal(size=(7, 4)))
-    got = grid.interpolate(structure, params, jnp.asarray(vertex_positions(structure)))
+    got = interpolate(structure, params, jnp.asarray(vertex_positions(structure)))
     expect = grid.feature_table(structure, params)[:-1]
     np.testing.assert_allclose(got, expect, atol=1e-5)
     outside = jnp.asarray([[HI[0] + 0.1, 0.0, 1.0], [0.0, LO[1] - 1e-3, 1.0]])
     empty = np.zeros((2, 7), np.float32)
     empty[:, 0] = grid.EMPTY_DENSITY_RAW
-    np.testing.assert_array_equal(grid.interpolate(structure, params, outside), empty)
+    np.testing.assert_array_equal(interpolate(structure, params, outside), empty)
 
 
 def test_structure_tables_are_consistent_after_prune():
@@ -102,16 +103,16 @@ def test_prune_keeps_linear_field_exact_and_empties_the_rest():
     pruned, pp = grid.prune(structure, params, x[:, 0] < 0.6)  # drop the far +x part
     assert pruned.n_rows < structure.n_rows
     near = random_points(rng, 64, hi=np.array([0.2, HI[1], HI[2]]))  # all corners kept
-    np.testing.assert_allclose(grid.interpolate(pruned, pp, jnp.asarray(near)),
+    np.testing.assert_allclose(interpolate(pruned, pp, jnp.asarray(near)),
                                linear_truth(near, coef), atol=1e-4)
     far = random_points(rng, 16, lo=np.array([1.2, LO[1], LO[2]]))  # no corner kept
-    feats = np.asarray(grid.interpolate(pruned, pp, jnp.asarray(far)))
+    feats = np.asarray(interpolate(pruned, pp, jnp.asarray(far)))
     np.testing.assert_allclose(feats[:, 0], grid.EMPTY_DENSITY_RAW, atol=1e-5)
     np.testing.assert_array_equal(feats[:, 1:], 0.0)
     # empty everywhere: M = 0 rows still interpolates to the empty row
     none, pn = grid.prune(structure, params, np.zeros(structure.n_rows, bool))
     assert none.n_rows == 0 and not np.asarray(none.occupancy).any()
-    np.testing.assert_allclose(grid.interpolate(none, pn, jnp.asarray(near))[:, 0],
+    np.testing.assert_allclose(interpolate(none, pn, jnp.asarray(near))[:, 0],
                                grid.EMPTY_DENSITY_RAW, atol=1e-5)
 
 
@@ -124,7 +125,7 @@ def test_upsample_reproduces_linear_fields(sh_degree):
     fine, fp = grid.upsample(structure, params, (9, 11, 6))
     assert fine.resolution == (9, 11, 6) and fine.n_rows == 9 * 11 * 6
     pts = random_points(rng, 64)
-    np.testing.assert_allclose(grid.interpolate(fine, fp, jnp.asarray(pts)),
+    np.testing.assert_allclose(interpolate(fine, fp, jnp.asarray(pts)),
                                linear_truth(pts, coef), atol=1e-4)
 
 
@@ -143,7 +144,7 @@ def test_upsample_after_prune_keeps_only_vertices_near_kept_parents():
     coarse_dz = (HI[2] - LO[2]) / 6
     assert fine_z.max() <= x[x[:, 2] < 1.2, 2].max() + coarse_dz + 1e-6
     pts = random_points(rng, 64, hi=np.array([HI[0], HI[1], 0.9]))
-    np.testing.assert_allclose(grid.interpolate(fine, fp, jnp.asarray(pts)),
+    np.testing.assert_allclose(interpolate(fine, fp, jnp.asarray(pts)),
                                linear_truth(pts, coef), atol=1e-4)
 
 

@@ -11,6 +11,12 @@ from hypothesis.extra.numpy import arrays
 
 from gridnerf import grid, losses
 
+# jitted once per shape: far cheaper than op-by-op dispatch for these tiny arrays
+data_loss = jax.jit(losses.data_loss)
+ca_loss = jax.jit(losses.ca_loss, static_argnames=("stop_grad_mean",))
+smooth_loss_patch = jax.jit(losses.smooth_loss_patch, static_argnames=("stop_grad_color",))
+tv_loss = jax.jit(losses.tv_loss, static_argnames=("fraction",))
+edge_aware_gain_tv = jax.jit(losses.edge_aware_gain_tv, static_argnames=("fraction",))
 
 def finite(*xs) -> bool:
     return all(bool(np.all(np.isfinite(np.asarray(x)))) for x in jax.tree_util.tree_leaves(xs))
@@ -21,14 +27,14 @@ def test_data_loss_matches_formula_and_ignores_masked_entries():
     y = np.array([[-0.005, 0.25, 0.5]], np.float32)
     m = np.array([[1.0, 1.0, 0.0]], np.float32)
     expect = ((0.01 + 0.005) / 0.011) ** 2 + ((0.2 - 0.25) / 0.201) ** 2
-    np.testing.assert_allclose(losses.data_loss(c, y, m), expect / 2, rtol=1e-5)
+    np.testing.assert_allclose(data_loss(c, y, m), expect / 2, rtol=1e-5)
     # saturated / unmeasured entries, even NaN, change nothing under a zero mask
     y_bad = y.copy()
     y_bad[0, 2] = np.nan
-    assert float(losses.data_loss(c, y_bad, m)) == float(losses.data_loss(c, y, m))
-    g = jax.grad(losses.data_loss)(jnp.asarray(c), jnp.asarray(y_bad), jnp.asarray(m))
+    assert float(data_loss(c, y_bad, m)) == float(data_loss(c, y, m))
+    g = jax.grad(data_loss)(jnp.asarray(c), jnp.asarray(y_bad), jnp.asarray(m))
     assert finite(g) and g[0, 2] == 0.0 and g[0, 0] > 0.0 and g[0, 1] < 0.0
-    assert float(losses.data_loss(c, y, np.zeros_like(m))) == 0.0
+    assert float(data_loss(c, y, np.zeros_like(m))) == 0.0
 
 
 @settings(max_examples=25, deadline=None)
@@ -38,7 +44,7 @@ def test_data_loss_matches_formula_and_ignores_masked_entries():
        ratio=st.sampled_from([1.0, 0.05]))
 def test_data_loss_finite_with_negative_targets_and_exposure_ratio(rgb, target, mask, ratio):
     args = (jnp.asarray(rgb * ratio), jnp.asarray(target * ratio), jnp.asarray(mask))
-    value, g = jax.value_and_grad(losses.data_loss)(*args)
+    value, g = jax.value_and_grad(data_loss)(*args)
     assert finite(value, g) and float(value) >= 0.0
 
 
@@ -46,10 +52,10 @@ def test_data_loss_is_relative_error_at_any_exposure():
     # linearised log-L2: the same 10% error costs about the same at 1x and 0.05x exposure
     y = np.full((8, 3), 0.4, np.float32)
     m = np.ones_like(y)
-    full = float(losses.data_loss(1.1 * y, y, m))
-    dark = float(losses.data_loss(1.1 * 0.05 * y, 0.05 * y, m))
+    full = float(data_loss(1.1 * y, y, m))
+    dark = float(data_loss(1.1 * 0.05 * y, 0.05 * y, m))
     assert 0.005 < full < 0.01 and 0.7 < dark / full < 1.0
-    assert float(losses.data_loss(0.05 * y, 0.05 * y, m)) == 0.0
+    assert float(data_loss(0.05 * y, 0.05 * y, m)) == 0.0
 
 
 def test_ca_loss_grey_world_target():
@@ -57,12 +63,12 @@ def test_ca_loss_grey_world_target():
     cbar = rgb.mean(0)
     target = cbar.mean() / cbar
     gain = np.broadcast_to(target, rgb.shape)
-    assert abs(float(losses.ca_loss(rgb, gain))) < 1e-10
-    np.testing.assert_allclose(losses.ca_loss(rgb, np.ones_like(rgb)),
+    assert abs(float(ca_loss(rgb, gain))) < 1e-10
+    np.testing.assert_allclose(ca_loss(rgb, np.ones_like(rgb)),
                                np.sum((target - 1) ** 2) / 3, rtol=1e-5)
     # averaged over rays: duplicating the batch leaves it unchanged
-    np.testing.assert_allclose(losses.ca_loss(np.tile(rgb, (3, 1)), np.ones((6, 3))),
-                               losses.ca_loss(rgb, np.ones_like(rgb)), rtol=1e-6)
+    np.testing.assert_allclose(ca_loss(np.tile(rgb, (3, 1)), np.ones((6, 3))),
+                               ca_loss(rgb, np.ones_like(rgb)), rtol=1e-6)
 
 
 def test_ca_loss_black_channel_is_finite():
@@ -71,10 +77,10 @@ def test_ca_loss_black_channel_is_finite():
     rgb[:, 2] = 0.0  # a blue channel that renders black
     gain = rng.uniform(0.5, 2.0, (32, 3)).astype(np.float32)
     for flag in (True, False):
-        value, (g_rgb, g_gain) = jax.value_and_grad(losses.ca_loss, argnums=(0, 1))(
+        value, (g_rgb, g_gain) = jax.value_and_grad(ca_loss, argnums=(0, 1))(
             jnp.asarray(rgb), jnp.asarray(gain), 1e-6, flag)
         assert finite(value, g_rgb, g_gain) and float(value) > 1e6  # large finite target
-    all_black = jax.value_and_grad(losses.ca_loss, argnums=(0, 1))(
+    all_black = jax.value_and_grad(ca_loss, argnums=(0, 1))(
         jnp.zeros((4, 3)), jnp.ones((4, 3)))
     assert finite(all_black)
 
@@ -82,8 +88,8 @@ def test_ca_loss_black_channel_is_finite():
 def test_ca_loss_stop_gradient_flag():
     rgb = jnp.asarray(np.random.default_rng(1).uniform(0.001, 0.01, (8, 3)), jnp.float32)
     gain = jnp.ones((8, 3))
-    g_stop = jax.grad(losses.ca_loss)(rgb, gain, stop_grad_mean=True)
-    g_flow = jax.grad(losses.ca_loss)(rgb, gain, stop_grad_mean=False)
+    g_stop = jax.grad(ca_loss)(rgb, gain, stop_grad_mean=True)
+    g_flow = jax.grad(ca_loss)(rgb, gain, stop_grad_mean=False)
     assert np.all(np.asarray(g_stop) == 0.0) and np.abs(np.asarray(g_flow)).max() > 0.0
 
 
@@ -98,17 +104,17 @@ def patches(seed=0):
 def test_smooth_loss_is_edge_aware_and_scale_free():
     gain, rgb = patches()
     flat = np.ones_like(gain)
-    assert float(losses.smooth_loss_patch(flat, rgb, 1e-2)) == 0.0
+    assert float(smooth_loss_patch(flat, rgb, 1e-2)) == 0.0
     step_at_edge, step_in_flat = flat.copy(), flat.copy()
     step_at_edge[:, :, 3:, :] = 1.5
     step_in_flat[:, :, 1:, :] = 1.5  # the same step where colour is flat
-    at_edge = float(losses.smooth_loss_patch(step_at_edge, rgb, 1e-2))
-    in_flat = float(losses.smooth_loss_patch(step_in_flat, rgb, 1e-2))
+    at_edge = float(smooth_loss_patch(step_at_edge, rgb, 1e-2))
+    in_flat = float(smooth_loss_patch(step_in_flat, rgb, 1e-2))
     assert 0.0 < at_edge < 0.05 * in_flat
     # normalised by the mean intensity: 20x darker colour, same loss
-    np.testing.assert_allclose(losses.smooth_loss_patch(step_in_flat, 0.05 * rgb, 1e-2), in_flat,
+    np.testing.assert_allclose(smooth_loss_patch(step_in_flat, 0.05 * rgb, 1e-2), in_flat,
                                rtol=1e-4)
-    value, (g_gain, g_rgb) = jax.value_and_grad(losses.smooth_loss_patch, argnums=(0, 1))(
+    value, (g_gain, g_rgb) = jax.value_and_grad(smooth_loss_patch, argnums=(0, 1))(
         jnp.asarray(gain), jnp.zeros_like(jnp.asarray(rgb)), 1e-2)
     assert finite(value, g_gain, g_rgb) and np.all(np.asarray(g_rgb) == 0.0)
 
@@ -118,10 +124,10 @@ def test_smooth_loss_gammas_weight_directions():
     rgb = np.full_like(rgb, 0.01)
     v_only = gain.copy()
     v_only[:, 2:, :, :] += 0.5  # a horizontal line: vertical differences only
-    base = float(losses.smooth_loss_patch(v_only, rgb, 1e-2, gamma1=1.0, gamma2=0.0))
-    doubled = float(losses.smooth_loss_patch(v_only, rgb, 1e-2, gamma1=2.0, gamma2=0.0))
+    base = float(smooth_loss_patch(v_only, rgb, 1e-2, gamma1=1.0, gamma2=0.0))
+    doubled = float(smooth_loss_patch(v_only, rgb, 1e-2, gamma1=2.0, gamma2=0.0))
     np.testing.assert_allclose(doubled, 2 * base, rtol=1e-6)
-    assert base > 10 * float(losses.smooth_loss_patch(v_only, rgb, 1e-2, gamma1=0.0))
+    assert base > 10 * float(smooth_loss_patch(v_only, rgb, 1e-2, gamma1=0.0))
 
 
 def small_grid(res=(5, 4, 3)):
@@ -131,16 +137,16 @@ def small_grid(res=(5, 4, 3)):
 def test_tv_loss_on_constant_and_linear_values():
     structure, params = small_grid()
     m = structure.n_rows
-    np.testing.assert_allclose(losses.tv_loss(structure, jnp.zeros(m), eps=1e-8), 1e-4, rtol=1e-3)
+    np.testing.assert_allclose(tv_loss(structure, jnp.zeros(m), eps=1e-8), 1e-4, rtol=1e-3)
     slope = 0.3
     values = jnp.asarray(np.asarray(structure.coords)[:, 0] * slope, jnp.float32)
     has_x = np.asarray(structure.coords)[:, 0] < structure.resolution[0] - 1
     expect = (has_x.sum() * slope + (~has_x).sum() * 1e-4) / m
-    np.testing.assert_allclose(losses.tv_loss(structure, values[:, None], eps=1e-8), expect,
+    np.testing.assert_allclose(tv_loss(structure, values[:, None], eps=1e-8), expect,
                                rtol=1e-4)
-    sub = losses.tv_loss(structure, values, sample_key=jax.random.PRNGKey(0), fraction=0.5)
+    sub = tv_loss(structure, values, sample_key=jax.random.PRNGKey(0), fraction=0.5)
     assert 0.0 < float(sub) <= slope + 1e-4
-    g = jax.grad(losses.tv_loss, argnums=1)(structure, jnp.zeros((m, 3)))
+    g = jax.grad(tv_loss, argnums=1)(structure, jnp.zeros((m, 3)))
     assert finite(g)
 
 
@@ -151,10 +157,10 @@ def test_tv_loss_skips_absent_neighbours_and_empty_grids():
     # columns x <= 1 and x >= 3 are now disconnected: no difference across the gap
     left = np.asarray(pruned.coords)[:, 0] == 1
     assert np.all(np.asarray(pruned.neighbors)[left, 0] == pruned.n_rows)
-    assert np.isfinite(float(losses.tv_loss(pruned, pp["v"])))
+    assert np.isfinite(float(tv_loss(pruned, pp["v"])))
     empty, pe = grid.prune(structure, params, np.zeros(structure.n_rows, bool))
-    assert float(losses.tv_loss(empty, pe["density"])) == 0.0
-    assert float(losses.edge_aware_gain_tv(empty, pe)) == 0.0
+    assert float(tv_loss(empty, pe["density"])) == 0.0
+    assert float(edge_aware_gain_tv(empty, pe)) == 0.0
 
 
 def test_edge_aware_gain_tv_prefers_gain_steps_at_colour_edges():
@@ -166,10 +172,10 @@ def test_edge_aware_gain_tv_prefers_gain_steps_at_colour_edges():
                                                 np.ones((1, 3)), jnp.float32))
     in_flat = dict(params, log_gain=jnp.asarray(np.where(x[:, None] >= 2, 0.5, 0.0) *
                                                 np.ones((1, 3)), jnp.float32))
-    e = float(losses.edge_aware_gain_tv(structure, at_edge))
-    f = float(losses.edge_aware_gain_tv(structure, in_flat))
+    e = float(edge_aware_gain_tv(structure, at_edge))
+    f = float(edge_aware_gain_tv(structure, in_flat))
     assert 0.0 < e < 0.5 * f
-    assert float(losses.edge_aware_gain_tv(structure, params)) < 1e-3  # constant gains
-    g = jax.grad(lambda p: losses.edge_aware_gain_tv(structure, p, fraction=0.5,
+    assert float(edge_aware_gain_tv(structure, params)) < 1e-3  # constant gains
+    g = jax.grad(lambda p: edge_aware_gain_tv(structure, p, fraction=0.5,
                                                      sample_key=jax.random.PRNGKey(1)))(at_edge)
     assert finite(g) and np.all(np.asarray(g["rgb"]) == 0.0)

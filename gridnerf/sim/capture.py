@@ -6,7 +6,9 @@ along -z); the ray through pixel (u, v) has camera direction
 at z-depth t. Radiance is Lambertian and view-independent:
   rgb_linear = albedo * (ambient + sum_l I_l * max(0, n . l) * visibility_l),
 with visibility the fraction of a fixed set of directions in the light's cone that
-reach the sky (soft shadows). A radiance field can represent it exactly.
+reach the sky (soft shadows). Every surface point has one colour from every view, so a
+radiance field can represent it (the only exception is the zero-thickness bucket wall,
+whose inside and outside differ).
 """
 
 from __future__ import annotations

@@ -11,8 +11,8 @@ Rays are `(origins (N, 3), dirs (N, 3))` with any non-zero direction length;
 hit distances `t` are in units of the direction vector, so with camera rays
 whose camera-frame z component is -1 (docs/design.md), `t` is the z-depth.
 
-Surfaces are one-sided in appearance: `Hits.normal` always faces the ray
-(the inside of an open bucket is lit as an inside).
+`Hits.normal` is turned to face the ray, so both sides of a zero-thickness wall are
+shaded as seen (the inside of an open bucket is lit as an inside).
 """
 
 from __future__ import annotations

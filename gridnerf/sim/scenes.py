@@ -65,14 +65,14 @@ def _bias(name: str) -> tuple[tuple[float, float], tuple[float, float]]:
 
 # name: (kelvin, camera, cfa, mean green electrons, lux class, K in DN/e-)
 _SENSORS = {
-    "bouquet": (2500, "Sony ILCE-7SM2", "RGGB", 6.0, 0.012, 6.0),
+    "bouquet": (2500, "Sony ILCE-7SM2", "RGGB", 8.0, 0.016, 6.0),
     "deer": (2700, "Canon EOS 5D Mark IV", "RGGB", 12.0, 0.024, 5.0),
     "head": (3000, "Nikon D850", "RGGB", 20.0, 0.04, 4.5),
-    "rabbit": (2900, "Sony ILCE-7SM2", "RGGB", 8.0, 0.016, 5.5),
+    "rabbit": (2900, "Sony ILCE-7SM2", "RGGB", 12.0, 0.024, 5.5),
     "bucket": (2800, "Sony ILCE-7SM2", "RGGB", 10.0, 0.02, 5.0),
     "doll": (3200, "Canon EOS 5D Mark IV", "RGGB", 25.0, 0.05, 4.0),
     "dora": (3100, "Nikon D850", "GRBG", 15.0, 0.03, 5.0),
-    "scoreboard": (2300, "Sony ILCE-7SM2", "RGGB", 5.0, 0.01, 6.0),
+    "scoreboard": (2300, "Sony ILCE-7SM2", "RGGB", 6.0, 0.012, 6.0),
     "box": (2900, "Canon EOS 5D Mark IV", "RGGB", 30.0, 0.05, 4.0),
 }
 
@@ -276,7 +276,7 @@ _ROOMS = {
                      tx.noise((0.45, 0.3, 0.15), (0.7, 0.55, 0.3), 16, seed=1)),
     "head": lambda: (tx.stripes([(0.3, 0.5, 0.55), (0.35, 0.58, 0.62)], 40),
                      tx.checker((0.85, 0.82, 0.75), (0.2, 0.2, 0.25), (40, 20))),
-    "rabbit": lambda: (tx.dots((0.55, 0.8, 0.6), [(0.9, 0.9, 0.6)], n=40, radius=0.2),
+    "rabbit": lambda: (tx.image("immunohistochemistry", (6, 3), tint=(0.7, 1.1, 0.8)),
                        tx.image("gravel", (8, 4), tint=(0.8, 0.75, 0.65))),
     "bucket": lambda: (tx.noise((0.2, 0.45, 0.8), (0.7, 0.85, 0.95), 24, seed=2),
                        _wood([(0.6, 0.4, 0.22), (0.5, 0.32, 0.18)], 40)),

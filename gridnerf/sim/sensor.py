@@ -12,10 +12,10 @@ DNG BlackLevel tag (which says 512), exactly like a real sensor's drift.
 
 `preview_srgb` is the camera's in-body JPEG pipeline for the `images/` previews:
 subtract the black level it knows (the tag, not the unknown bias), demosaic by 2x2
-binning, grey-world auto white balance, camera -> sRGB matrix, light noise reduction
-(a small Gaussian, which is what lets feature matching work on dark frames), digital
-gain to a normal brightness, upsample to full size, sRGB curve. It stays visibly
-noisy and is used for pose estimation only, never as a reference.
+binning, grey-world auto white balance, camera -> sRGB matrix, noise reduction (Gaussian:
+mild on luma, strong on chroma; it is what lets feature matching work on dark frames),
+digital gain to a normal brightness, upsample to full size, sRGB curve. It stays
+visibly noisy and is used for pose estimation only, never as a reference.
 """
 
 from __future__ import annotations
@@ -181,11 +181,14 @@ def bin2x2(raw_norm: np.ndarray, cfa: np.ndarray) -> np.ndarray:
 
 
 def preview_srgb(raw_bayer: np.ndarray, cfa: np.ndarray, black_level: np.ndarray,
-                 white_level: int, xyz_to_cam: np.ndarray, nr_sigma: float = 0.8) -> np.ndarray:
+                 white_level: int, xyz_to_cam: np.ndarray, luma_sigma: float = 1.5,
+                 chroma_sigma: float = 4.0) -> np.ndarray:
     """Camera-style preview of one dark frame.
 
     raw_bayer: (H, W) uint16 mosaic; cfa: (2, 2) colour index per CFA position;
-    black_level: (2, 2) per CFA position (as in the DNG); xyz_to_cam: (3, 3).
+    black_level: (2, 2) per CFA position (as in the DNG); xyz_to_cam: (3, 3);
+    luma_sigma / chroma_sigma: Gaussian noise-reduction widths in half-resolution
+    pixels for luminance and for colour differences.
     Returns rgb_srgb: (H, W, 3) float32 in [0, 1].
     """
     h, w = raw_bayer.shape
@@ -196,8 +199,11 @@ def preview_srgb(raw_bayer: np.ndarray, cfa: np.ndarray, black_level: np.ndarray
     means = np.maximum(rgb_cam.reshape(-1, 3).mean(axis=0), 1e-6)
     rgb_cam_wb = rgb_cam * (means[1] / means)
     rgb_linear = rgb_cam_wb @ srgb_from_cam(xyz_to_cam).T
-    if nr_sigma > 0:
-        rgb_linear = scipy.ndimage.gaussian_filter(rgb_linear, (nr_sigma, nr_sigma, 0))
+    # Noise reduction like a camera's: mild on luma, strong on chroma.
+    luma = luminance(rgb_linear)[..., None]
+    luma_nr = scipy.ndimage.gaussian_filter(luma, (luma_sigma, luma_sigma, 0))
+    chroma_nr = scipy.ndimage.gaussian_filter(rgb_linear - luma, (chroma_sigma, chroma_sigma, 0))
+    rgb_linear = luma_nr + chroma_nr
     gain = PREVIEW_MEAN_LUMINANCE / max(float(luminance(np.maximum(rgb_linear, 0)).mean()), 1e-6)
     rgb_linear = np.clip(rgb_linear * gain, 0.0, 1.0)
     rgb_linear = skimage.transform.resize(rgb_linear, (h, w, 3), order=1, mode="edge")

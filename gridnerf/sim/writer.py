@@ -183,14 +183,16 @@ def simulate_scene(name: str, out_dir, width: int = 480, height: int = 270,
         if not overwrite and any(out.iterdir()):
             raise SceneError(out, "already holds files that are not this simulated scene "
                              f"({name}, {width}x{height}, {n_frames} frames, seed {seed})",
-                             "pass overwrite=True (gridnerf simulate --overwrite) or choose "
-                             "another output folder")
+                             "choose another output folder, delete this one, or pass "
+                             "overwrite=True to replace it")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f"{out.name}.tmp-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         _build(tmp, name, width, height, n_frames, seed)
-        if out.exists():
+        if out.exists() and not overwrite and _is_complete(out, key):
+            pass  # another process finished the same scene meanwhile: keep its copy
+        elif out.exists():
             old = out.with_name(f"{out.name}.old-{os.getpid()}")
             os.replace(out, old)
             os.replace(tmp, out)
