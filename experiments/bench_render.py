@@ -79,14 +79,14 @@ def make_step(structure, cfg, n_patches, patch):
     return step, opt
 
 
-def bench(sh_degree: int, skip: bool, fitted: bool, args) -> dict:
+def bench(sh_degree: int, skip: bool, fitted: bool, k: int, args) -> dict:
     structure, params = synthetic_scene(tuple(args.resolution), sh_degree)
     origins, directions = patch_rays(args.patches, args.patch, 512, 0)
     # fitted: N from the longest ray of a full 512 x 512 view; else the box diagonal
     o_all, d_all = patch_rays(1, 512, 512, 0)
     n_fit = (render.fit_n_candidates(structure, o_all, d_all, 0.0, 1.0, args.spv)
              if fitted else None)
-    cfg = render.RenderOptions(samples_per_voxel=args.spv, max_samples=args.k, skip_empty=skip,
+    cfg = render.RenderOptions(samples_per_voxel=args.spv, max_samples=k, skip_empty=skip,
                                n_candidates=n_fit)
     n_cand = render.n_candidates(structure, cfg)
     target = np.full((origins.shape[0], 3), 5e-3, np.float32)
@@ -105,11 +105,12 @@ def bench(sh_degree: int, skip: bool, fitted: bool, args) -> dict:
         times.append(time.perf_counter() - t0)
     sec = float(np.median(times))
     n_rays = origins.shape[0]
-    shaded = min(args.k, n_cand) if skip else n_cand
+    shaded = min(k, n_cand) if skip else n_cand
     n_occ = np.asarray(n_occ)
     return {"sh": sh_degree, "skip": skip, "rows": structure.n_rows, "N": n_cand,
             "K": shaded, "ms": sec * 1e3, "rays_s": n_rays / sec,
             "shaded_s": n_rays * shaded / sec, "occ_mean": float(n_occ.mean()),
+            "occ_p99": float(np.percentile(n_occ, 99)), "occ_max": int(n_occ.max()),
             "overflow": float(np.mean(n_occ > shaded)) if skip else 0.0,
             "loss": float(loss)}
 
@@ -120,21 +121,25 @@ def main() -> None:
     p.add_argument("--patches", type=int, default=64)
     p.add_argument("--patch", type=int, default=8)
     p.add_argument("--spv", type=float, default=2.0, help="candidate samples per voxel")
-    p.add_argument("--k", type=int, default=64, help="kept samples per ray when skipping")
+    p.add_argument("--k", type=int, nargs="+", default=[64, 32],
+                   help="kept samples per ray when skipping (one row each)")
     p.add_argument("--iters", type=int, default=5)
     p.add_argument("--sh", type=int, nargs="+", default=[0, 2])
     args = p.parse_args()
     print(f"jax {jax.__version__} on {jax.devices()[0].platform}, grid {args.resolution}, "
           f"{args.patches * args.patch**2} rays/step, median of {args.iters} steps")
     head = (f"{'sh':>2} {'skip':>5} {'rows':>8} {'N':>4} {'K':>4} {'ms/step':>8} {'rays/s':>8} "
-            f"{'shaded/s':>9} {'occ/ray':>7} {'overflow':>8}")
+            f"{'shaded/s':>9} {'occupied/ray mean p99 max':>26} {'overflow':>8}")
     print(head)
     for sh in args.sh:
-        for skip, fitted in ((True, True), (True, False), (False, True)):
-            r = bench(sh, skip, fitted, args)
+        settings = [(True, True, k) for k in args.k] + [(True, False, args.k[0]),
+                                                        (False, True, 0)]
+        for skip, fitted, k in settings:
+            r = bench(sh, skip, fitted, k, args)
             print(f"{r['sh']:>2} {str(r['skip']):>5} {r['rows']:>8} {r['N']:>4} {r['K']:>4} "
                   f"{r['ms']:>8.1f} {r['rays_s']:>8.0f} {r['shaded_s'] / 1e6:>8.2f}M "
-                  f"{r['occ_mean']:>7.1f} {r['overflow']:>8.3f}", flush=True)
+                  f"{r['occ_mean']:>16.1f} {r['occ_p99']:>4.0f} {r['occ_max']:>4d} "
+                  f"{r['overflow']:>8.3f}", flush=True)
 
 
 if __name__ == "__main__":

@@ -24,7 +24,13 @@ def _simulate(args) -> None:
             raise GridNerfError(None, f"unknown scene {name!r}", fix)
         out = Path(args.out) if args.out and len(names) == 1 else Path("data/sim") / name
         path = simulate_scene(
-            name, out, width=args.width, height=args.height, n_frames=args.frames, seed=args.seed
+            name,
+            out,
+            width=args.width,
+            height=args.height,
+            n_frames=args.frames,
+            seed=args.seed,
+            overwrite=args.overwrite,
         )
         print(f"scene {name}: {path}")
 
@@ -78,6 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--frames", type=int, default=24)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--full-hd", action="store_true", help="1920x1080 frames")
+    s.add_argument("--overwrite", action="store_true", help="replace an existing scene folder")
     s.set_defaults(func=_simulate)
 
     s = sub.add_parser("poses", help="estimate camera poses with COLMAP (pycolmap)")

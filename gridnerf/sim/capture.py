@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gridnerf.sim.geometry import cast, occluded, rotation
+from gridnerf.sim.geometry import cast, dot3, occluded, rotation
 from gridnerf.sim.scenes import Light, SceneSpec
 
 HFOV_DEG = 55.0
@@ -87,7 +87,7 @@ def pixel_rays(c2w: np.ndarray, intr: Intrinsics, ssaa: int = 1):
     x = ((u - intr.cx) / intr.fx).reshape(shape)
     y = (-(v - intr.cy) / intr.fy).reshape(shape)
     d_cam = np.stack([x, y, -np.ones(shape)], axis=-1)
-    dirs = d_cam @ c2w[:3, :3].T
+    dirs = np.einsum("...j,kj->...k", d_cam, c2w[:3, :3])  # d_cam @ R.T, without BLAS
     origins = np.broadcast_to(c2w[:3, 3], dirs.shape)
     return origins, dirs
 
@@ -114,7 +114,7 @@ def shade(spec: SceneSpec, points: np.ndarray, normals: np.ndarray,
     for light in spec.lights:
         dirs = _cone_directions(light)
         for d in dirs:
-            cos = np.maximum(normals @ d, 0.0)
+            cos = np.maximum(dot3(normals, d), 0.0)
             lit = cos > 0.0
             if light.shadow and lit.any():
                 idx = np.nonzero(lit)[0]

@@ -70,6 +70,17 @@ class Hits:
     albedo: np.ndarray
 
 
+def mat3(x: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """x @ m.T for x (N, 3) and m (3, 3), via einsum: threaded BLAS is slow (and stalls
+    on a busy machine) for such 3-wide products."""
+    return np.einsum("ij,kj->ik", x, m)
+
+
+def dot3(x: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """x @ v for x (N, 3) and v (3,), without BLAS."""
+    return x[:, 0] * v[0] + x[:, 1] * v[1] + x[:, 2] * v[2]
+
+
 def rotation(yaw: float = 0.0, pitch: float = 0.0, roll: float = 0.0) -> np.ndarray:
     """(3, 3) rotation R = Ry(yaw) @ Rx(pitch) @ Rz(roll), angles in radians."""
     cy, sy = np.cos(yaw), np.sin(yaw)
@@ -111,9 +122,7 @@ def tube(points, radius: float, material) -> list[Primitive]:
 def _to_local(prim: Primitive, origins: np.ndarray, dirs: np.ndarray):
     if np.array_equal(prim.rot, np.eye(3)):
         return origins - prim.center, dirs
-    o = (origins - prim.center) @ prim.rot
-    d = dirs @ prim.rot
-    return o, d
+    return mat3(origins - prim.center, prim.rot.T), mat3(dirs, prim.rot.T)
 
 
 # Each kind has a hit test `(prim, o, d) -> (t (N,), face (N,) int)` in the local frame
@@ -225,34 +234,45 @@ _HIT = {"ellipsoid": _ellipsoid_hit, "box": _box_hit, "frustum": _frustum_hit}
 _SURFACE = {"ellipsoid": _ellipsoid_surface, "box": _box_surface, "frustum": _frustum_surface}
 
 
-def _sphere_candidates(center: np.ndarray, radius: float, origins: np.ndarray,
-                       dirs: np.ndarray, dd: np.ndarray) -> np.ndarray:
-    """Indices of rays (dd = |dirs|^2) that pass within a sphere, ahead of their origin."""
-    oc = origins - center
-    b = np.einsum("ij,ij->i", oc, dirs)
-    c = np.einsum("ij,ij->i", oc, oc) - radius * radius
-    disc = b * b - dd * c
-    return np.nonzero((disc >= 0.0) & ((disc > b * np.abs(b)) | (b < 0.0)))[0]
+class _Rays:
+    """Rays plus the per-ray dot products that bounding-sphere tests reuse."""
+
+    def __init__(self, origins: np.ndarray, dirs: np.ndarray):
+        self.o, self.d = origins, dirs
+        self.dd = np.einsum("ij,ij->i", dirs, dirs)
+        self.od = np.einsum("ij,ij->i", origins, dirs)
+        self.oo = np.einsum("ij,ij->i", origins, origins)
+
+    def subset(self, idx: np.ndarray) -> _Rays:
+        sub = object.__new__(_Rays)
+        sub.o, sub.d, sub.dd, sub.od, sub.oo = (
+            self.o[idx], self.d[idx], self.dd[idx], self.od[idx], self.oo[idx])
+        return sub
+
+    def near_sphere(self, center: np.ndarray, radius: float) -> np.ndarray:
+        """Indices of rays that pass within the sphere, ahead of their origin."""
+        b = self.od - dot3(self.d, center)
+        c = self.oo - 2.0 * dot3(self.o, center) + (center @ center - radius * radius)
+        disc = b * b - self.dd * c
+        return np.nonzero((disc >= 0.0) & ((disc > b * np.abs(b)) | (b < 0.0)))[0]
 
 
 def _culled(prims: list[Primitive], origins: np.ndarray, dirs: np.ndarray):
     """Yield (k, prim, ray indices near prim). Small primitives share one bounding sphere,
     tested once, so their own tests only see the rays that come near the group."""
-    dd = np.einsum("ij,ij->i", dirs, dirs)
+    rays = _Rays(origins, dirs)
     radii = np.array([p.bound_radius() for p in prims])
     centers = np.array([p.center for p in prims], np.float64).reshape(-1, 3)
     small = radii < GROUP_RADIUS
-    near = np.arange(len(origins))
+    for k in np.nonzero(~small)[0]:
+        yield k, prims[k], rays.near_sphere(centers[k], radii[k])
     if small.any():
         g_center = centers[small].mean(axis=0)
         g_radius = float(np.max(np.linalg.norm(centers[small] - g_center, axis=1) + radii[small]))
-        near = _sphere_candidates(g_center, g_radius, origins, dirs, dd)
-    o_near, d_near, dd_near = origins[near], dirs[near], dd[near]
-    for k, prim in enumerate(prims):
-        if small[k]:
-            yield k, prim, near[_sphere_candidates(prim.center, radii[k], o_near, d_near, dd_near)]
-        else:
-            yield k, prim, _sphere_candidates(prim.center, radii[k], origins, dirs, dd)
+        near = rays.near_sphere(g_center, g_radius)
+        near_rays = rays.subset(near)
+        for k in np.nonzero(small)[0]:
+            yield k, prims[k], near[near_rays.near_sphere(centers[k], radii[k])]
 
 
 def cast(prims: list[Primitive], origins: np.ndarray, dirs: np.ndarray) -> Hits:
@@ -285,7 +305,7 @@ def cast(prims: list[Primitive], origins: np.ndarray, dirs: np.ndarray) -> Hits:
         o, d = _to_local(prim, origins[sel], dirs[sel])
         p_local = o + t_best[sel, None] * d
         n_local, uv, face = _SURFACE[prim.kind](prim, p_local, face_best[sel])
-        normal[sel] = n_local @ prim.rot.T
+        normal[sel] = mat3(n_local, prim.rot)
         albedo[sel] = prim.material(p_local, uv, face)
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
     facing = np.einsum("ij,ij->i", normal, dirs) > 0.0

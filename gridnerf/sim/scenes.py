@@ -9,7 +9,7 @@ seed only moves the cameras and draws the noise.
 from __future__ import annotations
 
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -49,7 +49,6 @@ class SceneSpec:
     target: tuple[float, float, float] = (0.0, 0.6, 0.0)
     distance: float = 3.4
     height: float = 0.4
-    description: str = field(default="")
 
     @property
     def prims(self) -> list[Primitive]:

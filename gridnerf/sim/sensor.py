@@ -105,7 +105,7 @@ def illuminant_neutral(params: SensorParams) -> np.ndarray:
 def scene_to_cam(rgb_linear: np.ndarray, params: SensorParams) -> np.ndarray:
     """rgb_linear: (..., 3) -> rgb_cam: (..., 3) float32, relative (unscaled) camera signal."""
     m = cam_from_scene(params).astype(np.float32)
-    return np.asarray(rgb_linear, np.float32) @ m.T
+    return np.einsum("...j,kj->...k", np.asarray(rgb_linear, np.float32), m)
 
 
 def cfa_index(height: int, width: int, cfa: np.ndarray) -> np.ndarray:
@@ -198,7 +198,7 @@ def preview_srgb(raw_bayer: np.ndarray, cfa: np.ndarray, black_level: np.ndarray
     rgb_cam = bin2x2(raw_norm, cfa)
     means = np.maximum(rgb_cam.reshape(-1, 3).mean(axis=0), 1e-6)
     rgb_cam_wb = rgb_cam * (means[1] / means)
-    rgb_linear = rgb_cam_wb @ srgb_from_cam(xyz_to_cam).T
+    rgb_linear = np.einsum("...j,kj->...k", rgb_cam_wb, srgb_from_cam(xyz_to_cam))
     # Noise reduction like a camera's: mild on luma, strong on chroma.
     luma = luminance(rgb_linear)[..., None]
     luma_nr = scipy.ndimage.gaussian_filter(luma, (luma_sigma, luma_sigma, 0))
