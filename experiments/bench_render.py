@@ -14,6 +14,7 @@ Run: LD_PRELOAD=/usr/lib/x86_64-linux-gnu/libtcmalloc_minimal.so.4 \
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 import jax
@@ -127,7 +128,8 @@ def main() -> None:
     p.add_argument("--sh", type=int, nargs="+", default=[0, 2])
     args = p.parse_args()
     print(f"jax {jax.__version__} on {jax.devices()[0].platform}, grid {args.resolution}, "
-          f"{args.patches * args.patch**2} rays/step, median of {args.iters} steps")
+          f"{args.patches * args.patch**2} rays/step, median of {args.iters} steps, "
+          f"load average {os.getloadavg()[0]:.1f} (other processes share the CPU)")
     head = (f"{'sh':>2} {'skip':>5} {'rows':>8} {'N':>4} {'K':>4} {'ms/step':>8} {'rays/s':>8} "
             f"{'shaded/s':>9} {'occupied/ray mean p99 max':>26} {'overflow':>8}")
     print(head)
@@ -140,6 +142,7 @@ def main() -> None:
                   f"{r['ms']:>8.1f} {r['rays_s']:>8.0f} {r['shaded_s'] / 1e6:>8.2f}M "
                   f"{r['occ_mean']:>16.1f} {r['occ_p99']:>4.0f} {r['occ_max']:>4d} "
                   f"{r['overflow']:>8.3f}", flush=True)
+    print(f"load average at the end {os.getloadavg()[0]:.1f}")
 
 
 if __name__ == "__main__":

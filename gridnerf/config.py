@@ -48,6 +48,7 @@ class LossConfig:
     ca_stop_grad: bool = True  # stop gradients through the batch channel means Cbar_k
     tv_density: float = 1e-4  # TV weight on density
     tv_rgb: float = 1e-3  # TV weight on the low-light colour
+    sparsity: float = 0.0  # weight of the Cauchy sparsity prior on density (free space)
     tv_fraction: float = 0.25  # fraction of voxels sampled per step for TV terms
     use_gains: bool = True  # False: ablation without the colour-restoration (gain) field
 

@@ -130,3 +130,18 @@ def edge_aware_gain_tv(structure: GridStructure, params, scale: float = 0.5, eps
     weight = jnp.exp(-grad_c / scale)
     d = _forward_diffs(structure, log_gain, rows)
     return jnp.mean(weight * jnp.sum(jnp.sqrt(eps + jnp.sum(d**2, axis=1)), axis=-1))
+
+
+def sparsity_loss(density_raw: jax.Array, sample_key=None, fraction: float = 1.0) -> jax.Array:
+    """Cauchy sparsity prior on density (Plenoxels' forward-facing regulariser).
+
+    density_raw: (M,) raw density rows; mean of log(1 + 2 sigma^2), sigma = softplus(raw).
+    Pushes free space to zero density so pruning and empty-space skipping have work to do;
+    the log keeps surfaces (large sigma) cheap. M = 0 gives 0.
+    """
+    m = density_raw.shape[0]
+    if m == 0:
+        return jnp.zeros((), density_raw.dtype)
+    rows = _sample_rows(m, sample_key, fraction)
+    d = density_raw if rows is None else density_raw[rows]
+    return jnp.mean(jnp.log1p(2.0 * jax.nn.softplus(d) ** 2))

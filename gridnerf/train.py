@@ -89,12 +89,16 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
     terms["tv_rgb"] = losses.tv_loss(
         structure, params["rgb"], sample_key=k2, fraction=lc.tv_fraction
     )
+    terms["sparsity"] = losses.sparsity_loss(
+        params["density"], sample_key=k2, fraction=lc.tv_fraction
+    )
     weights = {
         "data": lc.w_data,
         "ca": lc.w_ca,
         "smooth": lc.w_smooth,
         "tv_density": lc.tv_density,
         "tv_rgb": lc.tv_rgb,
+        "sparsity": lc.sparsity,
     }
     total = sum(weights[k] * v for k, v in terms.items())
     return total, terms

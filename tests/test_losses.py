@@ -179,3 +179,16 @@ def test_edge_aware_gain_tv_prefers_gain_steps_at_colour_edges():
     g = jax.grad(lambda p: edge_aware_gain_tv(structure, p, fraction=0.5,
                                                      sample_key=jax.random.PRNGKey(1)))(at_edge)
     assert finite(g) and np.all(np.asarray(g["rgb"]) == 0.0)
+
+
+def test_sparsity_loss_prefers_empty_space():
+    raw = jnp.asarray(np.linspace(-8.0, 6.0, 40), jnp.float32)
+    sigma = np.logaddexp(0.0, np.asarray(raw, np.float64))
+    np.testing.assert_allclose(losses.sparsity_loss(raw), np.mean(np.log1p(2 * sigma**2)),
+                               rtol=1e-5)
+    assert float(losses.sparsity_loss(raw - 5.0)) < float(losses.sparsity_loss(raw))
+    g = jax.grad(losses.sparsity_loss)(raw)
+    assert finite(g) and np.all(np.asarray(g) > 0.0)  # always pushes density down
+    sub = losses.sparsity_loss(raw, sample_key=jax.random.PRNGKey(0), fraction=0.5)
+    assert np.isfinite(float(sub))
+    assert float(losses.sparsity_loss(jnp.zeros((0,)))) == 0.0
