@@ -23,7 +23,7 @@ class DataConfig:
 @dataclass(frozen=True)
 class GridConfig:
     # Coarse-to-fine vertex resolutions (x, y, z); one stage per entry.
-    resolutions: tuple[tuple[int, int, int], ...] = ((64, 64, 32), (128, 128, 64))
+    resolutions: tuple[tuple[int, int, int], ...] = ((48, 48, 24), (64, 64, 32))
     sh_degree: int = 0  # spherical-harmonic degree of the low-light colour (0 = no view dependence)
     init_density: float = -4.0  # raw density at init (softplus: sigma 0.018 per voxel)
     prune_threshold: float = 0.01  # prune vertices whose alpha over half a voxel is below this
@@ -46,16 +46,16 @@ class LossConfig:
     w_smooth: float = 0.1  # lambda_3, local smoothness of the gains (eq. 15 or grid TV)
     smooth_mode: str = "tv"  # "patch" (eq. 15 on ray patches), "tv" (edge-aware gain TV), "both"
     ca_stop_grad: bool = True  # stop gradients through the batch channel means Cbar_k
-    tv_density: float = 1e-4  # TV weight on density
-    tv_rgb: float = 1e-3  # TV weight on the low-light colour
-    sparsity: float = 0.0  # weight of the Cauchy sparsity prior on density (free space)
+    tv_density: float = 1e-2  # TV weight on density
+    tv_rgb: float = 1e-2  # TV weight on the low-light colour
+    sparsity: float = 1e-3  # weight of the Cauchy sparsity prior on density (free space)
     tv_fraction: float = 0.25  # fraction of voxels sampled per step for TV terms
     use_gains: bool = True  # False: ablation without the colour-restoration (gain) field
 
 
 @dataclass(frozen=True)
 class TrainConfig:
-    steps_per_stage: tuple[int, ...] = (600, 900)  # optimisation steps of each resolution stage
+    steps_per_stage: tuple[int, ...] = (600, 1400)  # optimisation steps of each resolution stage
     batch_patches: int = 64  # ray patches per step (coherent batches are faster)
     patch_size: int = 8  # patch side in pixels (rays per step = batch_patches * patch_size^2)
     lr_density: float = 0.3  # Adam learning rate of raw density, decayed 100x over each stage
