@@ -125,3 +125,23 @@ def test_config_overrides_and_round_trip(tmp_path):
     assert cfgmod.load(tmp_path / "c.json") == cfg
     with pytest.raises(ValueError, match="bad override"):
         cfgmod.override(cfg, ["nosuch.field=1"])
+
+
+def test_render_camera_path_writes_video(tiny_run):
+    from gridnerf.eval_run import render_run
+
+    run, _, _ = tiny_run
+    video = render_run(run, path="spiral", n_frames=4)
+    assert video.exists() and video.stat().st_size > 0
+    assert len(list((run / "render").glob("spiral_*.png"))) == 4
+    assert len(list((run / "render").glob("spiral_*.exr"))) == 4
+
+
+def test_cli_reports_bad_input_with_exit_status_2(tmp_path, capsys):
+    from gridnerf.cli import main
+
+    assert main(["train", str(tmp_path / "missing"), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert "missing" in err and "Fix:" in err
+    assert main(["eval", str(tmp_path / "norun")]) == 2
+    assert "gridnerf train" in capsys.readouterr().err
