@@ -29,6 +29,7 @@ METHODS = [
 def table_for(preset: str, metrics: dict[str, dict]) -> str:
     out = [f"## preset `{preset}`\n"]
     for key, label in METHODS:
+        trained = key != "baseline_dark_frame"
         rows, cols = [], {k: [] for k in ("psnr", "ssim", "delta_e", "psnr_aligned")}
         for scene, m in sorted(metrics.items()):
             s = m["summary"].get(key)
@@ -44,8 +45,8 @@ def table_for(preset: str, metrics: dict[str, dict]) -> str:
                     m.get("lpips", "n/a"),
                     fmt(s["delta_e"]),
                     fmt(s["psnr_aligned"]),
-                    fmt(m["train_seconds"], 0),
-                    fmt(m["rays_per_second"], 0),
+                    fmt(m["train_seconds"], 0) if trained else "-",
+                    fmt(m["rays_per_second"], 0) if trained else "-",
                 ]
             )
         if rows:
