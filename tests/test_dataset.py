@@ -1,0 +1,62 @@
+"""Training targets: the mosaic path normalises per CFA position, keeps negatives and masks
+saturated pixels; the binned path matches Scene.rgb_cam_binned; rays match rays.pixel_rays."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gridnerf import dataset, rays
+from gridnerf.scene import load_scene
+
+
+def test_mosaic_targets_are_normalised_raw_on_the_measured_channel(small_scene):
+    scene = load_scene(small_scene)
+    frames = scene.train_idx[:2]
+    data = dataset.build(scene, frames, binning=False)
+    h, w = scene.raw_bayer.shape[1:]
+    v, u = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    y, m = dataset.targets(data, jnp.zeros_like(v), jnp.asarray(v), jnp.asarray(u))
+    expected = scene.raw_normalized(int(frames[0]))[v, u] / scene.exposure[frames[0]]
+    channel = scene.cfa[v % 2, u % 2]
+    np.testing.assert_allclose(np.asarray(y).sum(-1), expected, rtol=1e-5, atol=1e-7)
+    np.testing.assert_array_equal(np.argmax(np.asarray(m), -1), channel)
+    assert np.all(np.asarray(m).sum(-1) == 1)
+    assert (expected < 0).any()  # dark noise goes below black and is kept
+
+
+def test_mosaic_masks_saturated_pixels(small_scene):
+    scene = load_scene(small_scene)
+    data = dataset.build(scene, scene.train_idx[:1], binning=False)
+    pixels = data.pixels.at[0, 0, 0].set(jnp.uint16(data.white[0]))
+    data = dataset.RayData(**{**data.__dict__, "pixels": pixels})
+    _, m = dataset.targets(data, jnp.array(0), jnp.array(0), jnp.array(0))
+    assert float(jnp.sum(m)) == 0.0
+
+
+def test_binned_targets_match_scene(small_scene):
+    scene = load_scene(small_scene)
+    i = int(scene.train_idx[1])
+    data = dataset.build(scene, np.array([i]), binning=True)
+    rgb_cam, valid = scene.rgb_cam_binned(i)
+    y, m = dataset.targets(data, jnp.array(0), jnp.array(3), jnp.array(5))
+    np.testing.assert_allclose(np.asarray(y), rgb_cam[3, 5] / scene.exposure[i], rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(m) > 0, valid[3, 5])
+
+
+def test_batch_rays_are_pixel_rays_in_ndc(small_scene):
+    scene = load_scene(small_scene)
+    data = dataset.build(scene, scene.train_idx, binning=True)
+    b = dataset.batch(data, jax.random.PRNGKey(0), 4, 3)
+    assert b["origins"].shape == (4, 3, 3, 3) and b["target"].shape == (4, 3, 3, 3)
+    for k in ("origins", "directions", "target", "mask"):
+        assert np.all(np.isfinite(np.asarray(b[k])))
+    # A whole-image ray through pixel (2, 1) equals rays.pixel_rays at the binned scale.
+    cams = scene.cameras.scaled(0.5)
+    o, d = dataset.image_rays(cams.c2w[0], np.array([cams.fx[0], cams.fy[0], cams.cx[0],
+                                                     cams.cy[0]]), 4, 4)
+    o2, d2 = rays.pixel_rays(cams.c2w[0], cams.fx[0], cams.fy[0], cams.cx[0], cams.cy[0],
+                             np.array(2.0), np.array(1.0))
+    np.testing.assert_allclose(np.asarray(d[1, 2]), d2, rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(o[1, 2]), o2, rtol=1e-5, atol=1e-6)
