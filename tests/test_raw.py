@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 import tifffile
+from test_dng import BLACK, NEUTRAL, PATTERNS, WHITE  # one set of DNG test constants
 
 from gridnerf import color
 from gridnerf.dng import write_dng
@@ -22,16 +23,6 @@ from gridnerf.raw import (
     read_raw,
     saturated_mask,
 )
-
-BLACK = np.array([[510, 512], [514, 516]])
-WHITE = 16383
-NEUTRAL = np.array([0.45, 1.0, 0.62])
-PATTERNS = {
-    "RGGB": [[0, 1], [1, 2]],
-    "GRBG": [[1, 0], [2, 1]],
-    "BGGR": [[2, 1], [1, 0]],
-    "GBRG": [[1, 2], [0, 1]],
-}
 
 
 def _write(path, raw_bayer, cfa=PATTERNS["GRBG"], black=BLACK, **kwargs):
