@@ -164,6 +164,9 @@ def train(scene_dir: Path, run: Path, cfg: Config) -> dict:
         structure, params, opt_leaves, header = load_state(run)
         stage, start, elapsed = header["stage"], header["step"], header["train_seconds"]
         key = jnp.asarray(np.array(header["key"], np.uint32))
+        if stage >= len(stages) and (run / "summary.json").exists():
+            print(f"{run} is already trained; delete its checkpoint.npz to train again")
+            return json.loads((run / "summary.json").read_text())
         print(f"resuming {run} at stage {stage}, step {start}")
     else:
         color_scale, log_gain = data_statistics(data, jax.random.fold_in(key, 1))
