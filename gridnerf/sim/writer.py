@@ -190,9 +190,11 @@ def simulate_scene(name: str, out_dir, width: int = 480, height: int = 270,
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         _build(tmp, name, width, height, n_frames, seed)
-        if out.exists() and not overwrite and _is_complete(out, key):
-            pass  # another process finished the same scene meanwhile: keep its copy
-        elif out.exists():
+        # If another process finished the same scene meanwhile, keep its copy (tmp is removed).
+        finished_elsewhere = out.exists() and not overwrite and _is_complete(out, key)
+        if finished_elsewhere:
+            return out
+        if out.exists():
             old = out.with_name(f"{out.name}.old-{os.getpid()}")
             os.replace(out, old)
             os.replace(tmp, out)
