@@ -17,6 +17,7 @@ from scipy.ndimage import convolve
 from gridnerf.color import srgb_from_cam
 from gridnerf.errors import RawError
 from gridnerf.exposure import alpha_for_luminance
+from gridnerf.raw import cfa_masks
 
 # Bilinear interpolation kernel for normalised convolution: cross neighbours
 # weigh twice the diagonal ones, the centre four times.
@@ -40,14 +41,6 @@ def _check_cfa(cfa) -> np.ndarray:
     return cfa
 
 
-def cfa_masks(shape: tuple[int, int], cfa) -> np.ndarray:
-    """Per-colour sample masks: (H, W) shape, cfa (2, 2) -> (3, H, W) bool."""
-    cfa = _check_cfa(cfa)
-    h, w = shape
-    colour = np.tile(cfa, ((h + 1) // 2, (w + 1) // 2))[:h, :w]
-    return np.stack([colour == c for c in range(3)])
-
-
 def demosaic_bilinear(raw_bayer, cfa) -> np.ndarray:
     """Bilinear demosaic for any 2x2 RGB pattern, by normalised convolution.
 
@@ -69,10 +62,11 @@ def demosaic_bilinear(raw_bayer, cfa) -> np.ndarray:
             f"expected a 2D Bayer mosaic of at least 2x2, got shape {raw_bayer.shape}",
             "pass the single-channel raw frame (H, W), not a demosaicked image",
         )
-    masks = cfa_masks(raw_bayer.shape, cfa)
+    masks = cfa_masks(_check_cfa(cfa), *raw_bayer.shape)
     raw = raw_bayer.astype(np.float64)
     channels = []
-    for mask in masks:
+    for c in range(3):
+        mask = masks[..., c] > 0
         weight = mask.astype(np.float64)
         num = convolve(raw * weight, _BILINEAR, mode="constant", cval=0.0)
         den = convolve(weight, _BILINEAR, mode="constant", cval=0.0)

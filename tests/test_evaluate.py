@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from gridnerf.baseline import (
-    cfa_masks,
     demosaic_bilinear,
     grey_world_gains,
     process_dark_frame,
@@ -29,6 +28,7 @@ from gridnerf.evaluate import (
     white_balance_angular_error,
 )
 from gridnerf.exposure import alpha_for_luminance
+from gridnerf.raw import cfa_masks as raw_cfa_masks
 
 SONY = CAMERA_XYZ_TO_CAM["Sony ILCE-7SM2"]
 PATTERNS = {
@@ -176,6 +176,11 @@ def test_white_balance_angular_error():
 
 
 # ---------------------------------------------------------------- baseline
+
+
+def cfa_masks(shape, cfa):
+    """(3, H, W) bool per-colour sample masks, from gridnerf.raw.cfa_masks."""
+    return raw_cfa_masks(np.asarray(cfa), *shape).transpose(2, 0, 1) > 0
 
 
 def _mosaic(rgb_cam, cfa):
