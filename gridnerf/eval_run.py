@@ -41,34 +41,12 @@ def load_run(run: Path):
     return cfg, scene, structure, params, summary
 
 
-def render_rays_chunked(structure, params, origins, directions, near_t, far_t, cfg) -> dict:
-    """Render (n, 3) rays in fixed-size chunks (one compile); returns host arrays."""
-    chunk = cfg.render.chunk
-    fn = jax.jit(
-        lambda o, d: render.render_rays(structure, params, o, d, near_t, far_t, cfg.render)
-    )
-    n = origins.shape[0]
-    outs = []
-    for s in range(0, n, chunk):
-        o, d = origins[s : s + chunk], directions[s : s + chunk]
-        pad = chunk - o.shape[0]
-        if pad:
-            o = jnp.concatenate([o, jnp.broadcast_to(o[-1:], (pad, 3))])
-            d = jnp.concatenate([d, jnp.broadcast_to(d[-1:], (pad, 3))])
-        out = fn(o, d)
-        outs.append({k: np.asarray(v)[: chunk - pad] for k, v in out.items()})
-    return {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}
-
-
 def render_view(structure, params, scene, cfg, c2w, intrinsics, height, width) -> dict:
     """Render one camera: dict of (H, W, ...) host arrays (rgb_low, gain, rgb_restored, ...)."""
     near_t, far_t = grid_box(scene)[2:]
     o, d = dataset.image_rays(c2w, intrinsics, height, width)
     o, d = dataset.to_grid_space(scene.forward_facing, _ndc_intrinsics(scene), o, d)
-    out = render_rays_chunked(
-        structure, params, o.reshape(-1, 3), d.reshape(-1, 3), near_t, far_t, cfg
-    )
-    return {k: v.reshape(height, width, *v.shape[1:]) for k, v in out.items()}
+    return render.render_image(structure, params, o, d, near_t, far_t, cfg.render)
 
 
 def _ndc_intrinsics(scene):
@@ -81,14 +59,8 @@ def exposures(structure, params, scene, cfg) -> dict[str, float]:
     data = dataset.build(scene, scene.train_idx, cfg.data.binning, cfg.data.downscale)
     rays = dataset.batch(data, jax.random.PRNGKey(cfg.train.seed + 7), 128, 8)
     near_t, far_t = grid_box(scene)[2:]
-    out = render_rays_chunked(
-        structure,
-        params,
-        rays["origins"].reshape(-1, 3),
-        rays["directions"].reshape(-1, 3),
-        near_t,
-        far_t,
-        cfg,
+    out = render.render_image(
+        structure, params, rays["origins"], rays["directions"], near_t, far_t, cfg.render
     )
     rgb_cam = out["rgb_restored"] if cfg.loss.use_gains else out["rgb_low"]
     target = cfg.output.target_luminance
