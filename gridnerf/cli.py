@@ -15,12 +15,12 @@ from gridnerf.errors import GridNerfError
 
 
 def _simulate(args) -> None:
-    from gridnerf.sim import SCENES, simulate_scene
+    from gridnerf.sim import HELDOUT, SCENES, simulate_scene
 
-    names = SCENES if args.name == "all" else (args.name,)
+    names = {"all": SCENES, "heldout": HELDOUT}.get(args.name, (args.name,))
     for name in names:
-        if name not in SCENES:
-            fix = f"choose one of {', '.join(SCENES)}"
+        if name not in SCENES + HELDOUT:
+            fix = f"choose one of {', '.join(SCENES + HELDOUT)}, 'all' or 'heldout'"
             raise GridNerfError(None, f"unknown scene {name!r}", fix)
         out = Path(args.out) if args.out and len(names) == 1 else Path("data/sim") / name
         path = simulate_scene(
@@ -77,7 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("simulate", help="write a simulated low-light RAW scene")
-    s.add_argument("name", help="scene name (bucket, bouquet, ...) or 'all'")
+    s.add_argument("name", help="scene name (bucket, held_arc_brick, ...), 'all' (the nine "
+                   "scenes) or 'heldout' (the held-out scenes)")
     s.add_argument("--out", help="scene folder (default data/sim/<name>)")
     s.add_argument("--width", type=int, default=480)
     s.add_argument("--height", type=int, default=270)

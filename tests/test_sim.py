@@ -10,12 +10,14 @@ import OpenEXR
 import pytest
 import rawpy
 
-from gridnerf.color import luminance, srgb_encode
+from gridnerf import cli
+from gridnerf.color import CAMERA_XYZ_TO_CAM, luminance, srgb_encode
 from gridnerf.errors import SceneError
-from gridnerf.sim import SCENES, simulate_scene
+from gridnerf.sim import HELDOUT, SCENES, simulate_scene, writer
+from gridnerf.sim import scenes as sc
 from gridnerf.sim import sensor as sn
 from gridnerf.sim import textures as tx
-from gridnerf.sim.capture import intrinsics, look_at, pixel_rays
+from gridnerf.sim.capture import camera_path, intrinsics, look_at, pixel_rays, render_view
 from gridnerf.sim.geometry import Primitive, cast, occluded, rotation
 
 WHITE = tx.solid((1.0, 1.0, 1.0))
@@ -146,8 +148,9 @@ def test_preview_balances_a_warm_grey_frame():
 def test_scene_folder_reads_back(small_scene):
     tf = json.loads((small_scene / "transforms.json").read_text())
     for key in ("fl_x", "fl_y", "cx", "cy", "w", "h", "frames", "train_filenames",
-                "test_filenames", "near_far"):
+                "test_filenames"):
         assert key in tf
+    assert "near_far" not in tf  # no exact bounds for the trainer; they stay in sim.json
     assert (tf["w"], tf["h"]) == (160, 90) and len(tf["frames"]) == 12
     paths = [f["file_path"] for f in tf["frames"]]
     assert paths[0] == "raw/frame_000.dng"
@@ -162,7 +165,7 @@ def test_scene_folder_reads_back(small_scene):
                                atol=1e-9)
     spread = np.ptp(poses[:, :3, 3], axis=0)
     assert spread[0] > 0.3 and spread[1] > 0.1  # the tripod really moves
-    near, far = tf["near_far"]
+    near, far = _manifest(small_scene)["near_far"]
     assert 0 < near < far and 1.5 <= far / near <= 4.5
     gt = _read_exr(small_scene / "gt" / "frame_003.exr")
     assert gt.shape == (90, 160, 3) and gt.dtype == np.float32
@@ -177,6 +180,7 @@ def test_scene_folder_reads_back(small_scene):
     assert wb[2] > wb[1]  # camera WB boosts the weak blue channel of a warm scene
     manifest = _manifest(small_scene)
     assert manifest["scene"] == "bucket" and 2300 <= manifest["illuminant_kelvin"] <= 3200
+    assert manifest["rig"] == "tripod" and manifest["held_out"] is False
     assert "0.18" in manifest["exposure_convention"]
 
 
@@ -255,3 +259,161 @@ def test_every_scene_builds(name, tmp_path):
     gt = _read_exr(out / "gt" / "frame_002.exr")
     assert np.isfinite(gt).all() and gt.min() >= 0.0 and gt.max() > 0.1
     assert len(list((out / "images").glob("*.jpg"))) == 3
+
+
+# ---------------------------------------------------------------- rigs and held-out scenes
+
+
+def _poses(name, n=24, seed=0):
+    return camera_path(sc.build_scene(name), n, np.random.default_rng(seed))
+
+
+def _yaw_deg(poses, target):
+    """Yaw of each camera centre about the target, degrees (0 = straight in front, +z)."""
+    off = poses[:, :3, 3] - np.asarray(target)
+    return np.degrees(np.arctan2(off[:, 0], off[:, 2]))
+
+
+def test_heldout_scenes_are_named_and_distinct():
+    assert len(HELDOUT) >= 4 and not set(HELDOUT) & set(SCENES)
+    assert all(name.startswith("held_") for name in HELDOUT)
+    assert "held out" in sc.__doc__ and "no default" in sc.__doc__
+    rigs = set()
+    for name in HELDOUT:
+        spec = sc.build_scene(name)
+        assert spec.name == name and "Held out" in sc._HELD[name].__doc__
+        rigs.add(spec.rig)
+        s = spec.sensor
+        assert 2300 <= s.kelvin <= 3200 and 5 <= s.electrons <= 35
+        assert s.camera_model in CAMERA_XYZ_TO_CAM and s.cfa_pattern in ("RGGB", "GRBG")
+    assert rigs == {"arc", "slide"}
+    assert all(sc.build_scene(name).rig == "tripod" for name in SCENES)
+    with pytest.raises(ValueError, match="unknown scene"):
+        sc.build_scene("held_nothing")
+
+
+@pytest.mark.parametrize("name", ["bucket", "held_arc_brick", "held_slide_shelf"])
+def test_poses_are_rigid(name):
+    poses = _poses(name)
+    rots = poses[:, :3, :3]
+    np.testing.assert_allclose(rots @ rots.transpose(0, 2, 1), np.tile(np.eye(3), (24, 1, 1)),
+                               atol=1e-9)
+    np.testing.assert_allclose(np.linalg.det(rots), 1.0, atol=1e-9)
+    np.testing.assert_allclose(poses[:, 3], np.tile([0, 0, 0, 1.0], (24, 1)))
+    assert (rots[:, 1, 1] > 0.9).all()  # upright: camera up is close to world up
+
+
+@pytest.mark.parametrize("name", ["held_arc_brick", "held_arc_table"])
+def test_arc_cameras_converge_on_the_subject(name):
+    spec = sc.build_scene(name)
+    poses = _poses(name)
+    target = np.asarray(spec.target)
+    centres = poses[:, :3, 3]
+    axes = -poses[:, :3, 2]  # optical axes (unit)
+    to_target = target - centres
+    along = np.einsum("ij,ij->i", to_target, axes)
+    miss = np.linalg.norm(to_target - along[:, None] * axes, axis=1)
+    assert (along > 0).all() and miss.max() < 0.1  # every axis passes by the subject
+    assert miss.max() > 1e-3  # ... with some aim jitter, not exactly through it
+    dist = np.linalg.norm(to_target, axis=1)
+    assert 1.5 <= dist.min() and dist.max() <= 3.0
+    yaw = _yaw_deg(poses, target)
+    assert -20.0 <= yaw.min() <= -15.0 and 15.0 <= yaw.max() <= 20.0
+    assert np.all(np.diff(yaw) > 0)  # one sweep, in capture order
+    # Optical-axis yaw follows the positions (the cameras turn toward the subject).
+    axis_yaw = np.degrees(np.arctan2(-axes[:, 0], -axes[:, 2]))
+    assert np.ptp(axis_yaw) > 25.0
+    assert 0.01 < np.ptp(centres[:, 1]) < 0.4  # slight height variation
+    roll = np.degrees(np.arcsin(poses[:, 1, 0]))  # camera x axis tilts out of horizontal
+    assert 0.1 < np.abs(roll).max() < 5.0
+
+
+@pytest.mark.parametrize("name", ["held_slide_shelf", "held_deep_hall"])
+def test_slide_cameras_share_one_orientation_on_a_line(name):
+    spec = sc.build_scene(name)
+    poses = _poses(name)
+    rots = poses[:, :3, :3]
+    rel = np.einsum("nji,mjk->nmik", rots, rots)  # R_n^T R_m for every pair
+    angle = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=2, axis2=3) - 1) / 2, -1, 1)))
+    assert angle.max() < 1.0  # parallel optical axes up to a tiny wobble
+    centres = poses[:, :3, 3]
+    centred = centres - centres.mean(axis=0)
+    _, sv, vt = np.linalg.svd(centred, full_matrices=False)
+    rail = vt[0]
+    assert sv[1] / np.sqrt(len(centres)) < 0.003  # on a line, to a few mm
+    assert abs(rail[1]) < 0.01  # horizontal
+    assert abs(rail @ rots[0][:, 0]) > 0.999  # along the cameras' x axis: a lateral slide
+    baseline = np.ptp(centred @ rail)
+    assert 0.3 <= baseline / spec.distance <= 0.5
+
+
+def test_deep_scene_spans_a_wide_depth_range():
+    spec = sc.build_scene("held_deep_hall")
+    poses = _poses("held_deep_hall", n=12)
+    intr = intrinsics(96, 54)
+    depths = np.stack([render_view(spec, poses[i], intr)[1] for i in (0, 6, 11)])
+    finite = depths[np.isfinite(depths)]
+    assert finite.size == depths.size  # a closed hall: every ray hits something
+    near, far = finite.min(), finite.max()
+    assert 0.8 <= near <= 1.2 and 6.0 <= far <= 10.0
+    assert 5.0 <= far / near <= 10.0
+
+
+def test_high_frequency_textures():
+    uv = np.stack(np.meshgrid(np.linspace(0, 1, 400, endpoint=False),
+                              np.linspace(0, 1, 400, endpoint=False)), -1).reshape(-1, 2)
+    p, face = np.zeros((len(uv), 3)), np.zeros(len(uv), np.int64)
+    brick = tx.bricks([(0.7, 0.3, 0.2)], (0.9, 0.9, 0.9), rows=10, cols=4, joint=0.1,
+                      aspect=0.4)(p, uv, face).reshape(400, 400, 3)
+    mortar = np.all(brick == tx.solid((0.9, 0.9, 0.9))(p[:1], uv[:1], face[:1])[0], axis=-1)
+    assert 0.1 <= mortar.mean() <= 0.2  # thin joints: 10% of courses, 4% of bricks
+    assert mortar[:, 200].reshape(10, 40)[:, :4].all()  # a bed joint at the foot of each course
+    ink = tx.text_bitmap(["AB 12"])
+    assert ink.shape == (9, 30) and ink[1:8, 0:5].sum() == tx.glyph("A").sum()
+    np.testing.assert_array_equal(ink[1:8, 18:23], tx.glyph("1"))
+    assert not ink[:, 12:18].any()  # a space
+    lines = tx.random_lines(4, 30, seed=3)
+    assert len(lines) == 4 and all(len(line) == 30 for line in lines)
+    page = tx.text((0, 0, 0), (1, 1, 1), rows=12, cols=32)(p, uv, face)
+    assert 0.08 < (page[:, 0] < 0.5).mean() < 0.4
+    grain = tx.wood((0.7, 0.5, 0.3), (0.4, 0.25, 0.1), planks=2)(p, uv, face)
+    luma = luminance(grain.reshape(400, 400, 3))
+    assert np.abs(np.diff(luma, axis=1)).mean() > 0.003  # fine streaks along the grain
+    assert np.abs(np.diff(luma, axis=0)).mean() > np.abs(np.diff(luma, axis=1)).mean()
+
+
+def test_heldout_scene_folder_has_no_bounds(tmp_path):
+    out = simulate_scene("held_arc_table", tmp_path / "t", width=64, height=36, n_frames=3)
+    tf = json.loads((out / "transforms.json").read_text())
+    assert "near_far" not in tf and len(tf["frames"]) == 3
+    manifest = _manifest(out)
+    assert manifest["rig"] == "arc" and manifest["held_out"] is True
+    near, far = manifest["near_far"]
+    assert 0.8 < near < far
+    gt = _read_exr(out / "gt" / "frame_001.exr")
+    assert np.isfinite(gt).all() and gt.max() > 0.1
+
+
+def test_older_format_is_rebuilt(tmp_path):
+    out = simulate_scene("box", tmp_path / "box", width=64, height=36, n_frames=1)
+    manifest = _manifest(out)
+    manifest["version"] = writer.SIM_VERSION - 1
+    (out / "sim.json").write_text(json.dumps(manifest))
+    simulate_scene("box", out, width=64, height=36, n_frames=1)  # no error: rebuilt
+    assert _manifest(out)["version"] == writer.SIM_VERSION
+    manifest["n_frames"] = 5  # another scene's manifest, old or not, is not ours to replace
+    (out / "sim.json").write_text(json.dumps(manifest))
+    with pytest.raises(SceneError, match="overwrite"):
+        simulate_scene("box", out, width=64, height=36, n_frames=1)
+
+
+def test_cli_simulates_heldout_group(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    args = ["--width", "64", "--height", "36", "--frames", "1"]
+    assert cli.main(["simulate", "heldout", *args]) == 0
+    for name in HELDOUT:
+        assert (tmp_path / "data" / "sim" / name / "sim.json").is_file()
+    assert cli.main(["simulate", "held_deep_hall", "--out", "one", *args]) == 0
+    assert (tmp_path / "one" / "sim.json").is_file()
+    assert cli.main(["simulate", "teapot", *args]) == 2
+    assert "heldout" in capsys.readouterr().err

@@ -1,10 +1,11 @@
 """Procedural LMRAW-like scenes: analytic props, a dark-scene sensor and a scene writer.
 
 `simulate_scene(name, out_dir, ...)` writes one scene folder (see `writer`);
-`SCENES` lists the nine scene names.
+`SCENES` lists the nine scene names; `HELDOUT` the held-out scenes (other camera rigs,
+a wide depth range, high-frequency textures), on which no default is tuned.
 """
 
-from gridnerf.sim.scenes import SCENES
+from gridnerf.sim.scenes import HELDOUT, SCENES
 from gridnerf.sim.writer import simulate_scene
 
-__all__ = ["SCENES", "simulate_scene"]
+__all__ = ["HELDOUT", "SCENES", "simulate_scene"]

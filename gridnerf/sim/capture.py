@@ -1,4 +1,4 @@
-"""Forward-facing capture: tripod camera path, pinhole rays and clean Lambertian renders.
+"""Capture: camera rigs (tripod, arc, slide), pinhole rays and clean Lambertian renders.
 
 Cameras follow docs/design.md: camera-to-world (OpenGL axes, x right, y up, looking
 along -z); the ray through pixel (u, v) has camera direction
@@ -53,6 +53,24 @@ def look_at(position: np.ndarray, target: np.ndarray, roll: float = 0.0) -> np.n
 
 
 def camera_path(spec: SceneSpec, n_frames: int, rng: np.random.Generator) -> np.ndarray:
+    """(N, 4, 4) camera-to-world poses of the scene's rig (`spec.rig`), in capture order.
+
+    "tripod": see `tripod_path`; "arc": `arc_path`; "slide": `slide_path`.
+    """
+    paths = {"tripod": tripod_path, "arc": arc_path, "slide": slide_path}
+    if spec.rig not in paths:
+        raise ValueError(f"unknown camera rig {spec.rig!r}; choose one of {', '.join(paths)}")
+    return paths[spec.rig](spec, n_frames, rng)
+
+
+def _pose(position: np.ndarray, rot: np.ndarray) -> np.ndarray:
+    c2w = np.eye(4)
+    c2w[:3, :3] = rot
+    c2w[:3, 3] = position
+    return c2w
+
+
+def tripod_path(spec: SceneSpec, n_frames: int, rng: np.random.Generator) -> np.ndarray:
     """(N, 4, 4) camera-to-world poses of a hand-moved tripod in front of the prop.
 
     Positions lie on a jittered ellipse (about 12% x 7% of the object distance,
@@ -70,6 +88,62 @@ def camera_path(spec: SceneSpec, n_frames: int, rng: np.random.Generator) -> np.
         aim = target + rng.uniform(-0.08, 0.08, 3) * np.array([1.0, 1.0, 0.0])
         poses[i, :3, :3] = look_at(pos, aim, roll=rng.uniform(-0.04, 0.04))
         poses[i, :3, 3] = pos
+    return poses
+
+
+ARC_AIM_JITTER = 0.04  # world units, per axis: where an arc view aims, off the target
+ARC_ROLL = 0.035  # radians, largest roll of an arc view
+
+
+def arc_path(spec: SceneSpec, n_frames: int, rng: np.random.Generator) -> np.ndarray:
+    """(N, 4, 4) poses of a handheld sweep along an arc that converges on `spec.target`.
+
+    View i sits at yaw ~ -Y + 2Y i / (N - 1) about the target (Y = spec.yaw_spread_deg,
+    a quarter step of jitter, clipped to +-Y), at horizontal radius `spec.distance`
+    (+-3%) and `spec.height` above the target (+- a slow 4% wave and 1% jitter of the
+    distance). Each view aims at the target plus up to ARC_AIM_JITTER per axis, with up
+    to ARC_ROLL of roll: every optical axis passes within ~0.07 units of the target.
+    """
+    target = np.asarray(spec.target, float)
+    half = np.deg2rad(spec.yaw_spread_deg)
+    frac = np.linspace(-1.0, 1.0, n_frames) if n_frames > 1 else np.zeros(1)
+    step = 2.0 * half / max(n_frames - 1, 1)
+    yaw = np.clip(frac * half + rng.uniform(-0.25, 0.25, n_frames) * step, -half, half)
+    phase = rng.uniform(0.0, 2.0 * np.pi)
+    poses = np.tile(np.eye(4), (n_frames, 1, 1))
+    for i in range(n_frames):
+        r = spec.distance * rng.uniform(0.97, 1.03)
+        dy = spec.height + spec.distance * (0.04 * np.sin(phase + 1.5 * np.pi * frac[i])
+                                            + rng.uniform(-0.01, 0.01))
+        pos = target + np.array([r * np.sin(yaw[i]), dy, r * np.cos(yaw[i])])
+        aim = target + rng.uniform(-ARC_AIM_JITTER, ARC_AIM_JITTER, 3)
+        poses[i] = _pose(pos, look_at(pos, aim, roll=rng.uniform(-ARC_ROLL, ARC_ROLL)))
+    return poses
+
+
+SLIDE_JITTER_RAD = 0.003  # largest yaw/pitch/roll wobble of the slider carriage
+SLIDE_JITTER_POS = 0.001  # world units, largest centre offset from the rail
+
+
+def slide_path(spec: SceneSpec, n_frames: int, rng: np.random.Generator) -> np.ndarray:
+    """(N, 4, 4) poses of a slider: camera centres evenly along a horizontal rail.
+
+    The rail passes through the rest position target + (0, height, distance), along
+    that view's x axis (horizontal), `spec.baseline * spec.distance` long. Every view
+    keeps the rest view's orientation (looking at the target) up to a carriage wobble of
+    SLIDE_JITTER_RAD per angle, so the optical axes are parallel; centres are off the
+    rail by at most SLIDE_JITTER_POS per axis.
+    """
+    target = np.asarray(spec.target, float)
+    rest = target + np.array([0.0, spec.height, spec.distance])
+    rot = look_at(rest, target)
+    length = spec.baseline * spec.distance
+    along = np.linspace(-0.5, 0.5, n_frames) * length if n_frames > 1 else np.zeros(1)
+    poses = np.tile(np.eye(4), (n_frames, 1, 1))
+    for i in range(n_frames):
+        pos = rest + along[i] * rot[:, 0] + rng.uniform(-SLIDE_JITTER_POS, SLIDE_JITTER_POS, 3)
+        wobble = rotation(*rng.uniform(-SLIDE_JITTER_RAD, SLIDE_JITTER_RAD, 3))
+        poses[i] = _pose(pos, rot @ wobble)
     return poses
 
 
@@ -126,23 +200,27 @@ def shade(spec: SceneSpec, points: np.ndarray, normals: np.ndarray,
 
 
 def render_view(spec: SceneSpec, c2w: np.ndarray, intr: Intrinsics, ssaa: int = 2,
-                chunk: int = 1 << 18):
+                tile: int = 64):
     """Clean, D65-lit view of the scene.
 
     Returns rgb_linear: (H, W, 3) float32 (linear sRGB radiance, pixel-area average of
     ssaa x ssaa sub-rays) and depth: (H, W, S) float32 z-depth of every sub-ray
-    (inf where a ray misses everything). Rays are cast `chunk` at a time.
+    (inf where a ray misses everything). Rays are cast one `tile` x `tile` pixel block
+    at a time: a block's rays form a narrow cone, so primitives outside it are skipped.
     """
     origins, dirs = pixel_rays(c2w, intr, ssaa)
     shape = dirs.shape[:-1]
-    o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
-    rgb = np.zeros((len(o), 3))
-    depth = np.full(len(o), np.inf)
-    for start in range(0, len(o), chunk):
-        sl = slice(start, start + chunk)
-        hits = cast(spec.prims, o[sl], d[sl])
-        hit = np.nonzero(hits.prim >= 0)[0]
-        rgb[start + hit] = shade(spec, hits.point[hit], hits.normal[hit], hits.albedo[hit])
-        depth[sl] = hits.t
-    rgb_linear = rgb.reshape(*shape, 3).mean(axis=2).astype(np.float32)
-    return rgb_linear, depth.reshape(shape).astype(np.float32)
+    rgb = np.zeros((*shape, 3))
+    depth = np.full(shape, np.inf)
+    for y0 in range(0, intr.h, tile):
+        for x0 in range(0, intr.w, tile):
+            block = (slice(y0, y0 + tile), slice(x0, x0 + tile))
+            o, d = origins[block].reshape(-1, 3), dirs[block].reshape(-1, 3)
+            hits = cast(spec.prims, o, d)
+            hit = np.nonzero(hits.prim >= 0)[0]
+            out = np.zeros((len(o), 3))
+            out[hit] = shade(spec, hits.point[hit], hits.normal[hit], hits.albedo[hit])
+            rgb[block] = out.reshape(*depth[block].shape, 3)
+            depth[block] = hits.t.reshape(depth[block].shape)
+    rgb_linear = rgb.mean(axis=2).astype(np.float32)
+    return rgb_linear, depth.astype(np.float32)

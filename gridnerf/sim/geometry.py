@@ -5,7 +5,9 @@ Three primitive kinds cover every prop: `ellipsoid` (spheres too), `box` and
 Each primitive has a pose (`center`, `rot`: local-to-world rotation whose
 columns are the local axes) and is intersected in its local frame, where
 `p_local = rot.T @ (p_world - center)`. A bounding sphere culls rays before
-the exact test, so a small primitive costs only the rays that come near it.
+the exact test, so a small primitive costs only the rays that come near it, and a
+coherent bundle (one camera tile, or parallel shadow rays) skips every primitive outside
+its bounding cone or cylinder at once.
 
 Rays are `(origins (N, 3), dirs (N, 3))` with any non-zero direction length;
 hit distances `t` are in units of the direction vector, so with camera rays
@@ -152,14 +154,17 @@ def _ellipsoid_surface(prim: Primitive, p: np.ndarray, face: np.ndarray):
 
 
 def _box_hit(prim: Primitive, o: np.ndarray, d: np.ndarray):
-    """Slab test."""
+    """Slab test, one axis at a time. A slab whose entry or exit is NaN (a ray parallel
+    to it, starting exactly on its plane) constrains nothing (fmax/fmin skip NaN)."""
     h = np.asarray(prim.size, np.float64)
+    t_near = t_far = None
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / d
-        ta, tb = (-h - o) * inv, (h - o) * inv
-    tmin = np.nan_to_num(np.minimum(ta, tb), nan=-np.inf)
-    tmax = np.nan_to_num(np.maximum(ta, tb), nan=np.inf)
-    t_near, t_far = tmin.max(axis=1), tmax.min(axis=1)
+        for i in range(3):
+            inv = 1.0 / d[:, i]
+            ta, tb = (-h[i] - o[:, i]) * inv, (h[i] - o[:, i]) * inv
+            lo, hi = np.minimum(ta, tb), np.maximum(ta, tb)
+            t_near = lo if t_near is None else np.fmax(t_near, lo)
+            t_far = hi if t_far is None else np.fmin(t_far, hi)
     ok = t_far >= np.maximum(t_near, T_EPS)
     t = np.where(ok, np.where(t_near > T_EPS, t_near, t_far), np.inf)
     return t, np.zeros(len(t), np.int64)
@@ -257,15 +262,70 @@ class _Rays:
         return np.nonzero((disc >= 0.0) & ((disc > b * np.abs(b)) | (b < 0.0)))[0]
 
 
+def _bundle_test(origins: np.ndarray, dirs: np.ndarray):
+    """A conservative whole-bundle test keep(center (3,), radius) -> bool: False only
+    when no ray of the bundle can meet the sphere.
+
+    Rays from one origin (a camera tile) are bounded by a cone around their mean
+    direction; parallel rays (shadow rays toward a directional light) by a cylinder
+    around their projected origins, cut off behind the rearmost origin. Other bundles
+    keep every sphere. Coherent bundles (image tiles) let whole primitives be skipped
+    without a per-ray test.
+    """
+    if len(origins) == 0:
+        return lambda center, radius: False
+    o0, d0 = origins[0], dirs[0]
+    if (origins == o0).all():
+        unit = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+        axis = unit.mean(axis=0)
+        if np.linalg.norm(axis) < 0.5:
+            return lambda center, radius: True
+        axis /= np.linalg.norm(axis)
+        half = float(np.arccos(np.clip(dot3(unit, axis).min(), -1.0, 1.0)))
+
+        def keep_cone(center, radius):
+            v = center - o0
+            dist = float(np.linalg.norm(v))
+            if dist <= radius * (1.0 + 1e-9) + 1e-9:
+                return True
+            angle = np.arccos(np.clip(v @ axis / dist, -1.0, 1.0))
+            return bool(angle <= half + np.arcsin(radius / dist) + 1e-6)
+
+        return keep_cone
+    if (dirs == d0).all():
+        d = d0 / np.linalg.norm(d0)
+        along = dot3(origins, d)
+        flat = origins - along[:, None] * d
+        mid = flat.mean(axis=0)
+        spread = float(np.sqrt(np.max(np.einsum("ij,ij->i", flat - mid, flat - mid))))
+        rear = float(along.min())
+
+        def keep_cylinder(center, radius):
+            ahead = center @ d
+            if ahead + radius < rear - 1e-9:
+                return False
+            off = center - ahead * d - mid
+            return bool(np.sqrt(off @ off) <= spread + radius + 1e-9)
+
+        return keep_cylinder
+    return lambda center, radius: True
+
+
 def _culled(prims: list[Primitive], origins: np.ndarray, dirs: np.ndarray):
-    """Yield (k, prim, ray indices near prim). Small primitives share one bounding sphere,
-    tested once, so their own tests only see the rays that come near the group."""
-    rays = _Rays(origins, dirs)
+    """Yield (k, prim, ray indices near prim) for the primitives the bundle may reach
+    (`_bundle_test`). Small primitives share one bounding sphere, tested once, so their
+    own tests only see the rays that come near the group."""
+    keep = _bundle_test(origins, dirs)
     radii = np.array([p.bound_radius() for p in prims])
     centers = np.array([p.center for p in prims], np.float64).reshape(-1, 3)
+    reach = np.array([keep(c, r) for c, r in zip(centers, radii, strict=True)], bool)
+    if not reach.any():
+        return
+    rays = _Rays(origins, dirs)
     small = radii < GROUP_RADIUS
-    for k in np.nonzero(~small)[0]:
+    for k in np.nonzero(~small & reach)[0]:
         yield k, prims[k], rays.near_sphere(centers[k], radii[k])
+    small &= reach
     if small.any():
         g_center = centers[small].mean(axis=0)
         g_radius = float(np.max(np.linalg.norm(centers[small] - g_center, axis=1) + radii[small]))

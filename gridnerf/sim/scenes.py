@@ -1,9 +1,18 @@
-"""The nine procedural scenes, named after LMRAW's, each a prop on a table before a wall.
+"""The simulated scenes: the nine LMRAW-named ones and the held-out set.
 
-World units: the table top is the plane y = 0, the wall's front face is z = -3, the
-prop stands near the origin (about 1-1.5 units tall) and the camera looks at it
-along -z from z ~ 3.4. Geometry and sensor settings are fixed per scene name; the
-seed only moves the cameras and draws the noise.
+The nine (`SCENES`), named after LMRAW's, are each a prop on a table before a wall.
+World units are metres: the table top is the plane y = 0, the wall's front face is
+z = -3, the prop stands near the origin (about 1-1.5 units tall) and a tripod camera
+(`rig="tripod"`) looks at it along -z from z ~ 3.4.
+
+The held-out scenes (`HELDOUT`) change what the nine share: handheld converging arcs
+(`rig="arc"`) and slider captures (`rig="slide"`), a hall whose depth spans far/near
+~8, and high-frequency textures (brick joints, printed text, finely tiled photos, wood
+grain). They are held out: no default of the method is tuned on them; use them only to
+check that results carry over.
+
+Geometry and sensor settings are fixed per scene name; the seed only moves the
+cameras and draws the noise.
 """
 
 from __future__ import annotations
@@ -20,6 +29,11 @@ from gridnerf.sim.sensor import SensorParams
 SCENES: tuple[str, ...] = (
     "bouquet", "deer", "head", "rabbit", "bucket", "doll", "dora", "scoreboard", "box",
 )
+# Held out: no default is tuned on these (see the module docstring).
+HELDOUT: tuple[str, ...] = (
+    "held_arc_brick", "held_slide_shelf", "held_deep_hall", "held_arc_table",
+)
+RIGS: tuple[str, ...] = ("tripod", "arc", "slide")
 
 
 @dataclass(frozen=True)
@@ -35,7 +49,17 @@ class Light:
 
 @dataclass(frozen=True)
 class SceneSpec:
-    """A scene: primitives (room first), lights, camera aim and the sensor settings."""
+    """A scene: primitives (room first), lights, camera rig and aim, and the sensor.
+
+    Only `props` cast shadows. The camera rig (capture.camera_path) aims at `target`:
+    rig "tripod": a jittered ellipse around the rest position target + (0, height,
+      distance) (the nine scenes);
+    rig "arc": a handheld converging arc at about `distance` from the target, camera
+      yaw about the target spread over +-`yaw_spread_deg`, `height` above it;
+    rig "slide": a slider: centres on a horizontal line through the rest position,
+      `baseline * distance` long, all with the orientation that looks at the target
+      from the rest position.
+    """
 
     name: str
     room: tuple[Primitive, ...]
@@ -49,6 +73,9 @@ class SceneSpec:
     target: tuple[float, float, float] = (0.0, 0.6, 0.0)
     distance: float = 3.4
     height: float = 0.4
+    rig: str = "tripod"
+    yaw_spread_deg: float = 18.0
+    baseline: float = 0.4
 
     @property
     def prims(self) -> list[Primitive]:
@@ -73,6 +100,10 @@ _SENSORS = {
     "dora": (3100, "Nikon D850", "GRBG", 15.0, 0.03, 5.0),
     "scoreboard": (2300, "Sony ILCE-7SM2", "RGGB", 6.0, 0.012, 6.0),
     "box": (2900, "Canon EOS 5D Mark IV", "RGGB", 30.0, 0.05, 4.0),
+    "held_arc_brick": (2600, "Nikon D850", "GRBG", 9.0, 0.018, 5.5),
+    "held_slide_shelf": (3000, "Canon EOS 5D Mark IV", "RGGB", 18.0, 0.035, 4.5),
+    "held_deep_hall": (2400, "Sony ILCE-7SM2", "RGGB", 7.0, 0.014, 6.0),
+    "held_arc_table": (3150, "Sony ILCE-7SM2", "GRBG", 28.0, 0.05, 4.0),
 }
 
 
@@ -290,10 +321,227 @@ _ROOMS = {
 }
 
 
+# ---------------------------------------------------------------- held-out scenes
+# Held out: no default is tuned on these. Real scale (1 unit = 1 m) matters here: brick
+# courses, glyphs and wood pores are sized like the real things, so at the capture
+# distances they land at or below the pixel pitch.
+
+_BRICK_RED = [(0.62, 0.25, 0.16), (0.55, 0.22, 0.15), (0.7, 0.33, 0.2), (0.48, 0.2, 0.14)]
+_MORTAR = (0.78, 0.75, 0.7)
+_INK = (0.08, 0.08, 0.1)
+_PAPER = (0.93, 0.9, 0.82)
+
+
+def _real_bricks(width: float, height: float, colors=_BRICK_RED, mortar=_MORTAR,
+                 seed: int = 0) -> tx.Material:
+    """Bricks at real scale (75 mm courses, 225 mm bricks, 10 mm joints) on a face
+    `width` x `height` metres."""
+    return tx.bricks(colors, mortar, rows=height / 0.075, cols=width / 0.225, joint=0.13,
+                     aspect=0.33, seed=seed)
+
+
+def _floor(material, center=(0.0, -0.5, 1.5), half=(12.0, 0.5, 5.0)) -> Primitive:
+    """A floor (or table) slab whose top face is y = center[1] + half[1]."""
+    return _b(center, half, material)
+
+
+def _board(center, half, front, back, yaw=0.0, pitch=0.0) -> Primitive:
+    """A thin panel (local z thinnest) with `front` on its +z face and `back` elsewhere."""
+    return _b(center, half, tx.per_face({5: front}, back), yaw=yaw, pitch=pitch)
+
+
+def _held_arc_brick() -> SceneSpec:
+    """Held out (nothing is tuned on it). A converging handheld arc around a plinth
+    before a real-scale brick wall, with a printed notice on an easel, a lantern and
+    crates. Subject ~2.3 m away, depth 1.6-5.4 m."""
+    wall = _b([0, 3.0, -2.5], [12.0, 7.0, 0.5], _real_bricks(24.0, 14.0, seed=5))
+    floor = _floor(tx.noise((0.42, 0.4, 0.38), (0.62, 0.6, 0.56), cells=96, seed=6))
+    marble = tx.noise((0.9, 0.88, 0.84), (0.55, 0.55, 0.6), cells=10, seed=7)
+    notice = tx.text(_INK, _PAPER, rows=22, cols=34, seed=8)
+    easel = tx.solid((0.35, 0.22, 0.12))
+    ribs = tx.stripes([(0.15, 0.15, 0.17), (0.75, 0.62, 0.3)], 24, angle_deg=90)
+    crate = tx.wood((0.72, 0.55, 0.35), (0.45, 0.3, 0.18), rings=6, planks=3, seed=9)
+    label = tx.text((0.6, 0.05, 0.05), (0.95, 0.9, 0.75), rows=4, cols=10, seed=10)
+    props = [
+        _b([0, 0.4, 0], [0.22, 0.4, 0.22], marble),
+        _e([0, 0.98, 0], [0.18] * 3, tx.image("moon", (2, 1), tint=(0.8, 0.9, 1.1),
+                                                size=512)),
+        _board([-0.68, 0.62, 0.22], [0.28, 0.36, 0.012], notice, easel, yaw=0.35, pitch=-0.12),
+        *tube([[-0.88, 0.0, 0.18], [-0.86, 0.3, 0.21]], 0.015, easel),
+        *tube([[-0.44, 0.0, 0.35], [-0.45, 0.3, 0.3]], 0.015, easel),
+        _f([0.62, 0.25, 0.18], 0.12, 0.25, 0.1, ribs),
+        _f([0.62, 0.56, 0.18], 0.14, 0.06, 0.0, tx.solid((0.15, 0.15, 0.17))),
+        _b([0.5, 0.15, -0.5], [0.25, 0.15, 0.2], tx.per_face({5: label}, crate), yaw=-0.25),
+        _b([0.48, 0.38, -0.52], [0.17, 0.08, 0.14], crate, yaw=0.15),
+        _b([0.15, 0.035, 0.6], [0.11, 0.035, 0.055], _real_bricks(0.22, 0.07, seed=11),
+           yaw=0.4),
+    ]
+    return SceneSpec(name="held_arc_brick", room=(wall, floor), props=tuple(props),
+                     sensor=_sensor("held_arc_brick"), target=(0.0, 0.6, 0.0),
+                     distance=2.25, height=0.45, rig="arc", yaw_spread_deg=18.0)
+
+
+def _book(x, y, z, w, h, d, color, seed, yaw=0.0) -> Primitive:
+    """A standing book: spine (+z face) printed with a short title."""
+    title = tx.text((0.95, 0.9, 0.7), color, rows=1, cols=6, seed=seed)
+    return _b([x, y + h, z], [w, h, d], tx.per_face({5: title}, tx.solid(color)), yaw=yaw)
+
+
+def _held_slide_shelf() -> SceneSpec:
+    """Held out (nothing is tuned on it). A slider capture of a bookshelf (books with
+    printed spines, a framed photo, photo-printed boxes) before finely tiled photo
+    wallpaper, with a potted plant on a stool and a mug on a side table in front:
+    objects at 1.1-1.6 m, the shelf at 2.5-2.8 m, the wall at ~3 m."""
+    wallpaper = tx.image("camera", (48, 28), tint=(0.95, 0.85, 0.7))
+    wall = _b([0, 3.0, -2.5], [12.0, 7.0, 0.5], wallpaper)
+    floor = _floor(tx.wood((0.6, 0.42, 0.26), (0.4, 0.26, 0.15), rings=5, planks=66,
+                           repeat=(12.0, 1.0), seed=12))
+    shelf = tx.wood((0.5, 0.32, 0.2), (0.3, 0.18, 0.1), rings=8, planks=1, seed=13)
+    z = -1.75
+    props = [_b([sx, 0.9, z], [0.02, 0.9, 0.22], shelf) for sx in (-0.82, 0.82)]
+    props += [_b([0, y, z], [0.8, 0.015, 0.22], shelf) for y in (0.03, 0.46, 0.9, 1.34)]
+    colours = [(0.55, 0.1, 0.1), (0.1, 0.25, 0.55), (0.15, 0.4, 0.2), (0.6, 0.45, 0.1),
+               (0.3, 0.15, 0.4), (0.1, 0.1, 0.12), (0.65, 0.3, 0.15)]
+    x = -0.76
+    for i, (w, h) in enumerate([(0.025, 0.15), (0.035, 0.17), (0.02, 0.13), (0.04, 0.18),
+                                (0.03, 0.16), (0.025, 0.14), (0.045, 0.18)]):
+        props.append(_book(x + w, 0.475, z + 0.05, w, h, 0.12, colours[i], seed=20 + i))
+        x += 2 * w + 0.004
+    x = 0.2
+    for i, (w, h) in enumerate([(0.03, 0.16), (0.04, 0.17), (0.025, 0.15), (0.035, 0.14)]):
+        props.append(_book(x + w, 0.915, z + 0.05, w, h, 0.12, colours[(i + 3) % 7],
+                           seed=30 + i))
+        x += 2 * w + 0.004
+    props += [
+        _b([0.45, 0.6, z + 0.02], [0.16, 0.12, 0.1], tx.image("coffee", (3, 3), size=512),
+           yaw=-0.15),
+        _board([-0.35, 1.08, z + 0.08], [0.2, 0.15, 0.012],
+               tx.image("astronaut", size=512), tx.solid((0.75, 0.6, 0.25)), pitch=-0.15),
+        _e([-0.1, 1.47, z + 0.05], [0.11] * 3, tx.image("coins", (3, 2), size=512)),
+        _b([0.4, 1.45, z], [0.2, 0.1, 0.14], tx.image("chelsea", (4, 2), size=512), yaw=0.1),
+        _b([-0.55, 0.13, z + 0.02], [0.18, 0.1, 0.15], tx.image("rocket", (2, 2)), yaw=0.2),
+        # Foreground: a stool with a potted plant, and a side table with a mug.
+        _f([-0.35, 0.275, -0.3], 0.16, 0.275, 0.14, tx.solid((0.2, 0.2, 0.22))),
+        _f([-0.35, 0.67, -0.3], 0.08, 0.12, 0.11,
+           tx.stripes([(0.75, 0.35, 0.2), (0.6, 0.28, 0.15)], 16, angle_deg=90)),
+    ]
+    leaf = tx.stripes([(0.2, 0.55, 0.15), (0.3, 0.7, 0.2)], 5, angle_deg=90)
+    for k in range(6):  # leaves fanning out of the pot
+        a = 2.0 * np.pi * k / 6 + 0.3
+        props.append(_e([-0.35 + 0.09 * np.cos(a), 0.86 + 0.03 * (k % 3),
+                         -0.3 + 0.09 * np.sin(a)], [0.1, 0.012, 0.035], leaf,
+                        yaw=-a, roll=0.5))
+    props += [
+        _b([0.55, 0.35, -0.55], [0.2, 0.35, 0.2], shelf),
+        _f([0.5, 0.76, -0.5], 0.045, 0.055, 0.05, tx.text(_INK, (0.9, 0.88, 0.85), rows=3,
+                                                         cols=12, repeat=(-1, 1), seed=40)),
+    ]
+    return SceneSpec(name="held_slide_shelf", room=(wall, floor), props=tuple(props),
+                     sensor=_sensor("held_slide_shelf"), target=(0.0, 0.9, -1.5),
+                     distance=2.5, height=0.15, rig="slide", baseline=0.4)
+
+
+def _held_deep_hall() -> SceneSpec:
+    """Held out (nothing is tuned on it). A slider capture down a 7.5 m hall: a table
+    with a book, a mug and a figurine ~1 m from the cameras, pillars, a bench and a tree
+    midway, a brick back wall with a printed poster at ~7.6 m (true far/near ~7.8)."""
+    tiles = tx.bricks([(0.7, 0.68, 0.62), (0.6, 0.58, 0.55)], (0.3, 0.3, 0.3),
+                      rows=12.0 / 0.3, cols=5.0 / 0.3, joint=0.04, aspect=1.0, seed=14)
+    room = (
+        _b([0, -0.5, -3.0], [2.5, 0.5, 6.0], tiles),  # floor y = 0, z in [-9, 3]
+        _b([0, 3.3, -3.0], [2.5, 0.3, 6.0],
+           tx.noise((0.8, 0.78, 0.74), (0.65, 0.63, 0.6), cells=64, seed=15)),  # ceiling 3 m
+        _b([-2.3, 1.5, -3.0], [0.3, 1.5, 6.0], _real_bricks(12.0, 3.0, seed=16)),
+        _b([2.3, 1.5, -3.0], [0.3, 1.5, 6.0], tx.image("page", (40, 8), size=384,
+                                                       tint=(0.95, 0.9, 0.8))),
+        _b([0, 1.5, -7.8], [2.5, 1.5, 0.3],
+           _real_bricks(5.0, 3.0, [(0.55, 0.5, 0.45), (0.45, 0.42, 0.4)], seed=17)),
+        _board([0.6, 1.5, -7.49], [0.6, 0.8, 0.01], tx.text(_INK, _PAPER, rows=16, cols=28,
+                                                             seed=18), tx.solid(_PAPER)),
+        _board([-0.9, 1.4, -7.49], [0.4, 0.3, 0.01], tx.image("chelsea", size=512),
+               tx.solid((0.2, 0.15, 0.1))),
+        *[_f([sx, 1.5, sz], 0.14, 1.5, 0.14,
+             tx.stripes([(0.85, 0.82, 0.76), (0.7, 0.68, 0.64)], 32, angle_deg=90))
+          for sx in (-1.5, 1.5) for sz in (-3.2, -5.6)],
+    )
+    table = tx.wood((0.62, 0.44, 0.28), (0.4, 0.27, 0.16), rings=9, planks=3, seed=19)
+    legs = tx.solid((0.15, 0.12, 0.1))
+    props = [
+        _b([0, 0.82, -1.2], [0.75, 0.03, 0.4], table),  # top y = 0.85, z in [-1.6, -0.8]
+        *_legs([(-0.7, -0.85), (0.7, -0.85), (-0.7, -1.55), (0.7, -1.55)], 0.79, 0.025, legs),
+        _b([-0.28, 0.87, -1.12], [0.15, 0.02, 0.1], tx.per_face(
+            {3: tx.text(_INK, _PAPER, rows=14, cols=20, repeat=(1, -1), seed=21)},
+            tx.solid((0.5, 0.1, 0.1))),
+           yaw=0.2),
+        _f([0.28, 0.91, -1.05], 0.04, 0.06, 0.045, tx.text(_INK, (0.9, 0.9, 0.85), rows=3,
+                                                           cols=10, repeat=(-1, 1), seed=22)),
+        _e([0.05, 0.96, -1.35], [0.06, 0.11, 0.06], tx.image("coins", (2, 1), size=512)),
+        # Midway: a bench and a potted tree.
+        _b([0.9, 0.225, -3.9], [0.6, 0.025, 0.2], tx.wood((0.55, 0.38, 0.22),
+                                                          (0.35, 0.22, 0.12), seed=23)),
+        *_legs([(0.4, -3.9), (1.4, -3.9)], 0.2, 0.04, legs),
+        _f([-0.9, 0.2, -4.6], 0.16, 0.2, 0.2, tx.solid((0.5, 0.3, 0.2))),
+        _e([-0.9, 0.95, -4.6], [0.35, 0.55, 0.35],
+           tx.noise((0.15, 0.4, 0.12), (0.35, 0.6, 0.2), cells=24, seed=24)),
+    ]
+    return SceneSpec(name="held_deep_hall", room=room, props=tuple(props),
+                     sensor=_sensor("held_deep_hall"), target=(0.0, 0.95, -2.5),
+                     distance=2.5, height=0.3, rig="slide", baseline=0.3,
+                     lights=(Light((-0.4, 0.8, 0.45), 0.95), Light((0.6, 0.4, 0.7), 0.35,
+                                                                   shadow=False)))
+
+
+def _held_arc_table() -> SceneSpec:
+    """Held out (nothing is tuned on it). A converging handheld arc over a wood-grain
+    table: a teapot, a cup and saucer, a framed photo and three photo prints lying on
+    the table. Subject ~1.6 m away, depth 1.0-5.5 m."""
+    table = tx.wood((0.66, 0.47, 0.3), (0.42, 0.28, 0.16), rings=7, planks=50,
+                    repeat=(12.0, 1.0), seed=25)
+    wall = tx.image("coins", (40, 20), tint=(0.8, 0.9, 0.75))
+    glaze = tx.dots((0.2, 0.35, 0.6), [(0.95, 0.92, 0.85), (0.9, 0.75, 0.2)], n=14,
+                    radius=0.22)
+    white = tx.solid((0.9, 0.88, 0.85))
+    spout = [[-0.1, 0.14, -0.05], [-0.02, 0.2, -0.05], [0.03, 0.26, -0.05]]
+    handle = [[-0.4, 0.22, -0.05], [-0.47, 0.2, -0.05], [-0.47, 0.1, -0.05],
+              [-0.39, 0.07, -0.05]]
+    props = [
+        _e([-0.25, 0.13, -0.05], [0.16, 0.13, 0.16], glaze),
+        _e([-0.25, 0.25, -0.05], [0.07, 0.03, 0.07], glaze),
+        _e([-0.25, 0.29, -0.05], [0.02] * 3, white),
+        *tube(spout, 0.018, glaze),
+        *tube(handle, 0.014, glaze),
+        # cup and saucer
+        _f([0.12, 0.006, 0.22], 0.08, 0.006, 0.075, white),
+        _f([0.12, 0.05, 0.22], 0.035, 0.04, 0.045, tx.text((0.2, 0.3, 0.6), (0.92, 0.9, 0.86),
+                                                           rows=2, cols=10, repeat=(-1, 1),
+                                                           seed=26),
+           caps=(True, False)),
+        # framed photo leaning back on a strut
+        _board([0.32, 0.2, -0.3], [0.15, 0.19, 0.01], tx.image("astronaut", size=512),
+               tx.solid((0.2, 0.12, 0.08)), yaw=-0.3, pitch=-0.2),
+        *tube([[0.36, 0.0, -0.42], [0.34, 0.25, -0.33]], 0.008, tx.solid((0.2, 0.12, 0.08))),
+    ]
+    for (x, z, yaw, name) in [(0.08, 0.45, 0.3, "chelsea"), (-0.32, 0.33, -0.2, "coffee"),
+                              (0.5, 0.12, 0.9, "rocket")]:  # prints read from the cameras
+        props.append(_b([x, 0.002, z], [0.1, 0.002, 0.07],
+                        tx.per_face({3: tx.image(name, (1, -1), size=512)}, white), yaw=yaw))
+    room = (_b([0.0, 3.0, -3.5], [12.0, 7.0, 0.5], wall), _floor(table))
+    return SceneSpec(name="held_arc_table", room=room, props=tuple(props),
+                     sensor=_sensor("held_arc_table"), target=(0.0, 0.15, 0.0),
+                     distance=1.5, height=0.55, rig="arc", yaw_spread_deg=17.0)
+
+
+_HELD = {"held_arc_brick": _held_arc_brick, "held_slide_shelf": _held_slide_shelf,
+         "held_deep_hall": _held_deep_hall, "held_arc_table": _held_arc_table}
+
+
 def build_scene(name: str) -> SceneSpec:
-    """The SceneSpec for one of SCENES (raises ValueError for other names)."""
+    """The SceneSpec for one of SCENES or HELDOUT (raises ValueError for other names)."""
+    if name in _HELD:
+        return _HELD[name]()
     if name not in _PROPS:
-        raise ValueError(f"unknown scene {name!r}; choose one of {', '.join(SCENES)}")
+        raise ValueError(f"unknown scene {name!r}; choose one of "
+                         f"{', '.join(SCENES + HELDOUT)}")
     wall, table = _ROOMS[name]()
     return SceneSpec(name=name, room=_room(wall, table), props=tuple(_PROPS[name]()),
                      sensor=_sensor(name))

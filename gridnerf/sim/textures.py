@@ -35,6 +35,11 @@ PHOTOS = (
     "brick",
     "grass",
     "gravel",
+    "camera",
+    "coins",
+    "moon",
+    "page",
+    "text",
 )
 MAX_ALBEDO = 0.9
 
@@ -91,10 +96,14 @@ def solid(rgb_srgb: Sequence[float]) -> Material:
 
 
 def image(name: str, repeat: tuple[float, float] = (1.0, 1.0),
-          tint: Sequence[float] = (1.0, 1.0, 1.0), offset: tuple[float, float] = (0.0, 0.0)
-          ) -> Material:
-    """A photograph tiled `repeat` times over the uv square, multiplied by a linear `tint`."""
-    img = photo(name)
+          tint: Sequence[float] = (1.0, 1.0, 1.0), offset: tuple[float, float] = (0.0, 0.0),
+          size: int = 256) -> Material:
+    """A photograph tiled `repeat` times over the uv square, multiplied by a linear `tint`.
+
+    `size` is the photo's longer side in texels (see `photo`): a larger size keeps
+    fine detail (printed text, hair) when a photo is seen up close or tiled finely.
+    """
+    img = photo(name, size)
     tint_lin = np.asarray(tint, np.float64)
 
     def m(p_local, uv, face):
@@ -244,5 +253,176 @@ def bands_y(materials: Sequence[Material], edges: Sequence[float]) -> Material:
             if sel.any():
                 out[sel] = mat(p_local[sel], uv[sel], face[sel])
         return out
+
+    return m
+
+
+# ---------------------------------------------------------------- high-frequency patterns
+
+
+def _nearest_wrap(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Sample (H, W, ...) at u (columns), v (rows from the top) in texture periods, with
+    nearest-texel lookup (crisp edges: pixel-area averaging is left to the renderer)."""
+    h, w = img.shape[:2]
+    x = np.floor(u * w).astype(np.int64) % w
+    y = np.floor(v * h).astype(np.int64) % h
+    return img[y, x]
+
+
+def _hash01(a: np.ndarray, b: np.ndarray, seed: int) -> np.ndarray:
+    """Deterministic pseudo-random numbers in [0, 1) for integer cell coordinates (a, b)."""
+    x = (a.astype(np.int64) * 73856093) ^ (b.astype(np.int64) * 19349663) ^ (seed * 83492791)
+    x = (x ^ (x >> 13)) * 1274126177
+    return ((x ^ (x >> 16)) & 0xFFFF) / 65536.0
+
+
+def bricks(colors: Sequence[Sequence[float]], mortar: Sequence[float], rows: float = 12.0,
+           cols: float = 4.0, joint: float = 0.13, aspect: float = 0.33, seed: int = 0
+           ) -> Material:
+    """Running-bond brickwork: `rows` courses per uv unit of v, `cols` bricks per course
+    per uv unit of u, alternate courses shifted by half a brick.
+
+    joint: mortar line thickness as a fraction of a course's height; vertical joints are
+    `joint * aspect` of a brick's length (aspect = brick height / brick length on the
+    surface), so both joints are equally thin in the world. Each brick takes one of
+    `colors` with +-15% brightness and a fine speckle (one value per ~1/24 brick height).
+    At real scale (about 13 courses per metre) the joints are fine lines one pixel or
+    less wide at a few metres: a high-frequency test for any reconstruction.
+    """
+    cols_lin = np.stack([_linear(c) for c in colors])
+    mortar_lin = _linear(mortar)
+    speckle = np.random.default_rng(seed).random((96, 384))
+
+    def m(p_local, uv, face):
+        y = uv[:, 1] * rows
+        row = np.floor(y)
+        x = uv[:, 0] * cols + 0.5 * (row % 2)
+        col = np.floor(x)
+        fy, fx = y - row, x - col
+        in_joint = (fy < joint) | (fx < joint * aspect)
+        k = np.floor(_hash01(row, col, seed) * len(cols_lin)).astype(np.int64)
+        shade = 0.85 + 0.3 * _hash01(col, row, seed + 1)
+        grit = 0.8 + 0.4 * _nearest_wrap(speckle, x / 16.0, y / 4.0)
+        brick = cols_lin[k] * (shade * grit)[:, None]
+        return np.clip(np.where(in_joint[:, None], mortar_lin, brick), 0.0, MAX_ALBEDO)
+
+    return m
+
+
+def wood(light: Sequence[float], dark: Sequence[float], rings: float = 10.0,
+         planks: int = 4, repeat: tuple[float, float] = (1.0, 1.0), seed: int = 0
+         ) -> Material:
+    """Wood grain running along u: `planks` planks across v with dark seams, each with
+    growth-ring bands (`rings` per plank width) bent by low-frequency noise, and fine
+    dark pore streaks stretched along the grain (one texel is 1/512 of a u period).
+    The pattern is tiled `repeat` times over the uv square."""
+    a, b = _linear(light), _linear(dark)
+    rng = np.random.default_rng(seed)
+    warp = rng.random((8, 16, 1))
+    pores = rng.random((64, 512, 1))
+    shift = rng.random(planks)
+
+    def m(p_local, uv, face):
+        u, v = uv[:, 0] * repeat[0], uv[:, 1] * repeat[1]
+        pv = v * planks
+        plank = np.floor(pv).astype(np.int64)
+        across = pv - plank
+        bend = 1.2 * _bilinear_wrap(warp, u + shift[plank % planks], across * 0.5)[:, 0]
+        s = across * rings + bend + 3.0 * shift[plank % planks]
+        band = (0.5 + 0.5 * np.cos(2.0 * np.pi * s)) ** 3
+        streak = _bilinear_wrap(pores, u + 0.37 * plank, across * 0.25 + 0.5 * s / rings)[:, 0]
+        f = np.clip(0.65 * band + 0.45 * streak ** 4, 0.0, 1.0)
+        out = a * (1.0 - f[:, None]) + b * f[:, None]
+        seam = (across < 0.012) | (across > 0.988)
+        return np.where(seam[:, None], b * 0.35, out)
+
+    return m
+
+
+# A 5 x 7 bitmap font: five column bytes per glyph, bit 0 = top row.
+_FONT5X7 = {
+    " ": (0x00, 0x00, 0x00, 0x00, 0x00), ".": (0x00, 0x60, 0x60, 0x00, 0x00),
+    ",": (0x00, 0x50, 0x30, 0x00, 0x00), "-": (0x08, 0x08, 0x08, 0x08, 0x08),
+    "0": (0x3E, 0x51, 0x49, 0x45, 0x3E), "1": (0x00, 0x42, 0x7F, 0x40, 0x00),
+    "2": (0x42, 0x61, 0x51, 0x49, 0x46), "3": (0x21, 0x41, 0x45, 0x4B, 0x31),
+    "4": (0x18, 0x14, 0x12, 0x7F, 0x10), "5": (0x27, 0x45, 0x45, 0x45, 0x39),
+    "6": (0x3C, 0x4A, 0x49, 0x49, 0x30), "7": (0x01, 0x71, 0x09, 0x05, 0x03),
+    "8": (0x36, 0x49, 0x49, 0x49, 0x36), "9": (0x06, 0x49, 0x49, 0x29, 0x1E),
+    "A": (0x7E, 0x11, 0x11, 0x11, 0x7E), "B": (0x7F, 0x49, 0x49, 0x49, 0x36),
+    "C": (0x3E, 0x41, 0x41, 0x41, 0x22), "D": (0x7F, 0x41, 0x41, 0x22, 0x1C),
+    "E": (0x7F, 0x49, 0x49, 0x49, 0x41), "F": (0x7F, 0x09, 0x09, 0x09, 0x01),
+    "G": (0x3E, 0x41, 0x49, 0x49, 0x7A), "H": (0x7F, 0x08, 0x08, 0x08, 0x7F),
+    "I": (0x00, 0x41, 0x7F, 0x41, 0x00), "J": (0x20, 0x40, 0x41, 0x3F, 0x01),
+    "K": (0x7F, 0x08, 0x14, 0x22, 0x41), "L": (0x7F, 0x40, 0x40, 0x40, 0x40),
+    "M": (0x7F, 0x02, 0x0C, 0x02, 0x7F), "N": (0x7F, 0x04, 0x08, 0x10, 0x7F),
+    "O": (0x3E, 0x41, 0x41, 0x41, 0x3E), "P": (0x7F, 0x09, 0x09, 0x09, 0x06),
+    "Q": (0x3E, 0x41, 0x51, 0x21, 0x5E), "R": (0x7F, 0x09, 0x19, 0x29, 0x46),
+    "S": (0x46, 0x49, 0x49, 0x49, 0x31), "T": (0x01, 0x01, 0x7F, 0x01, 0x01),
+    "U": (0x3F, 0x40, 0x40, 0x40, 0x3F), "V": (0x1F, 0x20, 0x40, 0x20, 0x1F),
+    "W": (0x3F, 0x40, 0x38, 0x40, 0x3F), "X": (0x63, 0x14, 0x08, 0x14, 0x63),
+    "Y": (0x07, 0x08, 0x70, 0x08, 0x07), "Z": (0x61, 0x51, 0x49, 0x45, 0x43),
+}
+GLYPHS = "".join(_FONT5X7)
+
+
+def glyph(ch: str) -> np.ndarray:
+    """(7, 5) bool bitmap of one character of the 5 x 7 font (rows top to bottom)."""
+    cols = _FONT5X7[ch]
+    return np.array([[(c >> r) & 1 for c in cols] for r in range(7)], bool)
+
+
+def text_bitmap(lines: Sequence[str]) -> np.ndarray:
+    """(9 * rows, 6 * cols) bool ink mask of lines of text in the 5 x 7 font.
+
+    Each character cell is 6 x 9 texels (one column of letter spacing, two rows of
+    leading); lines are padded with spaces to the longest one.
+    """
+    width = max(len(line) for line in lines)
+    out = np.zeros((9 * len(lines), 6 * width), bool)
+    for r, line in enumerate(lines):
+        for c, ch in enumerate(line.upper()):
+            if ch not in _FONT5X7:
+                raise ValueError(f"text() has no glyph for {ch!r}; use {GLYPHS!r}")
+            out[9 * r + 1: 9 * r + 8, 6 * c: 6 * c + 5] = glyph(ch)
+    return out
+
+
+def random_lines(rows: int, cols: int, seed: int = 0) -> list[str]:
+    """`rows` lines of `cols` characters of pseudo-words (2-8 letters, some digits)."""
+    rng = np.random.default_rng(seed)
+    letters = "ETAOINSRHDLUCMFYWGPBVKXQJZ"
+    weights = np.linspace(2.0, 0.2, len(letters))
+    weights /= weights.sum()
+    lines = []
+    for _ in range(rows):
+        line = ""
+        while len(line) < cols:
+            n = int(rng.integers(2, 9))
+            if rng.random() < 0.12:
+                word = "".join(rng.choice(list("0123456789"), n))
+            else:
+                word = "".join(rng.choice(list(letters), n, p=weights))
+            line += word + (". " if rng.random() < 0.15 else " ")
+        lines.append(line[:cols])
+    return lines
+
+
+def text(ink: Sequence[float], paper: Sequence[float], rows: int = 12, cols: int = 32,
+         lines: Sequence[str] | None = None, repeat: tuple[float, float] = (1.0, 1.0),
+         seed: int = 0) -> Material:
+    """Printed text: rows of small 5 x 7 glyphs in `ink` on `paper`, filling the uv square.
+
+    lines: the text (A-Z, 0-9, space, '.', ',' and '-'), else `rows` lines of `cols`
+    pseudo-words drawn from `seed`. The block is tiled `repeat` times. Glyph strokes are
+    1/9 of a line's height: at a dozen lines per 10 cm they are sub-pixel at 1-2 m.
+    """
+    mask = text_bitmap(list(lines) if lines is not None else random_lines(rows, cols, seed))
+    a, b = _linear(paper), _linear(ink)
+
+    def m(p_local, uv, face):
+        u = uv[:, 0] * repeat[0]
+        v = (1.0 - uv[:, 1]) * repeat[1]
+        inked = _nearest_wrap(mask, u, v)
+        return np.where(inked[:, None], b, a)
 
     return m

@@ -3,10 +3,13 @@
 Folder layout (the contract every loader follows):
   raw/<name>.dng       noisy dark RAW frames frame_000 ... (16-bit DNG, black 512, white 16383)
   images/<name>.jpg    camera-style previews of the dark frames (for pose estimation)
-  transforms.json      nerfstudio cameras (OpenGL camera-to-world), train/test split
-                       (every 8th frame is test) and "near_far" (true min/max z-depth)
+  transforms.json      nerfstudio cameras (OpenGL camera-to-world) and the train/test
+                       split (every 8th frame is test). No scene bounds: a trainer must
+                       find near/far itself, as with a real capture
   gt/<name>.exr|.png   clean normal-light references (linear float32 / sRGB 8-bit)
-  sim.json             manifest, written LAST (its presence marks a complete scene)
+  sim.json             manifest, written LAST (its presence marks a complete scene);
+                       it keeps the true "near_far" (min/max z-depth over all rendered
+                       sub-rays) and the camera "rig" for reference only
 
 Exposure convention of the references: they are linear sRGB (the scene's
 reflectance x shading as if lit by D65, no noise), multiplied by ONE scale factor per
@@ -29,14 +32,17 @@ import imageio.v3 as iio
 import numpy as np
 
 from gridnerf.color import luminance, srgb_encode
-from gridnerf.dng import write_dng
+from gridnerf.dng import MIN_SIZE, write_dng
 from gridnerf.errors import SceneError
 from gridnerf.image_io import write_exr, write_png
 from gridnerf.sim import sensor
 from gridnerf.sim.capture import HFOV_DEG, camera_path, intrinsics, render_view
-from gridnerf.sim.scenes import SCENES, build_scene
+from gridnerf.sim.scenes import HELDOUT, SCENES, build_scene
 
-SIM_VERSION = 1
+# Scene-folder format version, part of the cache key: bump it whenever the written
+# files change so that folders written before are rebuilt. 2: camera rigs, held-out
+# scenes, no near_far in transforms.json.
+SIM_VERSION = 2
 GT_MEAN_LUMINANCE = 0.18
 SSAA = 2  # sub-rays per pixel side (pixel-area integration)
 TEST_EVERY = 8
@@ -58,13 +64,27 @@ def _key(name: str, width: int, height: int, n_frames: int, seed: int) -> dict:
             "height": int(height), "n_frames": int(n_frames)}
 
 
-def _is_complete(out: Path, key: dict) -> bool:
-    """True when out/sim.json matches `key` and every listed file exists."""
+def _read_manifest(out: Path) -> dict | None:
     try:
         manifest = json.loads((out / "sim.json").read_text())
     except (OSError, ValueError):
+        return None
+    return manifest if isinstance(manifest, dict) else None
+
+
+def _is_stale(out: Path, key: dict) -> bool:
+    """True when out/sim.json is this simulator's manifest for the same scene and
+    parameters written by another SIM_VERSION (so the folder is ours to rebuild)."""
+    manifest = _read_manifest(out)
+    if manifest is None or manifest.get("version") == key["version"]:
         return False
-    if not isinstance(manifest, dict) or {k: manifest.get(k) for k in key} != key:
+    return all(manifest.get(k) == v for k, v in key.items() if k != "version")
+
+
+def _is_complete(out: Path, key: dict) -> bool:
+    """True when out/sim.json matches `key` and every listed file exists."""
+    manifest = _read_manifest(out)
+    if manifest is None or {k: manifest.get(k) for k in key} != key:
         return False
     names = frame_names(key["n_frames"])
     files = ["transforms.json"] + [f"{d}/{n}.{e}" for n in names
@@ -133,10 +153,10 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
                    for p, pose in zip(paths, poses, strict=True)],
         "train_filenames": [p for i, p in enumerate(paths) if i not in test],
         "test_filenames": [paths[i] for i in test],
-        "near_far": near_far,
     })
     _write_json(folder / "sim.json", {
         **_key(name, width, height, n_frames, seed),
+        "held_out": name in HELDOUT, "rig": spec.rig,
         "frames": names, "test_frames": [names[i] for i in test],
         "illuminant_kelvin": params.kelvin,
         "illuminant_neutral_cam": sensor.illuminant_neutral(params).tolist(),
@@ -151,6 +171,7 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
         "camera_model": params.camera_model, "cfa_pattern": params.cfa_pattern,
         "cfa": params.cfa.tolist(), "xyz_to_cam": params.xyz_to_cam.tolist(),
         "hfov_deg": HFOV_DEG, "ssaa": SSAA, "near_far": near_far,
+        "near_far_note": "true bounds for reference only; not in transforms.json",
         "depth_convention": "z-depth along the camera's -z axis, world units",
         "exposure_convention": EXPOSURE_CONVENTION, "gt_scale": gt_scale,
         "gt_mean_luminance": GT_MEAN_LUMINANCE,
@@ -159,28 +180,30 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
 
 def simulate_scene(name: str, out_dir, width: int = 480, height: int = 270,
                    n_frames: int = 24, seed: int = 0, overwrite: bool = False) -> Path:
-    """Write scene `name` (one of SCENES) into out_dir and return out_dir.
+    """Write scene `name` (one of SCENES or HELDOUT) into out_dir and return out_dir.
 
     If out_dir already holds a complete scene written with the same parameters
     (checked against the `sim.json` manifest, written last), it is reused and
-    returned at once; `overwrite=True` rebuilds it anyway. A folder holding anything
-    else is only replaced with `overwrite=True`. The scene is built in
+    returned at once; `overwrite=True` rebuilds it anyway. The same scene written by
+    an older SIM_VERSION is rebuilt. A folder holding anything else is only replaced
+    with `overwrite=True`. The scene is built in
     `<out_dir>.tmp-<pid>` and renamed at the end. Deterministic for a seed.
     """
     out = Path(out_dir)
-    if name not in SCENES:
+    if name not in SCENES + HELDOUT:
         raise SceneError(out, f"unknown simulated scene {name!r}",
-                         f"choose one of {', '.join(SCENES)}")
-    if width < 8 or height < 8 or n_frames < 1:
+                         f"choose one of {', '.join(SCENES + HELDOUT)}")
+    if min(width, height) < MIN_SIZE or n_frames < 1:
         raise SceneError(out, f"cannot simulate {width}x{height} with {n_frames} frames",
-                         "use width and height of at least 8 pixels and at least 1 frame")
+                         f"use width and height of at least {MIN_SIZE} pixels (LibRaw's "
+                         "minimum) and at least 1 frame")
     key = _key(name, width, height, n_frames, seed)
     if out.exists():
         if not out.is_dir():
             raise SceneError(out, "exists and is not a folder", "choose another output folder")
         if not overwrite and _is_complete(out, key):
             return out
-        if not overwrite and any(out.iterdir()):
+        if not overwrite and not _is_stale(out, key) and any(out.iterdir()):
             raise SceneError(out, "already holds files that are not this simulated scene "
                              f"({name}, {width}x{height}, {n_frames} frames, seed {seed})",
                              "choose another output folder, delete this one, or pass "
