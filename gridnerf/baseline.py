@@ -13,11 +13,12 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.ndimage import convolve
+from skimage.transform import resize
 
-from gridnerf.color import srgb_from_cam
+from gridnerf.color import luminance, srgb_from_cam
 from gridnerf.errors import RawError
 from gridnerf.exposure import alpha_for_luminance
-from gridnerf.raw import cfa_masks
+from gridnerf.raw import bin2x2, cfa_masks
 
 # Bilinear interpolation kernel for normalised convolution: cross neighbours
 # weigh twice the diagonal ones, the centre four times.
@@ -137,4 +138,22 @@ def process_dark_frame(raw_bayer, cfa, xyz_to_cam, use_matrix: bool = True) -> n
             )
         rgb = rgb @ srgb_from_cam(matrix).T
     rgb = rgb * alpha_for_luminance(rgb)
+    return np.maximum(rgb, 0.0).astype(np.float32)
+
+
+def process_binned_frame(raw_bayer, cfa, xyz_to_cam, gt_linear) -> np.ndarray:
+    """The per-frame pipeline the 3D model must beat, made generous: 2x2 binning (4 raw
+    samples per output pixel, a denoiser for free), grey world, colour matrix, an exposure
+    matched to the reference (mean luminance equal to gt's, which a real pipeline cannot
+    know), bilinear upsampling back to the frame size, negatives clipped.
+
+    raw_bayer: (H, W) normalised mosaic; gt_linear: (H, W, 3) the reference, linear sRGB.
+    Returns rgb_linear (H, W, 3) float32.
+    """
+    rgb = bin2x2(np.asarray(raw_bayer, np.float32), _check_cfa(cfa)).astype(np.float64)
+    rgb = rgb * grey_world_gains(rgb).astype(np.float64)
+    rgb = rgb @ srgb_from_cam(np.asarray(xyz_to_cam, np.float64)).T
+    rgb = resize(rgb, np.asarray(gt_linear).shape[:2], order=1, anti_aliasing=False)
+    target = float(np.mean(luminance(np.asarray(gt_linear, np.float64))))
+    rgb = rgb * alpha_for_luminance(rgb, target)
     return np.maximum(rgb, 0.0).astype(np.float32)

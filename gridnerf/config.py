@@ -26,8 +26,12 @@ class GridConfig:
     resolutions: tuple[tuple[int, int, int], ...] = ((48, 48, 24), (64, 64, 32))
     sh_degree: int = 0  # spherical-harmonic degree of the low-light colour (0 = no view dependence)
     init_density: float = -4.0  # raw density at init (softplus: sigma 0.018 per voxel)
-    prune_threshold: float = 0.01  # prune vertices whose alpha over half a voxel is below this
+    prune_mode: str = "visibility"  # "visibility": max ray weight over training rays; "density"
+    prune_threshold: float = 0.01  # carve vertices whose weight (or alpha) is below this
     prune_dilate: int = 1  # keep this many vertices around survivors when pruning
+    fit_box: bool = True  # after the first stage, shrink the box to the visible content
+    fit_quantile: float = 0.005  # rendered mass left outside the fitted box at each end
+    fit_margin: float = 2.0  # margin around the content, in voxels of the first stage
     occupancy_threshold: float = 0.005  # cells whose max alpha is below this are skipped
     occupancy_every: int = 100  # refresh the empty-space bitmask every this many steps
 
@@ -49,6 +53,7 @@ class LossConfig:
     tv_density: float = 1e-2  # TV weight on density
     tv_rgb: float = 1e-2  # TV weight on the low-light colour
     sparsity: float = 1e-3  # weight of the Cauchy sparsity prior on density (free space)
+    distortion: float = 0.0  # weight of the mip-NeRF 360 distortion loss (voxel units)
     tv_fraction: float = 0.25  # fraction of voxels sampled per step for TV terms
     use_gains: bool = True  # False: ablation without the colour-restoration (gain) field
 
@@ -61,6 +66,7 @@ class TrainConfig:
     lr_density: float = 0.3  # Adam learning rate of raw density, decayed 100x over each stage
     lr_rgb: float = 0.05  # Adam learning rate of the colour params
     lr_gain: float = 0.02  # Adam learning rate of the log gains
+    fine_density_lr_scale: float = 1.0  # density learning rate after the first stage, relative
     lr_decay: float = 0.01  # final/initial learning-rate ratio per stage (exponential)
     seed: int = 0  # PRNG seed for init and batches
     log_every: int = 50  # steps between metrics.jsonl lines

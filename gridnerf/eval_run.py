@@ -24,7 +24,7 @@ from gridnerf import baseline, color, dataset, evaluate, exposure, image_io, raw
 from gridnerf import config as cfgmod
 from gridnerf.checkpoint import atomic_write_text
 from gridnerf.errors import SceneError
-from gridnerf.scene import load_scene
+from gridnerf.runfolder import open_scene
 from gridnerf.train import CHECKPOINT, grid_box, load_state
 
 
@@ -36,7 +36,7 @@ def load_run(run: Path):
         )
     cfg = cfgmod.load(run / "config.json")
     summary = json.loads((run / "summary.json").read_text())
-    scene = load_scene(Path(summary["scene"]))
+    scene = open_scene(Path(summary["scene"]), run, estimate=False)
     structure, params, _, _ = load_state(run)
     return cfg, scene, structure, params, summary
 
@@ -85,7 +85,8 @@ def evaluate_run(run: Path) -> dict:
         "matrix_free": np.eye(3),
     }
     methods = {"gridnerf": main_key, "gridnerf_matrix_free": "matrix_free"}
-    per_view: dict[str, dict[str, dict]] = {m: {} for m in [*methods, "baseline_dark_frame"]}
+    per_view: dict[str, dict[str, dict]] = {
+        m: {} for m in [*methods, "baseline_dark_frame", "baseline_binned_matched"]}
     cams = scene.cameras
     ds = cfg.data.eval_downscale
     h, w = cams.height // ds, cams.width // ds
@@ -119,6 +120,12 @@ def evaluate_run(run: Path) -> dict:
             dark_linear = raw.downscale(dark_linear, ds) if ds > 1 else dark_linear
             image_io.write_png(out_dir / f"{name}_baseline.png", color.srgb_encode(dark_linear))
             per_view["baseline_dark_frame"][name] = evaluate.image_metrics(dark_linear, gt_linear)
+            binned_linear = baseline.process_binned_frame(
+                scene.raw_normalized(i), scene.cfa, scene.xyz_to_cam,
+                gt_linear if ds == 1 else _gt(scene, name, cams.height, cams.width))
+            binned_linear = raw.downscale(binned_linear, ds) if ds > 1 else binned_linear
+            per_view["baseline_binned_matched"][name] = evaluate.image_metrics(
+                binned_linear, gt_linear)
     result = {
         "scene": str(scene.path),
         "run": str(run),

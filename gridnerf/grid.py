@@ -307,13 +307,7 @@ def density_keep_mask(structure: GridStructure, params, threshold: float, dilate
                       step_size: float = 0.5) -> np.ndarray:
     """(M,) bool: rows whose alpha over step_size voxels exceeds threshold, dilated by
     `dilate` vertices (3x3x3 neighbourhood per step) so surfaces keep their support."""
-    coords = np.asarray(structure.coords)
-    hot = _alpha(params["density"], step_size) > threshold
-    dense = np.zeros(structure.resolution, bool)
-    dense[tuple(coords[hot].T)] = True
-    if dilate > 0 and hot.any():
-        dense = scipy.ndimage.binary_dilation(dense, np.ones((3, 3, 3), bool), iterations=dilate)
-    return dense[coords[:, 0], coords[:, 1], coords[:, 2]]
+    return dilate_rows(structure, _alpha(params["density"], step_size) > threshold, dilate)
 
 
 def update_occupancy(structure: GridStructure, params, threshold: float,
@@ -336,24 +330,38 @@ def update_occupancy(structure: GridStructure, params, threshold: float,
 
 
 def upsample(structure: GridStructure, params, new_resolution):
-    """Coarse-to-fine: a finer grid on the same box -> (structure, params).
+    """Coarse-to-fine: a finer grid on the same box -> (structure, params) (see resample)."""
+    return resample(structure, params, new_resolution)
 
-    A fine vertex is kept when its coarse cell has a kept corner; its values are the
-    trilinear resampling of the coarse raw field (empty coarse corners read as the empty
-    row), so linear fields are reproduced exactly where all coarse corners exist.
+
+def resample(structure: GridStructure, params, new_resolution, bbox_min=None, bbox_max=None):
+    """A new grid of `new_resolution` vertices on a new box (default: the same box).
+
+    A new vertex is kept when the old cell containing it has a kept corner (vertices outside
+    the old box are dropped); its values are the trilinear resampling of the old raw field
+    (empty old corners read as the empty row), so linear fields are reproduced exactly where
+    all old corners exist. bbox_min, bbox_max: (3,) grid coordinates.
     """
     new_resolution = tuple(int(r) for r in new_resolution)
-    _check_layout(new_resolution, structure.bbox_min, structure.bbox_max, structure.sh_degree,
-                  structure.occ_factor)
+    old_lo = np.asarray(structure.bbox_min, np.float64)
+    old_hi = np.asarray(structure.bbox_max, np.float64)
+    lo = old_lo if bbox_min is None else np.asarray(bbox_min, np.float64)
+    hi = old_hi if bbox_max is None else np.asarray(bbox_max, np.float64)
+    _check_layout(new_resolution, lo, hi, structure.sh_degree, structure.occ_factor)
     cells = _cells_with_kept_corner(_kept_dense(structure))
-    axes_u, axes_c = [], []
-    for rc, rf in zip(structure.resolution, new_resolution, strict=True):
-        u = np.arange(rf, dtype=np.float64) * ((rc - 1) / (rf - 1))
+    axes_u, axes_c, axes_in = [], [], []
+    for a, (rc, rf) in enumerate(zip(structure.resolution, new_resolution, strict=True)):
+        p = lo[a] + np.arange(rf, dtype=np.float64) * ((hi[a] - lo[a]) / (rf - 1))
+        u = (p - old_lo[a]) * ((rc - 1) / (old_hi[a] - old_lo[a]))
+        inside = (u >= -1e-6) & (u <= rc - 1 + 1e-6)
+        u = np.clip(u, 0.0, rc - 1)
         axes_u.append(u)
         axes_c.append(np.clip(np.floor(u).astype(np.int64), 0, rc - 2))
-    kept = cells[np.ix_(*axes_c)]
-    new = _build_structure(kept, structure.bbox_min, structure.bbox_max, structure.sh_degree,
-                           structure.occ_factor, structure.color_scale)
+        axes_in.append(inside)
+    ix, iy, iz = axes_in
+    kept = cells[np.ix_(*axes_c)] & ix[:, None, None] & iy[None, :, None] & iz[None, None, :]
+    new = _build_structure(kept, lo, hi, structure.sh_degree, structure.occ_factor,
+                           structure.color_scale)
     coords = np.asarray(new.coords)
     table = feature_table(structure, params)
     lookup = jax.jit(trilinear_index_space, static_argnames=("outside_empty",))
@@ -368,6 +376,42 @@ def upsample(structure: GridStructure, params, new_resolution):
     new_params = {"density": feats[:, 0], "rgb": feats[:, 1:1 + n_rgb],
                   "log_gain": feats[:, 1 + n_rgb:]}
     return new, new_params
+
+
+def content_box(structure: GridStructure, mass, quantile: float = 0.005, margin: float = 2.0):
+    """Box (bbox_min (3,), bbox_max (3,)) holding all but `quantile` of the rendered mass at
+    each end of each axis, grown by `margin` voxels of this grid and clipped to the box.
+
+    mass: (M,) non-negative weight per row (e.g. summed rendering weights): floaters that
+    serve a single view hold little mass, so they do not stretch the box.
+    """
+    coords = np.asarray(structure.coords)
+    mass = np.maximum(np.asarray(mass, np.float64), 0.0)
+    lo, hi = np.asarray(structure.bbox_min, np.float64), np.asarray(structure.bbox_max, np.float64)
+    if coords.size == 0 or not mass.sum() > 0:
+        return lo, hi
+    voxel = (hi - lo) / (np.asarray(structure.resolution) - 1)
+    first, last = np.zeros(3), np.zeros(3)
+    for a in range(3):
+        per_plane = np.bincount(coords[:, a], mass, minlength=structure.resolution[a])
+        cdf = np.cumsum(per_plane) / per_plane.sum()
+        first[a] = np.searchsorted(cdf, quantile)
+        last[a] = np.searchsorted(cdf, 1.0 - quantile)
+    new_lo = lo + (first - margin) * voxel
+    new_hi = lo + (last + margin) * voxel
+    return np.maximum(new_lo, lo), np.minimum(new_hi, hi)
+
+
+def dilate_rows(structure: GridStructure, keep_rows, iterations: int = 1) -> np.ndarray:
+    """(M,) bool: kept rows grown by `iterations` vertices (3x3x3 neighbourhood each)."""
+    coords = np.asarray(structure.coords)
+    keep = np.asarray(keep_rows, bool)
+    dense = np.zeros(structure.resolution, bool)
+    dense[tuple(coords[keep].T)] = True
+    if iterations > 0 and keep.any():
+        dense = scipy.ndimage.binary_dilation(dense, np.ones((3, 3, 3), bool),
+                                              iterations=iterations)
+    return dense[coords[:, 0], coords[:, 1], coords[:, 2]]
 
 
 def to_state(structure: GridStructure, params) -> dict[str, np.ndarray]:

@@ -48,7 +48,7 @@ def _previews(images_dir: Path) -> dict[str, str]:
             if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS}
 
 
-def _run_colmap(images_dir: Path, image_names: list[str], work: Path, camera_model: str,
+def run_colmap(images_dir: Path, image_names: list[str], work: Path, camera_model: str,
                 known: tuple[float, float, float, float] | None):
     """SIFT + exhaustive matching + incremental mapping -> the largest Reconstruction.
 
@@ -166,7 +166,7 @@ def _previous(transforms: Path):
     return cams, split
 
 
-def _known_intrinsics(prev: cam_mod.Cameras | None, images_dir: Path, preview: str):
+def known_intrinsics(prev: cam_mod.Cameras | None, images_dir: Path, preview: str):
     """Shared (fx, fy, cx, cy) of the previous transforms.json in preview pixels, or None."""
     if prev is None or not all(np.allclose(a, a[0]) for a in (prev.fx, prev.fy, prev.cx, prev.cy)):
         return None
@@ -199,7 +199,7 @@ def raw_preview(path) -> np.ndarray:
     return np.round(rgb_srgb * 255.0).astype(np.uint8)
 
 
-def _sfm_images(scene: Path, files: dict, names: list[str], source: str, work: Path):
+def sfm_images(scene: Path, files: dict, names: list[str], source: str, work: Path):
     """(folder, {stem: file name}, folder to name in errors) of the images COLMAP sees."""
     if source == "images":
         images_dir = scene / "images"
@@ -252,15 +252,15 @@ def estimate_poses(scene_dir, min_registered_fraction: float = 0.5,
     prev_cams, prev_split = _previous(transforms)
     with tempfile.TemporaryDirectory(prefix="gridnerf-colmap-") as tmp:
         work = Path(tmp)
-        image_dir, previews, where = _sfm_images(scene, files, names, source, work)
+        image_dir, previews, where = sfm_images(scene, files, names, source, work)
         usable = [n for n in names if n in previews]
         if len(usable) < 2:
             raise PoseError(where, f"{len(usable)} of {len(names)} raw frames have a preview "
                             "image", "put JPEG previews named like the raw files there")
         known = None
         if use_known_intrinsics:
-            known = _known_intrinsics(prev_cams, image_dir, previews[usable[0]])
-        rec = _run_colmap(image_dir, [previews[n] for n in usable], work, camera_model, known)
+            known = known_intrinsics(prev_cams, image_dir, previews[usable[0]])
+        rec = run_colmap(image_dir, [previews[n] for n in usable], work, camera_model, known)
         registered = set() if rec is None else {
             Path(im.name).stem for im in rec.images.values() if im.has_pose}
         registered_names = [n for n in names if n in registered]

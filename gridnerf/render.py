@@ -125,15 +125,12 @@ def composite(sigma, step_vox, values: dict) -> tuple[jax.Array, dict]:
     return w, {k: jnp.einsum("nk,nk...->n...", w, v) for k, v in values.items()}
 
 
-def render_rays(structure: GridStructure, params, origins, directions, near_t, far_t, cfg,
-                key=None) -> dict:
-    """Render rays through the grid.
+def march(structure: GridStructure, origins, directions, near_t, far_t, cfg, key=None):
+    """Sample placement with empty-space skipping (steps 1-3 of the module docstring).
 
-    origins, directions: (n, 3) grid coordinates (directions need not be unit);
-    near_t, far_t: scalars or (n,); cfg: RenderOptions-like (static under jit);
-    key: optional PRNG key -> one random offset per ray for the candidate grid (training).
-    Returns rgb_low (n,3) low-light camera RGB, gain (n,3) = sum w s, rgb_restored (n,3) =
-    sum w c_l s, depth (n,) expected t (not divided by acc), acc (n,), n_occupied (n,) int32.
+    origins, directions: (n, 3) grid coordinates; near_t, far_t: scalars or (n,).
+    Returns u (n, K, 3) index-space points (unused slots parked at 0), t (n, K) ray
+    parameters, step (n, K) voxels (0 for unused slots), n_occupied (n,) int32.
     """
     n = origins.shape[0]
     n_cand = n_candidates(structure, cfg)
@@ -161,15 +158,58 @@ def render_rays(structure: GridStructure, params, origins, directions, near_t, f
     t = t_enter[:, None] + pos * dt[:, None]  # (n, K)
     u = o_u[:, None, :] + t[..., None] * d_u[:, None, :]
     u = jnp.where(valid[..., None], u, 0.0)  # park unused slots on one cell: ~25% faster
+    return u, t, jnp.where(valid, step_vox[:, None], 0.0), n_occupied
+
+
+def render_rays(structure: GridStructure, params, origins, directions, near_t, far_t, cfg,
+                key=None) -> dict:
+    """Render rays through the grid.
+
+    origins, directions: (n, 3) grid coordinates (directions need not be unit);
+    near_t, far_t: scalars or (n,); cfg: RenderOptions-like (static under jit);
+    key: optional PRNG key -> one random offset per ray for the candidate grid (training).
+    Returns rgb_low (n,3) low-light camera RGB, gain (n,3) = sum w s, rgb_restored (n,3) =
+    sum w c_l s, depth (n,) expected t (not divided by acc), acc (n,), n_occupied (n,) int32,
+    and per sample (n, K): `weights` w_i, `s_vox` position along the ray in voxels from the
+    first sample, `step_vox` interval length in voxels (0 for unused slots).
+    """
+    u, t, step, n_occupied = march(structure, origins, directions, near_t, far_t, cfg, key)
     table = gridlib.feature_table(structure, params, pad_to=8)
     feats = gridlib.trilinear_index_space(structure, table, u)[..., : structure.n_channels]
     unit_dirs = directions / jnp.maximum(jnp.linalg.norm(directions, axis=-1, keepdims=True),
                                          _TINY)
     sigma, rgb_low, gain = gridlib.decode(structure, feats, unit_dirs[:, None, :])
-    step = jnp.where(valid, step_vox[:, None], 0.0)
     w, sums = composite(sigma, step, {"rgb_low": rgb_low, "gain": gain,
                                       "rgb_restored": rgb_low * gain, "depth": t})
-    return {**sums, "acc": jnp.sum(w, axis=-1), "n_occupied": n_occupied}
+    scale = (jnp.asarray(structure.resolution, jnp.float32) - 1.0) / (
+        structure.bbox_max - structure.bbox_min)
+    speed = jnp.linalg.norm(directions * scale, axis=-1, keepdims=True)  # voxels per unit t
+    return {**sums, "acc": jnp.sum(w, axis=-1), "n_occupied": n_occupied, "weights": w,
+            "s_vox": (t - t[:, :1]) * speed, "step_vox": step}
+
+
+def vertex_visibility(structure: GridStructure, params, origins, directions, near_t, far_t,
+                      cfg) -> tuple[jax.Array, jax.Array]:
+    """Per vertex (M,): the largest rendering weight w_i = T_i alpha_i any of these rays
+    gives a sample in a cell touching it (svox2's weight-threshold pruning criterion: free
+    space and everything hidden behind surfaces score ~0), and the sum of those weights
+    (where the rendered mass is; a floater that serves one view holds little of it)."""
+    u, _, step, _ = march(structure, origins, directions, near_t, far_t, cfg)
+    table = gridlib.feature_table(structure, params, pad_to=8)
+    feats = gridlib.trilinear_index_space(structure, table, u)[..., : structure.n_channels]
+    sigma = jax.nn.softplus(feats[..., 0])
+    w, _ = composite(sigma, step, {})
+    rx, ry, rz = structure.resolution
+    base = jnp.minimum(jnp.floor(jnp.clip(u, 0.0, None)).astype(jnp.int32),
+                       jnp.asarray([rx - 2, ry - 2, rz - 2]))
+    corner = np.array([(dx * ry + dy) * rz + dz for dx in (0, 1) for dy in (0, 1)
+                       for dz in (0, 1)], np.int32)
+    flat = ((base[..., 0] * ry + base[..., 1]) * rz + base[..., 2])[..., None] + corner
+    rows = jnp.take(structure.index.reshape(-1), flat, mode="clip")  # (n, K, 8)
+    w8 = jnp.broadcast_to(jnp.where(step > 0, w, 0.0)[..., None], rows.shape)
+    rows, w8 = rows.reshape(-1), w8.reshape(-1)
+    zeros = jnp.zeros((structure.n_rows + 1,), jnp.float32)
+    return zeros.at[rows].max(w8)[:-1], zeros.at[rows].add(w8 / 8.0)[:-1]
 
 
 _render_jit = jax.jit(render_rays, static_argnames=("cfg",))

@@ -4,8 +4,9 @@ Layouts, in priority order for the poses:
 1. `transforms.json` (nerfstudio; gridnerf's own format, see cameras.load_transforms),
 2. `sparse/0` (COLMAP, the RawNeRF layout; frames = sorted raw files),
 3. `poses_bounds.npy` (LLFF; one row per sorted raw file).
-near/far: transforms.json `near_far`, else the poses_bounds bounds, else the depths of the
-COLMAP points, else an error asking for `gridnerf poses`. Without a split, every 8th frame
+near/far: an explicit `near_far` argument, else transforms.json `near_far`, else the
+poses_bounds bounds, else the depths of the COLMAP points, else BoundsMissing (carrying the
+cameras, so gridnerf.bounds can estimate them). Without a split, every 8th frame
 (0, 8, 16, ...) is a test frame. Exposure: exposure time x ISO from the raw metadata or an
 exiftool `raw/<name>.json`, relative to the median; a factor unknown for some frame is
 left out for all frames (1.0 when nothing is known).
@@ -186,6 +187,17 @@ def _poses(scene: pathlib.Path, files):
                     _POSES_FIX)
 
 
+class BoundsMissing(PoseError):
+    """The scene's files give no near/far; `cameras` (the given poses) let gridnerf.bounds
+    estimate them (train.py does, and stores them in the run folder)."""
+
+    def __init__(self, scene: pathlib.Path, cameras: Cameras):
+        super().__init__(scene, "no near/far scene bounds (no near_far in transforms.json, no "
+                         "poses_bounds.npy, no COLMAP points)",
+                         "`gridnerf train` estimates them; elsewhere pass near_far")
+        self.cameras = cameras
+
+
 def _near_far(scene: pathlib.Path, near_far, colmap_points, colmap_cams) -> tuple[float, float]:
     if near_far is not None:
         return near_far
@@ -205,26 +217,31 @@ def _near_far(scene: pathlib.Path, near_far, colmap_points, colmap_cams) -> tupl
         bounds = cam_mod.bounds_from_points(colmap_cams, colmap_points)
         if bounds is not None and 0 < bounds[0] < bounds[1]:
             return bounds
-    raise PoseError(scene, "no near/far scene bounds (no near_far in transforms.json, no "
-                    "poses_bounds.npy, no COLMAP points)", _POSES_FIX)
+    raise BoundsMissing(scene, colmap_cams)
 
 
-def load_scene(path) -> Scene:
-    """Load a scene folder (module docstring). Raises SceneError/PoseError/RawError."""
+def load_scene(path, near_far: tuple[float, float] | None = None) -> Scene:
+    """Load a scene folder (module docstring). Raises SceneError/PoseError/RawError.
+
+    near_far: (near, far) in the input world's units, used instead of the files' bounds
+    (e.g. estimated by gridnerf.bounds); without it and without bounds in the files the
+    scene raises BoundsMissing before any frame is read.
+    """
     scene = pathlib.Path(path)
     if not scene.is_dir():
         raise SceneError(scene, "scene folder does not exist",
                          "check the path, or create one with `gridnerf simulate`")
     files = raw_files(scene)
-    names, cams, split, near_far, source, points = _poses(scene, files)
+    names, cams, split, file_near_far, source, points = _poses(scene, files)
+    if cams is not None:
+        near, far = near_far or _near_far(scene, file_near_far, points, cams)
     first, raw_bayer, meta = _read_frames(names, files)
     height, width = raw_bayer.shape[1:]
     if cams is None:
         cams, _ = cam_mod.load_llff(source, names, width, height)
-    colmap_cams = cams
+        near, far = near_far or _near_far(scene, file_near_far, points, cams)
     cams = cam_mod.resize_to(cams, width, height, source)
     cam_mod.validate(cams, source)
-    near, far = _near_far(scene, near_far, points, colmap_cams)
 
     c2w, near_n, far_n, world_from_norm = rays.normalize_world(cams.c2w, near, far)
     if split is None:

@@ -20,11 +20,11 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
-from gridnerf import checkpoint, dataset, grid, losses, render
+from gridnerf import checkpoint, dataset, grid, losses, render, runfolder
 from gridnerf import config as cfgmod
 from gridnerf.config import Config
 from gridnerf.errors import NumericsError
-from gridnerf.scene import Scene, load_scene
+from gridnerf.scene import Scene
 
 CHECKPOINT = "checkpoint.npz"
 
@@ -44,8 +44,10 @@ def grid_box(scene: Scene) -> tuple[np.ndarray, np.ndarray, float, float]:
     return centre - r, centre + r, float(scene.near), float(scene.far)
 
 
-def make_optimizer(cfg: Config, steps: int) -> optax.GradientTransformation:
-    """Adam per field with an exponential decay to lr * lr_decay over the stage."""
+def make_optimizer(cfg: Config, steps: int, stage: int = 0) -> optax.GradientTransformation:
+    """Adam per field with an exponential decay to lr * lr_decay over the stage; after the
+    first stage the density rate is scaled by train.fine_density_lr_scale (the geometry is
+    refined, not re-learnt, so it cannot turn per-view noise into floaters)."""
 
     def adam(lr):
         sched = optax.exponential_decay(
@@ -55,7 +57,8 @@ def make_optimizer(cfg: Config, steps: int) -> optax.GradientTransformation:
 
     gain_tx = adam(cfg.train.lr_gain) if cfg.loss.use_gains else optax.set_to_zero()
     return optax.multi_transform(
-        {"density": adam(cfg.train.lr_density), "rgb": adam(cfg.train.lr_rgb), "log_gain": gain_tx},
+        {"density": adam(cfg.train.lr_density * (cfg.train.fine_density_lr_scale if stage
+                                                  else 1.0)), "rgb": adam(cfg.train.lr_rgb), "log_gain": gain_tx},
         {"density": "density", "rgb": "rgb", "log_gain": "log_gain"},
     )
 
@@ -83,6 +86,9 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
                 structure, params, sample_key=k1, fraction=lc.tv_fraction
             )
         terms["smooth"] = smooth
+    if lc.distortion > 0:
+        terms["distortion"] = losses.distortion_loss(out["weights"], out["s_vox"],
+                                                     out["step_vox"])
     terms["tv_density"] = losses.tv_loss(
         structure, params["density"][:, None], sample_key=k2, fraction=lc.tv_fraction
     )
@@ -99,6 +105,7 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
         "tv_density": lc.tv_density,
         "tv_rgb": lc.tv_rgb,
         "sparsity": lc.sparsity,
+        "distortion": lc.distortion,
     }
     total = sum(weights[k] * v for k, v in terms.items())
     return total, terms
@@ -150,11 +157,64 @@ def load_state(run: Path):
     return structure, params, groups.get("opt_state", []), header
 
 
+def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, near_t: float,
+                      far_t: float, stride: int = 2) -> np.ndarray:
+    """Per vertex (M,): max and sum of the rendering weights over the training rays (every
+    `stride`-th pixel per axis): the carving criterion and where the rendered mass is."""
+    h, w = data.image_hw
+    fn = jax.jit(render.vertex_visibility, static_argnames=("cfg",))
+    vis = np.zeros(structure.n_rows, np.float32)
+    mass = np.zeros(structure.n_rows, np.float64)
+    chunk = int(cfg.render.chunk)
+    for f in range(int(data.c2w.shape[0])):
+        o, d = dataset.image_rays(data.c2w[f], data.intrinsics[f], h, w)
+        o, d = dataset.to_grid_space(data.ndc, data.ndc_intrinsics, o[::stride, ::stride],
+                                     d[::stride, ::stride])
+        o, d = np.asarray(o).reshape(-1, 3), np.asarray(d).reshape(-1, 3)
+        for s in range(0, o.shape[0], chunk):
+            sl = slice(s, s + chunk)
+            pad = chunk - o[sl].shape[0]
+            # padding rays start far outside the box, so they miss it and weigh nothing
+            oc = np.pad(o[sl], ((0, pad), (0, 0)), constant_values=1e6)
+            dc = np.pad(d[sl], ((0, pad), (0, 0)), mode="edge")
+            v_max, v_sum = fn(structure, params, oc, dc, near_t, far_t, cfg.render)
+            vis = np.maximum(vis, np.asarray(v_max))
+            mass += np.asarray(v_sum, np.float64)
+    return vis, mass
+
+
+def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fit: bool):
+    """Carve, optionally refit the box to the content, and resample to resolution `res`.
+
+    Carving keeps vertices some training ray weights by more than grid.prune_threshold
+    (visibility) or whose own alpha exceeds it (density), dilated by grid.prune_dilate.
+    Returns (structure, params, info) with info = box and occupancy figures.
+    """
+    gc = cfg.grid
+    vis, mass = vertex_visibility(structure, params, data, cfg, near_t, far_t)
+    if gc.prune_mode == "visibility":
+        keep = grid.dilate_rows(structure, vis > gc.prune_threshold, gc.prune_dilate)
+    else:
+        keep = grid.density_keep_mask(structure, params, gc.prune_threshold, gc.prune_dilate)
+    if not keep.any() or not mass.sum() > 0:
+        raise NumericsError(None, "the coarse grid is empty: no vertex is visible from the "
+                            "training views", "check the poses and the frames' exposure")
+    lo, hi = (grid.content_box(structure, mass, gc.fit_quantile, margin=gc.fit_margin)
+              if fit else (np.asarray(structure.bbox_min), np.asarray(structure.bbox_max)))
+    old_box = np.prod(np.asarray(structure.bbox_max) - np.asarray(structure.bbox_min))
+    structure, params = grid.prune(structure, params, keep)
+    structure, params = grid.resample(structure, params, res, lo, hi)
+    info = {"bbox_min": np.asarray(lo).tolist(), "bbox_max": np.asarray(hi).tolist(),
+            "box_fraction_of_previous": float(np.prod(hi - lo) / old_box),
+            "occupied_fraction": structure.n_rows / float(np.prod(res))}
+    return structure, params, info
+
+
 def train(scene_dir: Path, run: Path, cfg: Config) -> dict:
     """Train (or resume) a run; returns the summary written to run/summary.json."""
     run.mkdir(parents=True, exist_ok=True)
     cfgmod.save(cfg, run / "config.json")
-    scene = load_scene(scene_dir)
+    scene = runfolder.open_scene(scene_dir, run)
     data = dataset.build(scene, scene.train_idx, cfg.data.binning, cfg.data.downscale)
     bbox_min, bbox_max, near_t, far_t = grid_box(scene)
     key = jax.random.PRNGKey(cfg.train.seed)
@@ -192,14 +252,14 @@ def train(scene_dir: Path, run: Path, cfg: Config) -> dict:
     rate = 0.0
     while stage < len(stages):
         res, steps = stages[stage]
-        if tuple(structure.resolution) != tuple(res):
-            keep = grid.density_keep_mask(
-                structure, params, cfg.grid.prune_threshold, dilate=cfg.grid.prune_dilate
-            )
-            structure, params = grid.prune(structure, params, keep)
-            structure, params = grid.upsample(structure, params, res)
-            opt_leaves = []
-        tx = make_optimizer(cfg, steps)
+        if stage > 0 and start == 0 and not opt_leaves:
+            structure, params, info = next_stage_grid(
+                structure, params, res, data, cfg, near_t, far_t,
+                fit=cfg.grid.fit_box and stage == 1)
+            print(f"stage {stage}: {res} grid, box {np.round(info['bbox_min'], 3).tolist()}.."
+                  f"{np.round(info['bbox_max'], 3).tolist()}, "
+                  f"{100 * info['occupied_fraction']:.1f}% of the box occupied")
+        tx = make_optimizer(cfg, steps, stage)
         opt_state = tx.init(params)
         if opt_leaves:
             opt_state = checkpoint.unflatten_like(opt_state, opt_leaves)
@@ -255,7 +315,9 @@ def train(scene_dir: Path, run: Path, cfg: Config) -> dict:
     log.close()
 
     summary = {
-        "scene": str(scene_dir),
+        "scene": str(Path(scene_dir).resolve()),
+        "resolution": list(structure.resolution),
+        "occupied_fraction": structure.n_rows / float(np.prod(structure.resolution)),
         "train_seconds": elapsed,
         "rays_per_second": rate,
         "voxels": int(structure.n_rows),

@@ -6,13 +6,14 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from conftest import sim_near_far
 
 from gridnerf import dataset, rays
 from gridnerf.scene import load_scene
 
 
 def test_mosaic_targets_are_normalised_raw_on_the_measured_channel(small_scene):
-    scene = load_scene(small_scene)
+    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
     frames = scene.train_idx[:2]
     data = dataset.build(scene, frames, binning=False)
     h, w = scene.raw_bayer.shape[1:]
@@ -27,7 +28,7 @@ def test_mosaic_targets_are_normalised_raw_on_the_measured_channel(small_scene):
 
 
 def test_mosaic_masks_saturated_pixels(small_scene):
-    scene = load_scene(small_scene)
+    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
     data = dataset.build(scene, scene.train_idx[:1], binning=False)
     pixels = data.pixels.at[0, 0, 0].set(jnp.uint16(data.white[0]))
     data = dataset.RayData(**{**data.__dict__, "pixels": pixels})
@@ -36,7 +37,7 @@ def test_mosaic_masks_saturated_pixels(small_scene):
 
 
 def test_binned_targets_match_scene(small_scene):
-    scene = load_scene(small_scene)
+    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
     i = int(scene.train_idx[1])
     data = dataset.build(scene, np.array([i]), binning=True)
     rgb_cam, valid = scene.rgb_cam_binned(i)
@@ -46,7 +47,7 @@ def test_binned_targets_match_scene(small_scene):
 
 
 def test_batch_rays_are_pixel_rays_in_ndc(small_scene):
-    scene = load_scene(small_scene)
+    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
     data = dataset.build(scene, scene.train_idx, binning=True)
     b = dataset.batch(data, jax.random.PRNGKey(0), 4, 3)
     assert b["origins"].shape == (4, 3, 3, 3) and b["target"].shape == (4, 3, 3, 3)

@@ -7,13 +7,14 @@ import shutil
 
 import numpy as np
 import pytest
+from conftest import sim_near_far
 from scipy.spatial.transform import Rotation
 
 from gridnerf import cameras as cam_mod
 from gridnerf import raw
 from gridnerf.dng import write_dng
 from gridnerf.errors import PoseError, RawError, SceneError
-from gridnerf.scene import load_scene
+from gridnerf.scene import BoundsMissing, load_scene
 
 W, H, N = 40, 32, 10
 GRBG = np.array([[1, 0], [2, 1]])
@@ -56,7 +57,7 @@ def _edit_transforms(root, edit):
 
 
 def test_simulated_scene(small_scene):
-    scene = load_scene(small_scene)
+    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
     n = len(scene.names)
     assert n == 12 and scene.raw_bayer.dtype == np.uint16 and scene.raw_bayer.shape == (12, 90, 160)
     np.testing.assert_array_equal(scene.test_idx, [0, 8])
@@ -175,7 +176,7 @@ def _no_near_far(meta):
      (_nan_pose, PoseError, ["'f04'", "NaN"]),
      (_scale_pose, PoseError, ["'f04'", "not rigid"]),
      (_bad_split, SceneError, ["nope", "not frames"]),
-     (_no_near_far, PoseError, ["near/far", "gridnerf poses"])],
+     (_no_near_far, BoundsMissing, ["near/far", "gridnerf train"])],
 )
 def test_bad_transforms(tmp_path, edit, error, words):
     root, _ = _make_scene(tmp_path / "s")
