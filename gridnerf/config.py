@@ -18,6 +18,7 @@ class DataConfig:
     binning: bool = True  # train on 2x2-binned camera RGB (True) or on the Bayer mosaic (False)
     downscale: int = 1  # extra box downscale of training images (1 = binned/raw resolution)
     eval_downscale: int = 1  # downscale of eval renders relative to the full frame / gt
+    target: str = "raw"  # "raw" (the method) or "reference": the oracle, trained on gt/ (clean)
 
 
 @dataclass(frozen=True)
@@ -53,6 +54,7 @@ class LossConfig:
     tv_density: float = 1e-2  # TV weight on density
     tv_rgb: float = 1e-2  # TV weight on the low-light colour
     sparsity: float = 1e-3  # weight of the Cauchy sparsity prior on density (free space)
+    sparsity_mode: str = "cauchy"  # "cauchy": log(1 + 2 sigma^2); "l1": sigma (removes fog)
     distortion: float = 0.0  # weight of the mip-NeRF 360 distortion loss (voxel units)
     tv_fraction: float = 0.25  # fraction of voxels sampled per step for TV terms
     use_gains: bool = True  # False: ablation without the colour-restoration (gain) field
@@ -102,7 +104,17 @@ def _preset_tiny() -> Config:
     )
 
 
+def _preset_oracle() -> Config:
+    """The representational ceiling: the default grid trained (supervised) on the clean
+    normal-light references of the training views, no gains, no colour matrix."""
+    c = Config()
+    return replace(c, data=replace(c.data, target="reference"),
+                   loss=replace(c.loss, use_gains=False),
+                   output=replace(c.output, use_color_matrix=False))
+
+
 PRESETS: dict[str, Any] = {
+    "oracle": _preset_oracle,
     "default": Config,
     "tiny": _preset_tiny,
     "nogain": lambda: replace(Config(), loss=replace(Config().loss, use_gains=False)),

@@ -18,7 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gridnerf import rays
+from gridnerf import image_io, raw, rays
+from gridnerf.errors import SceneError
 from gridnerf.scene import Scene
 
 
@@ -44,14 +45,31 @@ class RayData:
         return int(self.pixels.shape[1]), int(self.pixels.shape[2])
 
 
-def build(scene: Scene, frames: np.ndarray, binning: bool, downscale: int = 1) -> RayData:
-    """Device arrays for `frames` (indices into scene.names)."""
+def build(scene: Scene, frames: np.ndarray, binning: bool, downscale: int = 1,
+          target: str = "raw") -> RayData:
+    """Device arrays for `frames` (indices into scene.names).
+
+    target "reference": the oracle's data, the clean normal-light references gt/<name>.exr
+    (rgb_linear) box-downscaled to the binned size, exposure 1, all valid.
+    """
     cams = scene.cameras
     full = np.array([cams.fx[0], cams.fy[0], cams.width, cams.height], np.float32)
     c2w = cams.c2w[frames].astype(np.float32)
     black = scene.black_level[frames].astype(np.float32)
     white = scene.white_level[frames].astype(np.float32)
-    if binning:
+    inv_exposure = (1.0 / scene.exposure[frames]).astype(np.float32)
+    if target == "reference":
+        missing = [scene.names[i] for i in frames if scene.names[i] not in scene.gt_linear_paths]
+        if missing or not binning:
+            raise SceneError(scene.path / "gt", f"the oracle needs gt/<name>.exr for every "
+                             f"training frame (missing: {missing[:3]}) and data.binning=true",
+                             "train the oracle only on scenes with references")
+        factor = 1.0 / (2 * downscale)
+        pixels = np.stack([raw.downscale(image_io.read_exr(scene.gt_linear_paths[scene.names[i]]),
+                                         2 * downscale) for i in frames]).astype(np.float32)
+        valid = np.ones(pixels.shape, bool)
+        inv_exposure = np.ones(len(frames), np.float32)
+    elif binning:
         factor = 1.0 / (2 * downscale)
         pairs = [scene.rgb_cam_binned(int(i), downscale) for i in frames]
         pixels = np.stack([p[0] for p in pairs]).astype(np.float32)
@@ -74,7 +92,7 @@ def build(scene: Scene, frames: np.ndarray, binning: bool, downscale: int = 1) -
         valid=jnp.asarray(valid),
         black=jnp.asarray(black),
         white=jnp.asarray(white),
-        inv_exposure=jnp.asarray((1.0 / scene.exposure[frames]).astype(np.float32)),
+        inv_exposure=jnp.asarray(inv_exposure),
         cfa=jnp.asarray(scene.cfa.astype(np.int32)),
         mosaic=not binning,
         ndc=scene.forward_facing,

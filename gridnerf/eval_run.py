@@ -56,7 +56,8 @@ def _ndc_intrinsics(scene):
 
 def exposures(structure, params, scene, cfg) -> dict[str, float]:
     """Auto exposure alpha for the colour-matrix and the matrix-free outputs (training renders)."""
-    data = dataset.build(scene, scene.train_idx, cfg.data.binning, cfg.data.downscale)
+    data = dataset.build(scene, scene.train_idx, cfg.data.binning, cfg.data.downscale,
+                         cfg.data.target)
     rays = dataset.batch(data, jax.random.PRNGKey(cfg.train.seed + 7), 128, 8)
     near_t, far_t = grid_box(scene)[2:]
     out = render.render_image(
@@ -66,8 +67,8 @@ def exposures(structure, params, scene, cfg) -> dict[str, float]:
     target = cfg.output.target_luminance
     return {
         "matrix": exposure.alpha_for_luminance(
-            rgb_cam @ exposure.display_matrix(scene.xyz_to_cam, True).T, target
-        ),
+            rgb_cam @ exposure.display_matrix(scene.xyz_to_cam, cfg.data.target == "raw").T,
+            target),
         "matrix_free": exposure.alpha_for_luminance(rgb_cam, target),
     }
 
@@ -81,7 +82,7 @@ def evaluate_run(run: Path) -> dict:
     alphas = exposures(structure, params, scene, cfg)
     main_key = "matrix" if cfg.output.use_color_matrix else "matrix_free"
     mats = {
-        "matrix": exposure.display_matrix(scene.xyz_to_cam, True),
+        "matrix": exposure.display_matrix(scene.xyz_to_cam, cfg.data.target == "raw"),
         "matrix_free": np.eye(3),
     }
     methods = {"gridnerf": main_key, "gridnerf_matrix_free": "matrix_free"}

@@ -132,8 +132,13 @@ def edge_aware_gain_tv(structure: GridStructure, params, scale: float = 0.5, eps
     return jnp.mean(weight * jnp.sum(jnp.sqrt(eps + jnp.sum(d**2, axis=1)), axis=-1))
 
 
-def sparsity_loss(density_raw: jax.Array, sample_key=None, fraction: float = 1.0) -> jax.Array:
-    """Cauchy sparsity prior on density (Plenoxels' forward-facing regulariser).
+def sparsity_loss(density_raw: jax.Array, sample_key=None, fraction: float = 1.0,
+                  mode: str = "cauchy") -> jax.Array:
+    """Sparsity prior on density: "cauchy" (Plenoxels' forward-facing regulariser) or "l1".
+
+    "l1": mean sigma. Its gradient on the raw parameter is sigmoid(raw) ~ sigma for thin
+    fog, where Cauchy's is ~4 sigma^2: Cauchy leaves fog of sigma ~0.02 per voxel in place,
+    L1 removes it unless the data needs it.
 
     density_raw: (M,) raw density rows; mean of log(1 + 2 sigma^2), sigma = softplus(raw).
     Pushes free space to zero density so pruning and empty-space skipping have work to do;
@@ -144,6 +149,8 @@ def sparsity_loss(density_raw: jax.Array, sample_key=None, fraction: float = 1.0
         return jnp.zeros((), density_raw.dtype)
     rows = _sample_rows(m, sample_key, fraction)
     d = density_raw if rows is None else density_raw[rows]
+    if mode == "l1":
+        return jnp.mean(jax.nn.softplus(d))
     return jnp.mean(jnp.log1p(2.0 * jax.nn.softplus(d) ** 2))
 
 

@@ -55,10 +55,10 @@ def make_optimizer(cfg: Config, steps: int, stage: int = 0) -> optax.GradientTra
         )
         return optax.adam(sched, b1=0.9, b2=0.99, eps=1e-8)
 
+    lr_density = cfg.train.lr_density * (cfg.train.fine_density_lr_scale if stage else 1.0)
     gain_tx = adam(cfg.train.lr_gain) if cfg.loss.use_gains else optax.set_to_zero()
     return optax.multi_transform(
-        {"density": adam(cfg.train.lr_density * (cfg.train.fine_density_lr_scale if stage
-                                                  else 1.0)), "rgb": adam(cfg.train.lr_rgb), "log_gain": gain_tx},
+        {"density": adam(lr_density), "rgb": adam(cfg.train.lr_rgb), "log_gain": gain_tx},
         {"density": "density", "rgb": "rgb", "log_gain": "log_gain"},
     )
 
@@ -96,7 +96,7 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
         structure, params["rgb"], sample_key=k2, fraction=lc.tv_fraction
     )
     terms["sparsity"] = losses.sparsity_loss(
-        params["density"], sample_key=k2, fraction=lc.tv_fraction
+        params["density"], sample_key=k2, fraction=lc.tv_fraction, mode=lc.sparsity_mode
     )
     weights = {
         "data": lc.w_data,
@@ -215,7 +215,8 @@ def train(scene_dir: Path, run: Path, cfg: Config) -> dict:
     run.mkdir(parents=True, exist_ok=True)
     cfgmod.save(cfg, run / "config.json")
     scene = runfolder.open_scene(scene_dir, run)
-    data = dataset.build(scene, scene.train_idx, cfg.data.binning, cfg.data.downscale)
+    data = dataset.build(scene, scene.train_idx, cfg.data.binning, cfg.data.downscale,
+                         cfg.data.target)
     bbox_min, bbox_max, near_t, far_t = grid_box(scene)
     key = jax.random.PRNGKey(cfg.train.seed)
     stages = list(zip(cfg.grid.resolutions, cfg.train.steps_per_stage, strict=True))

@@ -61,3 +61,14 @@ def test_batch_rays_are_pixel_rays_in_ndc(small_scene):
                              np.array(2.0), np.array(1.0))
     np.testing.assert_allclose(np.asarray(d[1, 2]), d2, rtol=1e-5)
     np.testing.assert_allclose(np.asarray(o[1, 2]), o2, rtol=1e-5, atol=1e-6)
+
+
+def test_oracle_data_are_the_downscaled_references(small_scene):
+    from gridnerf import image_io, raw
+
+    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
+    frames = scene.train_idx[:2]
+    data = dataset.build(scene, frames, binning=True, target="reference")
+    want = raw.downscale(image_io.read_exr(scene.gt_linear_paths[scene.names[frames[0]]]), 2)
+    np.testing.assert_allclose(np.asarray(data.pixels[0]), want, rtol=1e-6)
+    assert bool(jnp.all(data.valid)) and np.allclose(np.asarray(data.inv_exposure), 1.0)

@@ -226,3 +226,34 @@ def test_bad_layouts_raise_clear_errors():
         grid.init_grid((4, 4, 4), HI, LO)
     with pytest.raises(GridNerfError, match="sh_degree"):
         grid.init_grid((4, 4, 4), LO, HI, sh_degree=7)
+
+
+def test_resample_to_a_sub_box_keeps_linear_fields_and_drops_the_outside():
+    rng = np.random.default_rng(5)
+    structure, _ = make((6, 6, 6))
+    coef = rng.normal(size=(structure.n_channels, 4))
+    params = linear_params(structure, coef)
+    lo, hi = LO + 0.25 * (HI - LO), HI + 0.5  # partly outside the old box
+    new, new_params = grid.resample(structure, params, (9, 8, 7), lo, hi)
+    res = np.asarray(new.resolution)
+    pos = lo + np.asarray(new.coords) / (res - 1) * (hi - lo)
+    assert np.all(pos <= HI + 1e-5) and new.n_rows < 9 * 8 * 7  # outside vertices dropped
+    inner = HI - 1.01 * (hi - lo) / (res - 1)  # cells whose corners all lie in the old box
+    pts = rng.uniform(lo, inner, (64, 3)).astype(np.float32)
+    np.testing.assert_allclose(interpolate(new, new_params, jnp.asarray(pts)),
+                               linear_truth(pts, coef), atol=1e-4)
+
+
+def test_content_box_follows_the_mass_not_a_light_outlier():
+    structure, _ = make((11, 11, 11))
+    coords = np.asarray(structure.coords)
+    mass = np.zeros(structure.n_rows)
+    blob = np.all((coords >= 3) & (coords <= 5), axis=1)
+    mass[blob] = 1.0
+    mass[np.all(coords == 10, axis=1)] = 1e-4  # a faint floater in the far corner
+    lo, hi = grid.content_box(structure, mass, quantile=0.005, margin=1.0)
+    voxel = (HI - LO) / 10
+    np.testing.assert_allclose(lo, LO + 2 * voxel, atol=1e-6)
+    np.testing.assert_allclose(hi, LO + 6 * voxel, atol=1e-6)
+    full_lo, full_hi = grid.content_box(structure, np.zeros(structure.n_rows))
+    np.testing.assert_allclose(full_lo, LO) and np.testing.assert_allclose(full_hi, HI)

@@ -230,3 +230,23 @@ def test_render_image_matches_render_rays_with_padding():
     assert img["rgb_low"].shape == (4, 6, 3) and img["acc"].shape == (4, 6)
     for k in KEYS:
         np.testing.assert_allclose(img[k].reshape(whole[k].shape), whole[k], atol=1e-6)
+
+
+def test_vertex_visibility_sees_the_first_surface_only():
+    """An opaque slab at z ~ 0: vertices in front (empty) and behind (hidden) get ~0."""
+    res = (6, 6, 11)
+    structure, params = grid.init_grid(res, LO, HI)
+    z = np.asarray(structure.coords)[:, 2]
+    params["density"] = jnp.asarray(np.where(z >= 5, 8.0, -30.0), jnp.float32)
+    g = np.linspace(-0.5, 0.5, 8)
+    o = np.stack([*np.meshgrid(g, g, indexing="ij"), np.full((8, 8), -1.5)], -1).reshape(-1, 3)
+    d = np.tile([0.0, 0.0, 1.0], (64, 1))
+    cfg = render.RenderOptions(samples_per_voxel=2.0, max_samples=64)
+    vis_max, vis_sum = render.vertex_visibility(structure, params, jnp.asarray(o, jnp.float32),
+                                                jnp.asarray(d, jnp.float32), 0.0, 5.0, cfg)
+    vis_max, vis_sum = np.asarray(vis_max), np.asarray(vis_sum)
+    assert vis_max.shape == vis_sum.shape == (structure.n_rows,)
+    surface = (z == 5) | (z == 6)  # corners of the first opaque cells
+    assert vis_max[z == 5].max() > 0.5 and vis_sum[surface].sum() > 0.8 * vis_sum.sum()
+    assert vis_max[z >= 8].max() < 1e-3  # hidden behind the slab
+    assert vis_max[z <= 3].max() < 1e-3  # free space in front of it
