@@ -2,31 +2,52 @@
 
 A checkpoint is one `.npz` holding named arrays plus a JSON header. It is
 written to `<name>.tmp` and moved into place with `os.replace`, so a crash
-never leaves a half-written file that looks valid. Non-finite arrays are
-refused (`NumericsError`): no NaN or Inf ever reaches a checkpoint.
+never leaves a half-written file that looks valid; a failed write (disk full)
+removes the `.tmp` and raises `CheckpointError`. Non-finite arrays are
+refused (`NumericsError`): no NaN or Inf ever reaches a checkpoint. A file
+that cannot be read back raises `CheckpointError` naming it and the fix.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import zipfile
+import zlib
+from collections.abc import Callable
 from pathlib import Path
 
 import jax
 import numpy as np
 
-from gridnerf.errors import NumericsError
+from gridnerf.errors import CheckpointError, NumericsError
+
+
+def _atomic_write(path: Path, write: Callable) -> None:
+    """Write `path` via `<path>.tmp` + fsync + os.replace; on OSError (disk full, read-only
+    folder) the tmp file is removed and CheckpointError names the file."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(tmp, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise CheckpointError(path, f"cannot write the file ({exc.strerror or exc}); the "
+                              "previous version is kept", "free disk space or fix the "
+                              "folder's permissions, then rerun (training resumes from the "
+                              "last checkpoint)") from None
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    _atomic_write(path, lambda f: f.write(data))
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -64,22 +85,26 @@ def save(path: Path, groups: dict[str, list[np.ndarray]], header: dict) -> None:
                 )
             arrays[f"{name}/{i:04d}"] = leaf
     arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    _atomic_write(Path(path), lambda f: np.savez(f, **arrays))
 
 
 def load(path: Path) -> tuple[dict[str, list[np.ndarray]], dict]:
-    """Read a checkpoint written by `save`: (groups, header)."""
-    with np.load(Path(path)) as z:
-        header = json.loads(bytes(z["header"]).decode())
-        groups: dict[str, list[np.ndarray]] = {}
-        for key in sorted(k for k in z.files if k != "header"):
-            name, _ = key.rsplit("/", 1)
-            groups.setdefault(name, []).append(z[key])
+    """Read a checkpoint written by `save`: (groups, header). CheckpointError naming the
+    file if it is missing, truncated or not a checkpoint."""
+    path = Path(path)
+    try:
+        with np.load(path) as z:
+            header = json.loads(bytes(z["header"]).decode())
+            if not isinstance(header, dict):
+                raise ValueError("the header is not a JSON object")
+            groups: dict[str, list[np.ndarray]] = {}
+            for key in sorted(k for k in z.files if k != "header"):
+                name, _ = key.rsplit("/", 1)
+                groups.setdefault(name, []).append(z[key])
+    except (OSError, EOFError, ValueError, KeyError, TypeError, AttributeError,
+            zipfile.BadZipFile, zlib.error) as exc:
+        raise CheckpointError(path, f"cannot read the checkpoint ({type(exc).__name__}: "
+                              f"{exc}); it is corrupt or truncated",
+                              f"delete {path.name} to train the run again from the start"
+                              ) from None
     return groups, header

@@ -46,15 +46,9 @@ def _train(args) -> None:
     from gridnerf import config as cfgmod
     from gridnerf.train import train
 
+    cfg = cfgmod.override(cfgmod.preset(args.preset), args.set or [])
     run = Path(args.out) if args.out else Path("runs") / Path(args.scene).name / args.preset
-    if (run / "config.json").exists() and not args.overwrite_config:
-        cfg = cfgmod.load(run / "config.json")
-        if args.set:
-            cfg = cfgmod.override(cfg, args.set)
-        print(f"resuming run folder {run} with its saved config.json")
-    else:
-        cfg = cfgmod.override(cfgmod.preset(args.preset), args.set or [])
-    summary = train(Path(args.scene), run, cfg)
+    summary = train(Path(args.scene), run, cfg, overwrite_config=args.overwrite_config)
     print(json.dumps(summary, indent=2))
 
 
@@ -72,17 +66,47 @@ def _render(args) -> None:
     print(f"wrote {out}")
 
 
+class _UsageError(Exception):
+    """A command-line syntax error (argparse), reported like GridNerfError: one line, status 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # argparse would print the usage and exit
+        raise _UsageError(f"{self.prog}: {message}. Fix: see `{self.prog} --help`")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value} is not a positive whole number (>= 1)")
+    return value
+
+
+_TRAIN_EPILOG = """\
+Resuming: a run folder that holds a checkpoint is resumed with the config saved in its
+config.json; --preset and --set must give the same config (repeat the original command).
+--overwrite-config continues the run with the new config instead, provided it keeps the
+model's shapes (grid.resolutions, grid.sh_degree, loss.use_gains); otherwise delete the
+run folder or choose another --out. config.json is written once training starts; a
+failed start leaves no run folder behind. One training per run folder at a time."""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="gridnerf", description=__doc__.splitlines()[0])
+    from gridnerf.config import PRESETS
+
+    p = _Parser(prog="gridnerf", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("simulate", help="write a simulated low-light RAW scene")
     s.add_argument("name", help="scene name (bucket, held_arc_brick, ...), 'all' (the nine "
                    "scenes) or 'heldout' (the held-out scenes)")
     s.add_argument("--out", help="scene folder (default data/sim/<name>)")
-    s.add_argument("--width", type=int, default=480)
-    s.add_argument("--height", type=int, default=270)
-    s.add_argument("--frames", type=int, default=24)
+    s.add_argument("--width", type=_positive_int, default=480)
+    s.add_argument("--height", type=_positive_int, default=270)
+    s.add_argument("--frames", type=_positive_int, default=24)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--full-hd", action="store_true", help="1920x1080 frames")
     s.add_argument("--overwrite", action="store_true", help="replace an existing scene folder")
@@ -98,13 +122,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.set_defaults(func=_poses)
 
-    s = sub.add_parser("train", help="train a grid on a scene folder (resumes automatically)")
+    s = sub.add_parser("train", help="train a grid on a scene folder (resumes automatically)",
+                       epilog=_TRAIN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     s.add_argument("scene")
     s.add_argument("--out", help="run folder (default runs/<scene>/<preset>)")
-    s.add_argument("--preset", default="default")
-    s.add_argument("--set", nargs="*", metavar="SECTION.FIELD=VALUE", help="config overrides")
+    s.add_argument("--preset", default="default",
+                   help=f"named config: {', '.join(sorted(PRESETS))} (default: default)")
+    s.add_argument("--set", nargs="*", metavar="SECTION.FIELD=VALUE",
+                   help="config overrides, e.g. train.steps_per_stage=[100,200] "
+                   "(fields: see a run's config.json or gridnerf/config.py)")
     s.add_argument(
-        "--overwrite-config", action="store_true", help="ignore an existing run's config.json"
+        "--overwrite-config", action="store_true",
+        help="resume a run with this command's config instead of refusing a config that "
+        "differs from the run's config.json (model shapes must stay the same)",
     )
     s.set_defaults(func=_train)
 
@@ -115,19 +145,23 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("render", help="render test views or a camera path (PNG, EXR, mp4)")
     s.add_argument("run")
     s.add_argument("--path", default="spiral", choices=["spiral", "ellipse", "test"])
-    s.add_argument("--frames", type=int, default=60)
+    s.add_argument("--frames", type=_positive_int, default=60, help="frames of the camera path")
     s.set_defaults(func=_render)
     return p
 
 
+def _one_line(message: str) -> str:
+    return " ".join(str(message).split())
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    if getattr(args, "full_hd", False):
-        args.width, args.height = 1920, 1080
     try:
+        args = build_parser().parse_args(argv)
+        if getattr(args, "full_hd", False):
+            args.width, args.height = 1920, 1080
         args.func(args)
-    except GridNerfError as e:
-        print(f"error: {e}", file=sys.stderr)
+    except (GridNerfError, _UsageError) as e:
+        print(f"error: {_one_line(e)}", file=sys.stderr)
         return 2
     return 0
 

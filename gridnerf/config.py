@@ -1,4 +1,8 @@
-"""Run configuration: frozen dataclasses, named presets and `a.b=value` overrides.
+"""Run configuration: frozen, validated dataclasses, named presets and `a.b=value` overrides.
+
+Every section checks its fields when it is built (types from the annotations, `Literal`
+modes, ranges in `__post_init__`), so a bad preset, `--set` or config.json fails at once
+with a `ConfigError` naming the field, the bad value and what is allowed.
 
 The resolved config is saved as `config.json` in every run folder; `load`
 reads it back, so a run can always be resumed or re-evaluated as trained.
@@ -7,27 +11,124 @@ reads it back, so a run can always be resumed or re-evaluated as trained.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
+import math
+import typing
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
+
+from gridnerf.errors import ConfigError
+
+MAX_SH_DEGREE = 3  # gridnerf.grid.MAX_SH_DEGREE (not imported: config stays jax-free)
+
+
+@functools.cache
+def _hints(cls) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _bad(section: str, name: str, value: Any, want: str) -> ConfigError:
+    return ConfigError(None, f"{section}.{name} = {_dump(value)} is not allowed",
+                       f"set {section}.{name} to {want}")
+
+
+def _typed(section: str, name: str, value: Any, hint: Any, top: Any = None) -> Any:
+    """`value` checked against the annotation `hint` (ints become floats for float fields,
+    lists become tuples); ConfigError naming the field (and its whole value `top`)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    top = value if top is None else top
+    if origin is Literal:
+        if isinstance(value, str) and value in args:
+            return value
+        raise _bad(section, name, top, "one of " + ", ".join(repr(a) for a in args))
+    if hint is bool:
+        if isinstance(value, bool):
+            return value
+        raise _bad(section, name, top, "true or false")
+    if hint is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise _bad(section, name, top, "a whole number")
+    if hint is float:
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return float(value)
+        raise _bad(section, name, top, "a number")
+    if origin is tuple:
+        if not isinstance(value, list | tuple):
+            raise _bad(section, name, top, f"a list, e.g. {_example(hint)}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_typed(section, name, v, args[0], top) for v in value)
+        if len(value) != len(args):
+            raise _bad(section, name, top, f"{len(args)} values, e.g. {_example(hint)}")
+        return tuple(_typed(section, name, v, a, top)
+                     for v, a in zip(value, args, strict=True))
+    return value
+
+
+def _example(hint: Any) -> str:
+    args = typing.get_args(hint)
+    if typing.get_origin(hint) is tuple:
+        inner = [_example(args[0])] * 2 if args[-1] is Ellipsis else [_example(a) for a in args]
+        return "[" + ",".join(inner) + "]"
+    return "1" if hint is int else "1.0"
+
+
+class _Section:
+    """Validation shared by the config sections: types from the annotations, then `_check`."""
+
+    _SECTION = ""
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = _typed(self._SECTION, f.name, getattr(self, f.name), _hints(type(self))[f.name])
+            object.__setattr__(self, f.name, value)
+        self._check()
+
+    def _check(self) -> None:
+        pass
+
+    def _require(self, name: str, ok: bool, want: str) -> None:
+        if not ok:
+            raise _bad(self._SECTION, name, getattr(self, name), want)
+
+    def _range(self, name: str, lo: float | None = None, hi: float | None = None,
+               lo_open: bool = False, hi_open: bool = False) -> None:
+        v = getattr(self, name)
+        ok = math.isfinite(v)
+        if lo is not None:
+            ok = ok and (v > lo if lo_open else v >= lo)
+        if hi is not None:
+            ok = ok and (v < hi if hi_open else v <= hi)
+        lo_s = "" if lo is None else f"{'>' if lo_open else '>='} {lo}"
+        hi_s = "" if hi is None else f"{'<' if hi_open else '<='} {hi}"
+        self._require(name, ok, "a finite number " + " and ".join(s for s in (lo_s, hi_s) if s))
 
 
 @dataclass(frozen=True)
-class DataConfig:
+class DataConfig(_Section):
+    _SECTION = "data"
     binning: bool = True  # train on 2x2-binned camera RGB (True) or on the Bayer mosaic (False)
     downscale: int = 1  # extra box downscale of training images (1 = binned/raw resolution)
     eval_downscale: int = 1  # downscale of eval renders relative to the full frame / gt
-    target: str = "raw"  # "raw" (the method) or "reference": the oracle, trained on gt/ (clean)
+    # "raw" (the method) or "reference": the oracle, trained on gt/ (clean)
+    target: Literal["raw", "reference"] = "raw"
+
+    def _check(self) -> None:
+        self._require("downscale", self.downscale >= 1, "a whole number >= 1")
+        self._require("eval_downscale", self.eval_downscale >= 1, "a whole number >= 1")
 
 
 @dataclass(frozen=True)
-class GridConfig:
+class GridConfig(_Section):
+    _SECTION = "grid"
     # Coarse-to-fine vertex resolutions (x, y, z); one stage per entry.
     resolutions: tuple[tuple[int, int, int], ...] = ((48, 48, 24), (64, 64, 32))
     sh_degree: int = 0  # spherical-harmonic degree of the low-light colour (0 = no view dependence)
     init_density: float = -4.0  # raw density at init (softplus: sigma 0.018 per voxel)
-    prune_mode: str = "visibility"  # "visibility": max ray weight over training rays; "density"
+    # "visibility": max ray weight over training rays; "density": the vertex's own alpha
+    prune_mode: Literal["visibility", "density"] = "visibility"
     prune_threshold: float = 0.01  # carve vertices whose weight (or alpha) is below this
     prune_dilate: int = 1  # keep this many vertices around survivors when pruning
     fit_box: bool = True  # after the first stage, shrink the box to the visible content
@@ -36,32 +137,62 @@ class GridConfig:
     occupancy_threshold: float = 0.005  # cells whose max alpha is below this are skipped
     occupancy_every: int = 100  # refresh the empty-space bitmask every this many steps
 
+    def _check(self) -> None:
+        self._require("resolutions", len(self.resolutions) >= 1
+                      and all(min(r) >= 2 for r in self.resolutions),
+                      "one [x,y,z] per stage, each vertex count >= 2, e.g. [[48,48,24],[64,64,32]]")
+        self._require("sh_degree", 0 <= self.sh_degree <= MAX_SH_DEGREE,
+                      f"a whole number from 0 to {MAX_SH_DEGREE}")
+        self._range("init_density")
+        self._range("prune_threshold", 0.0, 1.0)
+        self._require("prune_dilate", self.prune_dilate >= 0, "a whole number >= 0")
+        self._range("fit_quantile", 0.0, 0.5, hi_open=True)
+        self._range("fit_margin", 0.0)
+        self._range("occupancy_threshold", 0.0, 1.0, hi_open=True)
+        self._require("occupancy_every", self.occupancy_every >= 1, "a whole number >= 1")
+
 
 @dataclass(frozen=True)
-class RenderConfig:
+class RenderConfig(_Section):
+    _SECTION = "render"
     samples_per_voxel: float = 1.5  # candidate samples per voxel along a ray (cheap bitmask test)
     max_samples: int = 48  # kept (occupied) samples per ray after empty-space skipping
     chunk: int = 8192  # rays per chunk when rendering whole images
 
+    def _check(self) -> None:
+        self._range("samples_per_voxel", 0.0, lo_open=True)
+        self._require("max_samples", self.max_samples >= 1, "a whole number >= 1")
+        self._require("chunk", self.chunk >= 1, "a whole number >= 1")
+
 
 @dataclass(frozen=True)
-class LossConfig:
+class LossConfig(_Section):
+    _SECTION = "loss"
     w_data: float = 1.0  # lambda_1, RawNeRF linearised log-L2 on the raw
     w_ca: float = 0.1  # lambda_2, chromatic adaptation loss (eq. 14)
     w_smooth: float = 0.1  # lambda_3, local smoothness of the gains (eq. 15 or grid TV)
-    smooth_mode: str = "tv"  # "patch" (eq. 15 on ray patches), "tv" (edge-aware gain TV), "both"
+    # "patch" (eq. 15 on ray patches), "tv" (edge-aware gain TV), "both"
+    smooth_mode: Literal["patch", "tv", "both"] = "tv"
     ca_stop_grad: bool = True  # stop gradients through the batch channel means Cbar_k
     tv_density: float = 1e-2  # TV weight on density
     tv_rgb: float = 1e-2  # TV weight on the low-light colour
     sparsity: float = 1e-3  # weight of the Cauchy sparsity prior on density (free space)
-    sparsity_mode: str = "cauchy"  # "cauchy": log(1 + 2 sigma^2); "l1": sigma (removes fog)
+    # "cauchy": log(1 + 2 sigma^2); "l1": sigma (removes fog)
+    sparsity_mode: Literal["cauchy", "l1"] = "cauchy"
     distortion: float = 0.0  # weight of the mip-NeRF 360 distortion loss (voxel units)
     tv_fraction: float = 0.25  # fraction of voxels sampled per step for TV terms
     use_gains: bool = True  # False: ablation without the colour-restoration (gain) field
 
+    def _check(self) -> None:
+        for name in ("w_data", "w_ca", "w_smooth", "tv_density", "tv_rgb", "sparsity",
+                     "distortion"):
+            self._range(name, 0.0)
+        self._range("tv_fraction", 0.0, 1.0, lo_open=True)
+
 
 @dataclass(frozen=True)
-class TrainConfig:
+class TrainConfig(_Section):
+    _SECTION = "train"
     steps_per_stage: tuple[int, ...] = (600, 1400)  # optimisation steps of each resolution stage
     batch_patches: int = 64  # ray patches per step (coherent batches are faster)
     patch_size: int = 8  # patch side in pixels (rays per step = batch_patches * patch_size^2)
@@ -73,12 +204,31 @@ class TrainConfig:
     seed: int = 0  # PRNG seed for init and batches
     log_every: int = 50  # steps between metrics.jsonl lines
     checkpoint_every: int = 300  # steps between checkpoints
+    checkpoint_seconds: float = 30.0  # also checkpoint when this long has passed (0 = off)
+
+    def _check(self) -> None:
+        self._require("steps_per_stage", len(self.steps_per_stage) >= 1
+                      and all(s >= 1 for s in self.steps_per_stage),
+                      "one step count >= 1 per grid.resolutions stage, e.g. [600,1400]")
+        self._require("batch_patches", self.batch_patches >= 1, "a whole number >= 1")
+        self._require("patch_size", self.patch_size >= 1, "a whole number >= 1")
+        for name in ("lr_density", "lr_rgb", "lr_gain", "fine_density_lr_scale"):
+            self._range(name, 0.0)
+        self._range("lr_decay", 0.0, lo_open=True)
+        self._require("seed", self.seed >= 0, "a whole number >= 0")
+        self._require("log_every", self.log_every >= 1, "a whole number >= 1")
+        self._require("checkpoint_every", self.checkpoint_every >= 1, "a whole number >= 1")
+        self._range("checkpoint_seconds", 0.0)
 
 
 @dataclass(frozen=True)
-class OutputConfig:
+class OutputConfig(_Section):
+    _SECTION = "output"
     use_color_matrix: bool = True  # camera->sRGB via the file's ColorMatrix (False: paper's)
     target_luminance: float = 0.18  # auto exposure: mean luminance of the bright training renders
+
+    def _check(self) -> None:
+        self._range("target_luminance", 0.0, 1.0, lo_open=True)
 
 
 @dataclass(frozen=True)
@@ -89,6 +239,23 @@ class Config:
     loss: LossConfig = field(default_factory=LossConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            sub = getattr(self, f.name)
+            if type(sub) is not _SECTIONS[f.name]:
+                raise ConfigError(None, f"config section {f.name} is a {type(sub).__name__}",
+                                  f"build it as a {_SECTIONS[f.name].__name__}")
+        n_res, n_steps = len(self.grid.resolutions), len(self.train.steps_per_stage)
+        if n_res != n_steps:
+            raise ConfigError(
+                None, f"train.steps_per_stage = {list(self.train.steps_per_stage)} has "
+                f"{n_steps} stage(s) but grid.resolutions has {n_res}",
+                "give one step count per resolution stage (set both together)")
+
+
+_SECTIONS = {"data": DataConfig, "grid": GridConfig, "render": RenderConfig,
+             "loss": LossConfig, "train": TrainConfig, "output": OutputConfig}
 
 
 def _preset_tiny() -> Config:
@@ -123,25 +290,37 @@ PRESETS: dict[str, Any] = {
 
 
 def preset(name: str) -> Config:
-    """The named preset (`default`, `tiny`, `nogain`, `patch`)."""
+    """The named preset (`default`, `tiny`, `nogain`, `patch`, `oracle`)."""
     if name not in PRESETS:
-        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+        raise ConfigError(None, f"unknown preset {name!r}",
+                          f"use --preset with one of {', '.join(sorted(PRESETS))}")
     return PRESETS[name]()
 
 
-def _coerce(value: str, current: Any) -> Any:
-    parsed = json.loads(value) if value[:1] in "[{(" or value in ("true", "false") else value
-    if isinstance(current, bool):
-        if isinstance(parsed, bool):
-            return parsed
-        raise ValueError(f"expected true/false, got {value!r}")
-    if isinstance(current, int):
-        return int(parsed)
-    if isinstance(current, float):
-        return float(parsed)
-    if isinstance(current, tuple):
-        return _tupleize(parsed)
-    return parsed
+def _parse(section: str, name: str, text: str, current: Any) -> Any:
+    """The typed value of `--set section.name=text` (validated later by the section)."""
+    try:
+        if text[:1] in "[{(" or text in ("true", "false"):
+            return _tupleize(json.loads(text))
+        if isinstance(current, bool):
+            return text  # not true/false: the section names the field and the allowed values
+        if isinstance(current, int):
+            return int(text)
+        if isinstance(current, float):
+            return float(text)
+    except ValueError:
+        kind = "a whole number" if isinstance(current, int) else "a number"
+        if isinstance(current, tuple):
+            kind = "a JSON list"
+        raise _bad(section, name, text, f"{kind} (now {_dump(current)})") from None
+    return text
+
+
+def _dump(value: Any) -> str:
+    try:
+        return json.dumps(value).replace(", ", ",")
+    except (TypeError, ValueError):
+        return repr(value)
 
 
 def _tupleize(x: Any) -> Any:
@@ -149,30 +328,66 @@ def _tupleize(x: Any) -> Any:
 
 
 def override(cfg: Config, items: list[str]) -> Config:
-    """Apply `section.field=value` overrides, e.g. `train.steps_per_stage=[100,100]`."""
+    """Apply `section.field=value` overrides, e.g. `train.steps_per_stage=[100,100]`.
+
+    Every field is checked as it is set; the stage counts of grid.resolutions and
+    train.steps_per_stage are compared once all items are applied. ConfigError otherwise.
+    """
+    sections = {f.name: getattr(cfg, f.name) for f in fields(Config)}
     for item in items:
         key, sep, value = item.partition("=")
-        section, _, name = key.partition(".")
-        if not sep or not hasattr(cfg, section) or not hasattr(getattr(cfg, section), name):
-            raise ValueError(f"bad override {item!r}; use section.field=value (see config.json)")
-        sub = getattr(cfg, section)
-        sub = replace(sub, **{name: _coerce(value.strip(), getattr(sub, name))})
-        cfg = replace(cfg, **{section: sub})
-    return cfg
+        section, _, name = key.strip().partition(".")
+        if not sep:
+            raise ConfigError(None, f"bad override {item!r}",
+                              "use section.field=value, e.g. train.batch_patches=32")
+        if section not in sections:
+            raise ConfigError(None, f"bad override {item!r}: no config section {section!r}",
+                              f"use one of {', '.join(sections)}")
+        known = [f.name for f in fields(sections[section])]
+        if name not in known:
+            raise ConfigError(None, f"bad override {item!r}: {section} has no field {name!r}",
+                              f"use one of {', '.join(section + '.' + k for k in known)}")
+        sub = sections[section]
+        sections[section] = replace(sub, **{name: _parse(section, name, value.strip(),
+                                                         getattr(sub, name))})
+    return Config(**sections)
 
 
 def to_dict(cfg: Config) -> dict:
     return dataclasses.asdict(cfg)
 
 
-def from_dict(d: dict) -> Config:
-    kwargs = {}
-    for f in fields(Config):
-        sub_cls = type(getattr(Config(), f.name))
-        known = {sf.name for sf in fields(sub_cls)}
-        vals = {k: _tupleize(v) for k, v in d.get(f.name, {}).items() if k in known}
-        kwargs[f.name] = sub_cls(**vals)
-    return Config(**kwargs)
+def diff(a: Config, b: Config) -> list[str]:
+    """`section.field` names whose values differ between a and b."""
+    da, db = to_dict(a), to_dict(b)
+    return [f"{s}.{k}" for s in da for k in da[s] if da[s][k] != db[s][k]]
+
+
+def get(cfg: Config, dotted: str) -> Any:
+    section, name = dotted.split(".")
+    return getattr(getattr(cfg, section), name)
+
+
+def from_dict(d: dict, source: Path | None = None) -> Config:
+    """Config from `to_dict` output; unknown keys are ignored, missing ones take defaults.
+    ConfigError (naming `source`) for a value that does not validate."""
+    if not isinstance(d, dict):
+        raise ConfigError(source, "the config is not a JSON object",
+                          "delete it (train writes it again) or restore it")
+    try:
+        kwargs = {}
+        for f in fields(Config):
+            sub_cls = _SECTIONS[f.name]
+            known = {sf.name for sf in fields(sub_cls)}
+            vals = d.get(f.name) or {}
+            if not isinstance(vals, dict):
+                raise ConfigError(None, f"section {f.name} is not an object", "restore it")
+            kwargs[f.name] = sub_cls(**{k: _tupleize(v) for k, v in vals.items() if k in known})
+        return Config(**kwargs)
+    except ConfigError as e:
+        if source is None:
+            raise
+        raise ConfigError(source, e.problem, e.fix) from None
 
 
 def save(cfg: Config, path: Path) -> None:
@@ -182,4 +397,11 @@ def save(cfg: Config, path: Path) -> None:
 
 
 def load(path: Path) -> Config:
-    return from_dict(json.loads(Path(path).read_text()))
+    """The config saved at `path`; ConfigError naming the file if it cannot be used."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ConfigError(path, f"cannot read the run's config ({exc})",
+                          "restore it, or delete the run folder to train again") from None
+    return from_dict(d, source=path)

@@ -34,3 +34,15 @@ class PoseError(SceneError):
 
 class NumericsError(GridNerfError):
     """Training produced NaN/Inf; nothing non-finite is ever checkpointed."""
+
+
+class ConfigError(GridNerfError, ValueError):
+    """A preset, `--set` override or saved config.json is invalid (names field and values)."""
+
+
+class CheckpointError(GridNerfError):
+    """A checkpoint cannot be read, written or does not fit the run's config."""
+
+
+class RunLockedError(GridNerfError):
+    """Another process is training in the same run folder."""

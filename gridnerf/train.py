@@ -1,9 +1,12 @@
 """Training: scene -> rays -> grid render -> losses -> optax step, coarse to fine.
 
 One jitted step per resolution stage (shapes change only between stages).
-The run folder holds config.json, checkpoint.npz (atomic, finite-only,
-resumed automatically) and metrics.jsonl. A non-finite loss stops training
-with a clear message; the last good checkpoint is kept.
+The run folder (gridnerf.runfolder) holds config.json, checkpoint.npz (atomic,
+finite-only, written every train.checkpoint_every steps or
+train.checkpoint_seconds, resumed automatically) and metrics.jsonl. One
+training per folder (a lock); a failed start leaves nothing behind. A
+non-finite loss stops training with a clear message; the last good
+checkpoint is kept.
 """
 
 from __future__ import annotations
@@ -23,10 +26,10 @@ from tqdm import tqdm
 from gridnerf import checkpoint, dataset, grid, losses, render, runfolder
 from gridnerf import config as cfgmod
 from gridnerf.config import Config
-from gridnerf.errors import NumericsError
+from gridnerf.errors import CheckpointError, NumericsError
 from gridnerf.scene import Scene
 
-CHECKPOINT = "checkpoint.npz"
+CHECKPOINT = runfolder.CHECKPOINT
 
 
 def grid_box(scene: Scene) -> tuple[np.ndarray, np.ndarray, float, float]:
@@ -151,10 +154,45 @@ def save_state(run: Path, structure, params, opt_state, header: dict) -> None:
 
 
 def load_state(run: Path):
-    """(structure, params, opt_leaves, header) from the run's checkpoint."""
-    groups, header = checkpoint.load(run / CHECKPOINT)
-    structure, params = grid.from_state(dict(zip(header["grid_keys"], groups["grid"], strict=True)))
+    """(structure, params, opt_leaves, header) from the run's checkpoint (CheckpointError
+    naming the file if it is unreadable)."""
+    path = Path(run) / CHECKPOINT
+    groups, header = checkpoint.load(path)
+    try:
+        state = dict(zip(header["grid_keys"], groups["grid"], strict=True))
+        structure, params = grid.from_state(state)
+        missing = [k for k in ("stage", "step", "train_seconds", "key") if k not in header]
+        if missing:
+            raise KeyError(f"header lacks {missing}")
+    except (KeyError, ValueError, TypeError, IndexError) as exc:
+        raise CheckpointError(path, f"the checkpoint is incomplete ({type(exc).__name__}: "
+                              f"{exc})", f"delete {CHECKPOINT} to train the run again from "
+                              "the start") from None
     return structure, params, groups.get("opt_state", []), header
+
+
+def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage: int,
+                  stages: list) -> None:
+    """CheckpointError unless the checkpoint's arrays fit `cfg` (shapes and stage count)."""
+    problem = None
+    if stage > len(stages):
+        problem = f"it is at stage {stage} but the config has {len(stages)} stages"
+    elif structure.sh_degree != cfg.grid.sh_degree:
+        problem = f"its sh_degree is {structure.sh_degree}, the config's {cfg.grid.sh_degree}"
+    elif opt_leaves and stage < len(stages):
+        if tuple(structure.resolution) != tuple(stages[stage][0]):
+            problem = (f"its grid is {tuple(structure.resolution)}, the config's stage {stage} "
+                       f"is {tuple(stages[stage][0])}")
+        else:
+            try:
+                template = make_optimizer(cfg, stages[stage][1], stage).init(params)
+                checkpoint.unflatten_like(template, opt_leaves)
+            except ValueError as exc:
+                problem = f"its optimiser state does not fit ({exc})"
+    if problem:
+        raise CheckpointError(path, f"the checkpoint does not match the run's config: {problem}",
+                              "resume with the config it was trained with, or delete "
+                              f"{CHECKPOINT} to train again from the start")
 
 
 def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, near_t: float,
@@ -210,10 +248,22 @@ def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fi
     return structure, params, info
 
 
-def train(scene_dir: Path, run: Path, cfg: Config) -> dict:
-    """Train (or resume) a run; returns the summary written to run/summary.json."""
-    run.mkdir(parents=True, exist_ok=True)
-    cfgmod.save(cfg, run / "config.json")
+def train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool = False) -> dict:
+    """Train (or resume) a run; returns the summary written to run/summary.json.
+
+    Holds the run folder's lock throughout (RunLockedError if another training has it).
+    A run with a checkpoint resumes with its saved config; a different `cfg` is refused
+    unless `overwrite_config` (runfolder.resolve_config). config.json is written only once
+    the scene and the checkpoint have loaded; a failed start leaves no new file behind.
+    """
+    run = Path(run)
+    with runfolder.Session(run) as session:
+        return _train(scene_dir, run, cfg, overwrite_config, session)
+
+
+def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
+           session: runfolder.Session) -> dict:
+    cfg = runfolder.resolve_config(run, cfg, overwrite_config)
     scene = runfolder.open_scene(scene_dir, run)
     data = dataset.build(scene, scene.train_idx, cfg.data.binning, cfg.data.downscale,
                          cfg.data.target)
@@ -225,8 +275,10 @@ def train(scene_dir: Path, run: Path, cfg: Config) -> dict:
         structure, params, opt_leaves, header = load_state(run)
         stage, start, elapsed = header["stage"], header["step"], header["train_seconds"]
         key = jnp.asarray(np.array(header["key"], np.uint32))
+        _check_resume(run / CHECKPOINT, cfg, structure, params, opt_leaves, stage, stages)
         if stage >= len(stages) and (run / "summary.json").exists():
             print(f"{run} is already trained; delete its checkpoint.npz to train again")
+            session.started()
             return json.loads((run / "summary.json").read_text())
         print(f"resuming {run} at stage {stage}, step {start}")
     else:
@@ -243,7 +295,11 @@ def train(scene_dir: Path, run: Path, cfg: Config) -> dict:
         )
         stage, start, elapsed, opt_leaves = 0, 0, 0.0, []
 
-    log = open(run / "metrics.jsonl", "a")  # noqa: SIM115
+    # Training really starts: save the config, drop metrics logged after the checkpoint.
+    cfgmod.save(cfg, run / runfolder.CONFIG)
+    runfolder.trim_metrics(run, stage, start)
+    session.started()
+    log = open(run / runfolder.METRICS, "a")  # noqa: SIM115
     rays_per_step = cfg.train.batch_patches * cfg.train.patch_size**2
     total_steps = sum(s for _, s in stages)
     done_before = sum(s for _, s in stages[:stage]) + start
@@ -268,6 +324,7 @@ def train(scene_dir: Path, run: Path, cfg: Config) -> dict:
         step_fn = make_step(cfg, tx, near_t, far_t)
         structure = grid.update_occupancy(structure, params, cfg.grid.occupancy_threshold)
         t_stage = time.perf_counter()
+        last_save = t_stage
         steps_timed = 0
         for step in range(start, steps):
             key, sub = jax.random.split(key)
@@ -302,7 +359,8 @@ def train(scene_dir: Path, run: Path, cfg: Config) -> dict:
                 log.write(json.dumps(rec) + "\n")
                 log.flush()
             last = step + 1 == steps
-            if (step + 1) % cfg.train.checkpoint_every == 0 or last:
+            overdue = 0 < cfg.train.checkpoint_seconds <= now - last_save
+            if (step + 1) % cfg.train.checkpoint_every == 0 or last or overdue:
                 header = {
                     "stage": stage + 1 if last else stage,
                     "step": 0 if last else step + 1,
@@ -310,6 +368,7 @@ def train(scene_dir: Path, run: Path, cfg: Config) -> dict:
                     "key": np.asarray(key).tolist(),
                 }
                 save_state(run, structure, params, [] if last else opt_state, header)
+                last_save = time.perf_counter()
         elapsed += time.perf_counter() - t_stage
         stage, start = stage + 1, 0
     bar.close()

@@ -54,7 +54,8 @@ def test_interrupted_training_resumes_from_checkpoint(small_scene, tmp_path, mon
     from gridnerf import train as trainmod
 
     cfg = cfgmod.preset("tiny")
-    cfg = replace(cfg, train=replace(cfg.train, steps_per_stage=(20, 20), checkpoint_every=10))
+    cfg = replace(cfg, train=replace(cfg.train, steps_per_stage=(20, 20), checkpoint_every=10,
+                                     checkpoint_seconds=0.0, log_every=4))
     run = tmp_path / "run"
     real_make_step, calls = trainmod.make_step, {"n": 0}
 
@@ -78,7 +79,8 @@ def test_interrupted_training_resumes_from_checkpoint(small_scene, tmp_path, mon
     monkeypatch.setattr(trainmod, "make_step", real_make_step)
     trainmod.train(small_scene, run, cfg)
     resumed = [r for r in _losses(run) if r["stage"] == 1]
-    assert [r["step"] for r in resumed] == [10, 20]  # step 10 before the crash, 20 after
+    # 4, 8 and 12 were logged before the crash; 12 (after the checkpoint) is trimmed and redone
+    assert [r["step"] for r in resumed] == [4, 8, 12, 16, 20]
     assert trainmod.load_state(run)[3]["stage"] == 2
 
 
@@ -91,7 +93,8 @@ def test_checkpoint_refuses_non_finite(tmp_path):
 def test_nan_loss_stops_training_without_checkpoint(small_scene, tmp_path):
     from gridnerf.train import train
 
-    cfg = cfgmod.override(cfgmod.preset("tiny"), ["train.lr_rgb=nan"])
+    cfg = cfgmod.preset("tiny")
+    object.__setattr__(cfg.train, "lr_rgb", float("nan"))  # the config refuses NaN itself
     with pytest.raises(NumericsError, match="loss became"):
         train(small_scene, tmp_path / "run", cfg)
     assert not (tmp_path / "run" / "checkpoint.npz").exists()
@@ -145,3 +148,31 @@ def test_cli_reports_bad_input_with_exit_status_2(tmp_path, capsys):
     assert "missing" in err and "Fix:" in err
     assert main(["eval", str(tmp_path / "norun")]) == 2
     assert "gridnerf train" in capsys.readouterr().err
+
+
+def test_checkpoints_by_time_as_well_as_steps(small_scene, tmp_path, monkeypatch):
+    from gridnerf import train as trainmod
+
+    cfg = cfgmod.preset("tiny")
+    cfg = replace(cfg, train=replace(cfg.train, steps_per_stage=(20, 20), checkpoint_every=1000,
+                                     checkpoint_seconds=1e-9))
+    run = tmp_path / "run"
+    real_make_step, calls = trainmod.make_step, {"n": 0}
+
+    def crashing_make_step(*args, **kwargs):
+        step = real_make_step(*args, **kwargs)
+
+        def wrapped(*a):
+            calls["n"] += 1
+            if calls["n"] > 7:
+                raise KeyboardInterrupt
+            return step(*a)
+
+        return wrapped
+
+    monkeypatch.setattr(trainmod, "make_step", crashing_make_step)
+    with pytest.raises(KeyboardInterrupt):
+        trainmod.train(small_scene, run, cfg)
+    header = trainmod.load_state(run)[3]
+    assert (header["stage"], header["step"]) == (0, 7)  # saved after every step by time
+    assert not list(run.glob("*.tmp"))
