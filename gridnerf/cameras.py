@@ -119,12 +119,44 @@ def _stem(file_path: str) -> str:
     return Path(str(file_path)).stem
 
 
+def _is_number(v) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
+def _kind(v) -> str:
+    return {dict: "object", list: "list", str: "string", type(None): "null", bool: "boolean"
+            }.get(type(v), "number" if _is_number(v) else type(v).__name__)
+
+
+def _describe(v) -> str:
+    text = json.dumps(v) if isinstance(v, str | type(None) | bool) else _kind(v)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _matrix(v) -> np.ndarray | None:
+    """A list of equal-length rows of numbers as a float64 array; None otherwise (ragged,
+    strings, nesting)."""
+    if not isinstance(v, list) or not v:
+        return None
+    if not all(isinstance(r, list) and len(r) == len(v[0]) and all(_is_number(x) for x in r)
+               for r in v):
+        return None
+    return np.asarray(v, dtype=np.float64)
+
+
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x")
 
 
 def _intrinsics(frame: dict, base: dict, path, where: str):
     """(fx, fy, cx, cy, w, h) of one frame: its own keys override the top level's."""
     merged = {**base, **{k: frame[k] for k in _INTRINSIC_KEYS if k in frame}}
+    for key in ("w", "h"):
+        v = merged.get(key)
+        if key in merged and not (_is_number(v) and v == int(v) and v > 0):
+            src = "the frame" if key in frame else "the top level"
+            raise SceneError(path, f"{where}: {key} is {v!r} (from {src})",
+                             f"give {key} as the raw frame's {'width' if key == 'w' else 'height'}"
+                             " in pixels (a whole number > 0)")
     try:
         w, h = int(merged["w"]), int(merged["h"])
         if "fl_x" in merged:
@@ -155,22 +187,36 @@ def load_transforms(path) -> tuple[Cameras, dict | None, tuple[float, float] | N
     except (OSError, ValueError) as exc:
         raise SceneError(path, f"cannot read transforms.json ({exc})",
                          "fix the JSON or delete it and run `gridnerf poses`") from None
-    frames = meta.get("frames") if isinstance(meta, dict) else None
+    if not isinstance(meta, dict):
+        raise SceneError(path, "transforms.json is not a JSON object",
+                         "give an object with frames (or run `gridnerf poses`)")
+    frames = meta.get("frames")
     if not frames:
         raise SceneError(path, "no frames listed", "add frames or run `gridnerf poses`")
+    if not isinstance(frames, list):
+        raise SceneError(path, f"frames is a {_kind(frames)}, not a list",
+                         "give frames as a list of {file_path, transform_matrix} objects")
     base = {k: meta[k] for k in _INTRINSIC_KEYS if k in meta}
     names, c2ws, intr = [], [], []
     for k, frame in enumerate(frames):
+        if not isinstance(frame, dict):
+            raise SceneError(path, f"frame {k} is a {_kind(frame)}, not an object",
+                             "give each frame as {file_path, transform_matrix}")
         if "file_path" not in frame:
             raise SceneError(path, f"frame {k} has no file_path", "add file_path: raw/<name>.dng")
+        if not isinstance(frame["file_path"], str) or not frame["file_path"].strip():
+            raise SceneError(path, f"frame {k}: file_path is {frame['file_path']!r}",
+                             "give the raw file's path as a string, e.g. raw/<name>.dng")
         name = _stem(frame["file_path"])
         if "transform_matrix" not in frame:
             raise PoseError(path, f"frame {name!r} has no transform_matrix (no pose)",
                             "run `gridnerf poses` or remove the frame")
-        m = np.asarray(frame["transform_matrix"], dtype=np.float64)
-        if m.shape not in ((4, 4), (3, 4)):
-            raise PoseError(path, f"frame {name!r}: transform_matrix has shape {m.shape}",
-                            "give a 4x4 camera-to-world matrix")
+        m = _matrix(frame["transform_matrix"])
+        if m is None or m.shape not in ((4, 4), (3, 4)):
+            found = f"shape {m.shape}" if m is not None else _describe(frame["transform_matrix"])
+            raise PoseError(path, f"frame {name!r}: transform_matrix is not a 4x4 matrix of "
+                            f"numbers ({found})",
+                            "give a 4x4 camera-to-world matrix as a list of 4 rows of 4 numbers")
         if name in names:
             raise SceneError(path, f"frame {name!r} is listed twice", "remove the duplicate")
         names.append(name)
@@ -193,7 +239,12 @@ def _read_split(meta: dict, names: list[str], path) -> dict | None:
     for key, keys in choices:
         for k in keys:
             if k in meta:
-                lists[key] = [_stem(f) for f in meta[k]]
+                v = meta[k]
+                if not isinstance(v, list) or not all(isinstance(f, str) for f in v):
+                    raise SceneError(path, f"{k} is {_describe(v)}, not a list of file paths",
+                                     f"give {k} as a list like [\"raw/<name>.dng\", ...] or "
+                                     "remove the key (every 8th frame is then a test frame)")
+                lists[key] = [_stem(f) for f in v]
                 break
     if not lists:
         return None

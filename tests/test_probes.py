@@ -1,0 +1,228 @@
+"""Hostile-user probes (issue 7) driven through `gridnerf.cli.main`, in process.
+
+Each probe asserts exit status 2, exactly one line on stderr naming the file or field
+(and the fix), and that nothing half-written is left: no run folder after a failed
+start, no new or changed file in an existing run folder, no `.tmp` file.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import json
+import shutil
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gridnerf.cli import main
+
+
+def _fails(capsys, argv: list[str], *needles: str) -> str:
+    """Run the CLI; assert status 2 and one stderr line containing every needle."""
+    capsys.readouterr()
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    lines = err.splitlines()
+    assert len(lines) == 1, err
+    line = lines[0]
+    assert line.startswith("error: ") and "Traceback" not in err
+    for needle in needles:
+        assert needle in line, (needle, line)
+    return line
+
+
+def _snapshot(folder: Path) -> dict[str, tuple[int, int]]:
+    """Size and mtime of the folder's files (the .lock file records the last locker's pid)."""
+    return {p.name: (p.stat().st_size, p.stat().st_mtime_ns)
+            for p in sorted(folder.iterdir()) if p.is_file() and p.name != ".lock"}
+
+
+@pytest.fixture(scope="module")
+def trained(small_scene, tmp_path_factory):
+    """A finished `tiny` run trained through the CLI."""
+    run = tmp_path_factory.mktemp("probes") / "run"
+    assert main(["train", str(small_scene), "--out", str(run), "--preset", "tiny"]) == 0
+    return run
+
+
+@pytest.fixture
+def run_copy(trained, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(trained, run)
+    return run
+
+
+@pytest.fixture
+def scene_copy(small_scene, tmp_path):
+    scene = tmp_path / "scene"
+    shutil.copytree(small_scene, scene)
+    return scene
+
+
+# --- typed, validated config and arguments ------------------------------------------------
+
+@pytest.mark.parametrize("args, needles", [
+    (["--preset", "bogus"], ["bogus", "tiny", "--preset"]),
+    (["--set", "bogus.field=1"], ["bogus.field", "train"]),
+    (["--set", "train.steps_per_stage=[40]"], ["train.steps_per_stage", "grid.resolutions"]),
+    (["--set", "train.batch_patches=abc"], ["train.batch_patches", "abc", "whole number"]),
+    (["--set", "loss.smooth_mode=tvv"], ["loss.smooth_mode", "tvv", "'patch'", "'both'"]),
+    (["--set", "grid.prune_mode=alpha"], ["grid.prune_mode", "'visibility'", "'density'"]),
+    (["--set", "data.target=gt"], ["data.target", "'raw'", "'reference'"]),
+    (["--set", "grid.resolutions=[[1,8,8],[16,16,16]]"], ["grid.resolutions", ">= 2"]),
+    (["--set", "loss.use_gains=maybe"], ["loss.use_gains", "true or false"]),
+    (["--set", "train.checkpoint_seconds=-1"], ["train.checkpoint_seconds", ">= 0"]),
+    (["--set", "grid.prune_threshold=2"], ["grid.prune_threshold", "<= 1"]),
+])
+def test_bad_config_is_one_line_and_leaves_no_run_folder(small_scene, tmp_path, capsys, args,
+                                                         needles):
+    run = tmp_path / "run"
+    _fails(capsys, ["train", str(small_scene), "--out", str(run), "--preset", "tiny", *args],
+           *needles)
+    assert not run.exists()
+
+
+def test_stage_counts_are_checked_after_all_overrides():
+    from gridnerf import config as cfgmod
+
+    cfg = cfgmod.override(cfgmod.preset("tiny"), ["grid.resolutions=[[8,8,8],[9,9,9],[10,10,10]]",
+                                                  "train.steps_per_stage=[1,2,3]"])
+    assert cfg.train.steps_per_stage == (1, 2, 3)
+    assert cfgmod.from_dict(cfgmod.to_dict(cfg)) == cfg
+
+
+def test_bad_saved_config_names_the_file(tmp_path):
+    from gridnerf import config as cfgmod
+    from gridnerf.errors import ConfigError
+
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({"loss": {"smooth_mode": "tvv"}}))
+    with pytest.raises(ConfigError, match="config.json: loss.smooth_mode"):
+        cfgmod.load(path)
+
+
+@pytest.mark.parametrize("frames", ["0", "-5", "x"])
+def test_render_frames_must_be_positive(trained, capsys, frames):
+    _fails(capsys, ["render", str(trained), "--frames", frames], "--frames")
+    assert not (trained / "render").exists()
+
+
+# --- stale config, lock ---------------------------------------------------------------------
+
+def test_train_saves_the_config_it_ran_with(trained):
+    from gridnerf import config as cfgmod
+
+    assert cfgmod.load(trained / "config.json") == cfgmod.preset("tiny")
+
+
+@pytest.mark.parametrize("args, needles", [
+    (["--preset", "default"], ["config.json", "train.steps_per_stage", "--overwrite-config"]),
+    (["--preset", "tiny", "--set", "train.batch_patches=4"], ["train.batch_patches", "run 8",
+                                                              "asked 4"]),
+    (["--preset", "tiny", "--set", "grid.sh_degree=1", "--overwrite-config"],
+     ["grid.sh_degree", "cannot change"]),
+])
+def test_resume_refuses_a_different_config(small_scene, run_copy, capsys, args, needles):
+    before = _snapshot(run_copy)
+    _fails(capsys, ["train", str(small_scene), "--out", str(run_copy), *args], *needles)
+    assert _snapshot(run_copy) == before
+
+
+def test_resume_with_the_same_config_is_accepted(small_scene, run_copy, capsys):
+    assert main(["train", str(small_scene), "--out", str(run_copy), "--preset", "tiny"]) == 0
+    assert "already trained" in capsys.readouterr().out
+
+
+def test_failed_start_removes_what_it_created(small_scene, tmp_path, capsys, monkeypatch):
+    from gridnerf import dataset
+    from gridnerf.errors import SceneError
+
+    def broken_build(*a, **k):
+        raise SceneError(small_scene, "cannot build rays", "fix it")
+
+    monkeypatch.setattr(dataset, "build", broken_build)
+    run = tmp_path / "run"  # bounds.json is estimated (and written) before build fails
+    _fails(capsys, ["train", str(small_scene), "--out", str(run), "--preset", "tiny"],
+           "cannot build rays")
+    assert not run.exists()
+    run.mkdir()
+    (run / "notes.txt").write_text("mine")
+    _fails(capsys, ["train", str(small_scene), "--out", str(run), "--preset", "tiny"],
+           "cannot build rays")
+    assert sorted(p.name for p in run.iterdir()) == ["notes.txt"]
+
+
+def test_second_training_in_a_run_folder_is_refused(small_scene, run_copy, capsys):
+    with open(run_copy / ".lock", "a+") as held:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        _fails(capsys, ["train", str(small_scene), "--out", str(run_copy), "--preset", "tiny"],
+               str(run_copy), "another training")
+    assert main(["train", str(small_scene), "--out", str(run_copy), "--preset", "tiny"]) == 0
+
+
+# --- corrupt checkpoint, disk full ------------------------------------------------------------
+
+@pytest.mark.parametrize("damage", ["truncate", "garbage", "empty"])
+def test_corrupt_checkpoint_in_eval_and_resume(small_scene, run_copy, capsys, damage):
+    ckpt = run_copy / "checkpoint.npz"
+    data = ckpt.read_bytes()
+    ckpt.write_bytes({"truncate": data[: len(data) // 2], "garbage": b"\x00junk" * 100,
+                      "empty": b""}[damage])
+    before = _snapshot(run_copy)
+    for argv in (["eval", str(run_copy)],
+                 ["train", str(small_scene), "--out", str(run_copy), "--preset", "tiny"]):
+        _fails(capsys, argv, str(ckpt), "delete checkpoint.npz")
+        assert _snapshot(run_copy) == before
+    assert not (run_copy / "eval").exists()
+
+
+def test_disk_full_during_checkpoint(small_scene, tmp_path, capsys, monkeypatch):
+    from tqdm import tqdm
+
+    from gridnerf import train as trainmod
+
+    def full_disk_savez(f, **arrays):
+        f.write(b"PK\x03\x04 partial")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(np, "savez", full_disk_savez)
+    monkeypatch.setattr(trainmod, "tqdm", partial(tqdm, disable=True))
+    run = tmp_path / "run"
+    _fails(capsys, ["train", str(small_scene), "--out", str(run), "--preset", "tiny",
+                    "--set", "train.checkpoint_every=1"],
+           str(run / "checkpoint.npz"), "No space left", "free disk space")
+    assert not list(run.glob("*.tmp")) and not (run / "checkpoint.npz").exists()
+
+
+# --- transforms.json ---------------------------------------------------------------------------
+
+def _edit_transforms(scene: Path, edit) -> None:
+    path = scene / "transforms.json"
+    meta = json.loads(path.read_text())
+    edit(meta)
+    path.write_text(json.dumps(meta))
+
+
+@pytest.mark.parametrize("edit, needles", [
+    (lambda m: m["frames"][1].update(transform_matrix=[[1, 0, 0, 0], [0, 1, 0], [0, 0, 1, 0]]),
+     ["transform_matrix"]),
+    (lambda m: m["frames"][0].update(transform_matrix="identity"), ["transform_matrix"]),
+    (lambda m: m["frames"][0].update(transform_matrix=[["1", "0", "0", "0"]] * 4),
+     ["transform_matrix"]),
+    (lambda m: m.update(w=0), ["w"]),
+    (lambda m: m.update(h=-90), ["h"]),
+    (lambda m: m.update(train_filenames=None), ["train_filenames"]),
+    (lambda m: m.update(test_filenames="raw/x.dng"), ["test_filenames"]),
+    (lambda m: m.update(frames={"a": 1}), ["frames"]),
+    (lambda m: m["frames"].append(7), ["frame 12"]),
+    (lambda m: m["frames"][0].update(file_path=None), ["file_path"]),
+])
+def test_bad_transforms_json_is_one_clear_error(scene_copy, tmp_path, capsys, edit, needles):
+    _edit_transforms(scene_copy, edit)
+    run = tmp_path / "run"
+    _fails(capsys, ["train", str(scene_copy), "--out", str(run), "--preset", "tiny"],
+           "transforms.json", *needles)
+    assert not run.exists()
