@@ -49,7 +49,11 @@ class Session:
 
     def __enter__(self) -> Session:
         self._made_dir = not self.run.exists()
-        self.run.mkdir(parents=True, exist_ok=True)
+        try:
+            self.run.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise SceneError(self.run, f"cannot create the run folder ({exc.strerror or exc})",
+                             "choose another --out") from None
         self._before = {p.name for p in self.run.iterdir()}
         try:
             self._fd = _lock(self.run / LOCK)
