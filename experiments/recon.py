@@ -8,7 +8,7 @@ and the held-out scenes (gridnerf.sim.HELDOUT, which no default is tuned on) are
 separate tables. Runs are cached in runs/<scene>/<preset>/ (re-running reuses finished
 runs). Writes reports/recon.md and reports/recon.json.
 
-    python experiments/recon.py [--scenes all|nine|heldout|name,name] [--no-oracle]
+    python experiments/recon.py [--scenes all|nine|heldout|name,name] [--oracle all|heldout|none]
 """
 
 from __future__ import annotations
@@ -87,12 +87,16 @@ def table(rows: list[dict]) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="all")
-    ap.add_argument("--no-oracle", action="store_true")
+    ap.add_argument("--oracle", default="all", choices=["all", "heldout", "none"],
+                    help="which scenes also train the oracle preset (cached runs are read)")
     args = ap.parse_args()
-    rows = [row_for(s, not args.no_oracle) for s in scene_list(args.scenes)]
+    rows = [row_for(s, args.oracle == "all" or (args.oracle == "heldout" and s in HELDOUT)
+                    or (Path("runs") / s / "oracle" / "eval" / "metrics.json").is_file())
+            for s in scene_list(args.scenes)]
     machine = f"{platform.machine()}, {os.cpu_count()} cores, python {sys.version.split()[0]}"
     text = ["# Reconstruction: trained from transforms.json without bounds\n",
-            f"Command: `python experiments/recon.py --scenes {args.scenes}`; machine: "
+            f"Command: `python experiments/recon.py --scenes {args.scenes} --oracle "
+            f"{args.oracle}`; machine: "
             f"{machine}. Metrics on the test views (sRGB, 16-pixel border crop).\n",
             "## Built-in scenes\n", table([r for r in rows if not r["held_out"]]), "",
             "## Held-out scenes (no default tuned on them)\n",

@@ -169,3 +169,14 @@ def distortion_loss(weights: jax.Array, s_vox: jax.Array, step_vox: jax.Array) -
     inter = 2.0 * jnp.sum(w * (s_vox * w_before - ws_before), axis=-1)
     intra = jnp.sum(w**2 * step_vox, axis=-1) / 3.0
     return jnp.mean(inter + intra)
+
+
+def opacity_loss(acc: jax.Array) -> jax.Array:
+    """Mean (1 - acc)^2 over rays; acc: (n,) accumulated opacity.
+
+    The renderer composites over black, so without this prior a ray can be made darker by
+    making it transparent: dark texture (mortar lines, printed ink) turns into holes that
+    show what lies behind, and thin fog stands in for surfaces. In a forward-facing capture
+    every ray ends on a surface inside the box, so acc should be 1.
+    """
+    return jnp.mean((1.0 - acc) ** 2)

@@ -89,6 +89,8 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
                 structure, params, sample_key=k1, fraction=lc.tv_fraction
             )
         terms["smooth"] = smooth
+    if lc.opacity > 0:
+        terms["opacity"] = losses.opacity_loss(out["acc"])
     if lc.distortion > 0:
         terms["distortion"] = losses.distortion_loss(out["weights"], out["s_vox"],
                                                      out["step_vox"])
@@ -109,6 +111,7 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
         "tv_rgb": lc.tv_rgb,
         "sparsity": lc.sparsity,
         "distortion": lc.distortion,
+        "opacity": lc.opacity,
     }
     total = sum(weights[k] * v for k, v in terms.items())
     return total, terms
