@@ -13,7 +13,7 @@ SCENE_DIR := $(if $(findstring /,$(SCENE)),$(SCENE),data/sim/$(SCENE))
 SCENE_NAME := $(notdir $(patsubst %/,%,$(SCENE_DIR)))
 RUN_DIR := runs/$(SCENE_NAME)/$(PRESET)
 
-.PHONY: venv system-deps data poses train eval render ablate report bench test lint clean
+.PHONY: venv system-deps data poses train eval render ablate report recon bench test lint clean
 
 venv: $(STAMP)
 
@@ -57,6 +57,9 @@ ablate: $(STAMP)
 
 report: $(STAMP)
 	$(RUN)python experiments/report.py
+
+recon: $(STAMP)
+	$(RUN)python experiments/recon.py --scenes all --oracle heldout
 
 bench: $(STAMP)
 	$(RUN)python experiments/bench.py
