@@ -18,7 +18,8 @@ XYZ_FROM_SRGB = np.array(
 )
 SRGB_FROM_XYZ = np.linalg.inv(XYZ_FROM_SRGB)
 
-# XYZ -> camera (D65), as stored in DNG ColorMatrix tags (x 1e-4). REFERENCE.md section 3.
+# XYZ -> camera (D65), as stored in DNG ColorMatrix tags (x 1e-4); the values of Adobe DNG
+# Converter / LibRaw's camera table for these bodies.
 CAMERA_XYZ_TO_CAM = {
     "Sony ILCE-7SM2": np.array([5838, -1430, -246, -3497, 11477, 2297, -748, 1885, 5778]) / 1e4,
     "Canon EOS 5D Mark IV": np.array([6446, -366, -864, -4436, 12204, 2513, -952, 2496, 6348])

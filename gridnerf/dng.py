@@ -3,8 +3,8 @@
 Writes one uncompressed 16-bit CFA image in IFD0 with the DNG tags LibRaw needs to
 decode it: CFA layout, per-CFA-position black level, white level, a D65 colour
 matrix and the as-shot neutral. The container is always 16 bits per sample; the
-sensor bit depth is carried by `WhiteLevel` (pidng's 14-bit packing is broken,
-REFERENCE.md section 6).
+sensor bit depth is carried by `WhiteLevel` (pidng's 14-bit packing was found broken
+when checked for this project; a 16-bit container with WhiteLevel 16383 reads back exactly).
 
 Tag numbers and types follow the DNG 1.4 specification and TIFF/EP:
 

@@ -1,6 +1,7 @@
 """Image-quality metrics for rendered views against ground truth (numpy, offline).
 
-Protocol (RawNeRF, REFERENCE.md section 2): compare in sRGB after clipping the
+Protocol (RawNeRF, Mildenhall et al. CVPR 2022, as in google-research/multinerf's raw
+evaluation): compare in sRGB after clipping the
 linear images to [0, 1] and cropping a border; report each metric unaligned
 and after a per-channel affine alignment fitted in linear space, which
 forgives a global exposure/white-balance offset and isolates structure.

@@ -1,4 +1,5 @@
-"""Losses of Bright-NeRF on the grid (REFERENCE.md section 1, paper eqs. 14-17).
+"""Losses of Bright-NeRF on the grid (Bright-NeRF, AAAI 2025, eqs. 14-17; the data term as
+RawNeRF's code implements it: linearised log-L2 with a stop-gradient weight).
 
 All losses are means (not the paper's sums over rays), so their weights do not depend on
 the batch size. Low-light colours are tiny (~1e-3); every ratio that would otherwise
@@ -56,7 +57,7 @@ def smooth_loss_patch(gain: jax.Array, rgb: jax.Array, eps: float = 1e-2, gamma1
     gain: (p, h, w, 3) rendered gains; rgb: (p, h, w, 3) rendered low-light colour.
     Per neighbour pair: gamma * sum_k dS_k^2 / (|dC|^2 / mu^2 + eps), with dS and dC taken
     between the *same* neighbours (vertical pairs weighted by gamma1, horizontal by gamma2)
-    as in the edge-aware reading of REFERENCE.md (eq. 15 as printed divides the vertical
+    in the edge-aware reading of the paper's eq. 15 (as printed it divides the vertical
     gain step by the horizontal colour step). mu is the stop-gradient batch mean intensity,
     so eps is relative to the image level. Colour is a constant here (stop_grad_color):
     otherwise the loss would reward sharper colour edges. Mean over pairs.

@@ -4,7 +4,7 @@ Conventions (docs/design.md): `cfa` is a (2, 2) int array of colour indices per 
 position (0=R 1=G 2=B, `cfa[y % 2, x % 2]`); `black_level` is (2, 2) per CFA position;
 normalised raw is `(raw - black) / (white - black)` in float32 with negatives kept.
 
-Where the metadata comes from (REFERENCE.md section 6):
+Where the metadata comes from (behaviour of rawpy 0.28 / LibRaw 0.22, checked here):
 - mosaic, CFA, per-position black, white level: LibRaw. `black_level_per_channel` is
   ordered by colour index (R, G, B, G2), so it is mapped to CFA positions through
   `raw_pattern`. LibRaw truncates rational DNG black levels to integers; when the DNG's

@@ -1,6 +1,7 @@
 """A dark-scene camera: warm illuminant, camera colour response, Bayer mosaic, ELD noise.
 
-Pipeline for one view (REFERENCE.md section 3):
+Pipeline for one view (an ELD-style low-light noise model: Wei et al., "A Physics-based
+Noise Formation Model for Extreme Low-light Raw Denoising", CVPR 2020):
   rgb_linear (reflectance x shading, linear sRGB, as if lit by D65)
   -> XYZ under a dim blackbody at `kelvin`:  CA(D65 -> T) @ XYZ_FROM_SRGB @ rgb_linear
   -> rgb_cam = xyz_to_cam @ XYZ             (real DNG ColorMatrix, D65)
