@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import pathlib
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -220,6 +221,40 @@ def _near_far(scene: pathlib.Path, near_far, colmap_points, colmap_cams) -> tupl
     raise BoundsMissing(scene, colmap_cams)
 
 
+def unusable_frames(raw_bayer: np.ndarray, black: np.ndarray, white: np.ndarray,
+                    dark_ratio: float = 0.25, bright_ratio: float = 4.0,
+                    clipped_max: float = 0.2) -> dict[int, str]:
+    """Frames that are readable but wrong, compared with the scene's other frames.
+
+    raw_bayer: (N, H, W) uint16; black: (N, 2, 2); white: (N,). Per frame, on every 4th
+    pixel: the mean normalised signal and the clipped fraction. A frame is unusable when
+    its signal is below dark_ratio or above bright_ratio times the median frame's (a black
+    frame, a frame from another exposure), or more than clipped_max of it is clipped.
+    Returns {frame index: reason}. Raises SceneError when every frame is at the black level
+    (nothing to learn from).
+    """
+    sub = raw_bayer[:, ::4, ::4].astype(np.float32)
+    level = (sub - black[:, :1, :1]) / (white - black[:, 0, 0])[:, None, None]
+    mean = level.reshape(len(sub), -1).mean(axis=1)
+    clipped = (sub >= white[:, None, None]).reshape(len(sub), -1).mean(axis=1)
+    # one DN above black on average: below that there is no signal at all
+    floor = 1.0 / float(np.max(white - black[:, 0, 0]))
+    if np.all(mean < floor):
+        raise SceneError(None, f"every frame is at the black level (mean signal "
+                         f"{float(mean.max()):.2g} of the white level)",
+                         "check the exposure, the lens cap and the black level in the RAW files")
+    med = float(np.median(mean))
+    bad = {}
+    for k in range(len(sub)):
+        if clipped[k] > clipped_max:
+            bad[k] = f"{100 * clipped[k]:.0f}% of the pixels are clipped"
+        elif mean[k] < dark_ratio * med:
+            bad[k] = f"signal {mean[k]:.3g} is below {dark_ratio} x the scene median {med:.3g}"
+        elif mean[k] > bright_ratio * med:
+            bad[k] = f"signal {mean[k]:.3g} is above {bright_ratio} x the scene median {med:.3g}"
+    return bad
+
+
 def load_scene(path, near_far: tuple[float, float] | None = None) -> Scene:
     """Load a scene folder (module docstring). Raises SceneError/PoseError/RawError.
 
@@ -251,9 +286,15 @@ def load_scene(path, near_far: tuple[float, float] | None = None) -> Scene:
         index = {n: k for k, n in enumerate(names)}
         train = np.array([index[n] for n in split["train"]], dtype=int)
         test = np.array([index[n] for n in split["test"]], dtype=int)
+    bad = unusable_frames(raw_bayer, np.stack(meta["black"]), np.asarray(meta["white"]))
+    for k, why in bad.items():
+        warnings.warn(f"{files[names[k]]}: {why}; the frame is left out", stacklevel=2)
+    train = np.array([k for k in train if k not in bad], dtype=int)
+    test = np.array([k for k in test if k not in bad], dtype=int)
     if train.size == 0:
-        raise SceneError(source, "the training split is empty",
-                         "list some frames in train_filenames (or remove the split)")
+        raise SceneError(source, "the training split is empty" + (
+            f" ({len(bad)} of {len(names)} frames are unusable: dark, clipped or corrupt)"
+            if bad else ""), "list some usable frames in train_filenames (or remove the split)")
     gt = scene / "gt"
     return Scene(
         path=scene,

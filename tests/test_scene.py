@@ -227,3 +227,46 @@ def test_bad_folders_and_frames(tmp_path, monkeypatch):
     monkeypatch.setattr(raw, "read_raw", odd_cfa)
     with pytest.raises(SceneError, match="unsupported CFA"):
         load_scene(root)
+
+
+def _rewrite(path, fn):
+    """Rewrite one DNG with fn(raw_bayer, frame) as its mosaic, keeping its metadata."""
+    from gridnerf import dng
+
+    frame = raw.read_raw(path)
+    dng.write_dng(path, fn(frame.raw_bayer.copy(), frame), frame.cfa, frame.black_level,
+                  int(frame.white_level), frame.xyz_to_cam, frame.as_shot_neutral)
+
+
+def _black(mosaic, frame):
+    return np.full_like(mosaic, int(frame.black_level.mean()))
+
+
+def test_black_and_clipped_frames_are_named_and_left_out(small_scene, tmp_path):
+    import shutil
+
+    root = tmp_path / "s"
+    shutil.copytree(small_scene, root)
+    names = sorted(p.stem for p in (root / "raw").glob("*.dng"))
+    _rewrite(root / "raw" / f"{names[3]}.dng", _black)
+    _rewrite(root / "raw" / f"{names[5]}.dng",
+             lambda m, f: np.full_like(m, int(f.white_level)))
+    with pytest.warns(UserWarning) as record:
+        scene = load_scene(root, near_far=sim_near_far(root))
+    text = " ".join(str(w.message) for w in record)
+    assert f"{names[3]}.dng" in text and "below" in text
+    assert f"{names[5]}.dng" in text and "clipped" in text
+    assert 3 not in scene.train_idx and 5 not in scene.train_idx
+    for name in names:
+        _rewrite(root / "raw" / f"{name}.dng", _black)
+    with pytest.raises(SceneError, match="every frame is at the black level"):
+        load_scene(root, near_far=sim_near_far(root))
+
+
+def test_simulated_frames_are_all_usable(small_scene):
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no frame may be flagged
+        scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
+    assert len(scene.train_idx) + len(scene.test_idx) == len(scene.names)
