@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import contextlib
 import json
 import os
 from pathlib import Path
@@ -81,10 +82,8 @@ class Session:
             if p.name not in self._before and (p.is_file() or p.is_symlink()):
                 p.unlink(missing_ok=True)
         if self._made_dir:
-            try:
+            with contextlib.suppress(OSError):  # something else appeared in it: keep it
                 self.run.rmdir()
-            except OSError:
-                pass  # something else appeared in it: keep it
 
 
 def _lock(path: Path) -> int:
