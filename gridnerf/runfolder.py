@@ -15,9 +15,9 @@ failed start leaves no run folder (or no new file in an existing one) behind.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
-import contextlib
 import json
 import os
 from pathlib import Path
