@@ -192,6 +192,21 @@ def to_index_space(structure: GridStructure, points: jax.Array) -> jax.Array:
     return (points - structure.bbox_min) * (res1 / (structure.bbox_max - structure.bbox_min))
 
 
+def corner_rows(structure: GridStructure, u: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Rows of the 8 corners of the cell holding each index-space point (clamped to the box).
+
+    u: (..., 3) -> rows (..., 8) int32 in [0, M] (M = empty), corner order (dx, dy, dz) in
+    C order; frac (..., 3) the position inside the cell.
+    """
+    rx, ry, rz = structure.resolution
+    uc = jnp.clip(u, 0.0, jnp.asarray([rx - 1, ry - 1, rz - 1], jnp.float32))
+    base = jnp.minimum(jnp.floor(uc).astype(jnp.int32), jnp.asarray([rx - 2, ry - 2, rz - 2]))
+    corner = np.array([(dx * ry + dy) * rz + dz for dx in (0, 1) for dy in (0, 1)
+                       for dz in (0, 1)], np.int32)
+    flat = ((base[..., 0] * ry + base[..., 1]) * rz + base[..., 2])[..., None] + corner
+    return jnp.take(structure.index.reshape(-1), flat, mode="clip"), uc - base
+
+
 def trilinear_index_space(structure: GridStructure, table: jax.Array, u: jax.Array,
                           outside_empty: bool = False) -> jax.Array:
     """Trilinear lookup by one flat gather.
@@ -199,21 +214,14 @@ def trilinear_index_space(structure: GridStructure, table: jax.Array, u: jax.Arr
     table: (M + 1, C) from feature_table; u: (..., 3) index-space points -> (..., C).
     Points are clamped to the box, or read as the empty row when outside_empty.
     """
-    rx, ry, rz = structure.resolution
-    hi = jnp.asarray([rx - 1, ry - 1, rz - 1], jnp.float32)
-    uc = jnp.clip(u, 0.0, hi)
-    base = jnp.minimum(jnp.floor(uc).astype(jnp.int32), jnp.asarray([rx - 2, ry - 2, rz - 2]))
-    frac = uc - base
-    corner = np.array([(dx * ry + dy) * rz + dz for dx in (0, 1) for dy in (0, 1)
-                       for dz in (0, 1)], np.int32)
-    flat = ((base[..., 0] * ry + base[..., 1]) * rz + base[..., 2])[..., None] + corner
-    rows = jnp.take(structure.index.reshape(-1), flat, mode="clip")  # (..., 8), in range
+    rows, frac = corner_rows(structure, u)
     if outside_empty:
+        hi = jnp.asarray(structure.resolution, jnp.float32) - 1.0
         outside = jnp.any((u < 0.0) | (u > hi), axis=-1, keepdims=True)
         rows = jnp.where(outside, table.shape[0] - 1, rows)
     fx, fy, fz = frac[..., 0], frac[..., 1], frac[..., 2]
     gx, gy, gz = 1.0 - fx, 1.0 - fy, 1.0 - fz
-    # explicit products (same corner order as `corner`): faster on CPU than broadcasting
+    # explicit products (corner order of corner_rows): faster on CPU than broadcasting
     weights = jnp.stack([gx * gy * gz, gx * gy * fz, gx * fy * gz, gx * fy * fz,
                          fx * gy * gz, fx * gy * fz, fx * fy * gz, fx * fy * fz], axis=-1)
     return jnp.einsum("...k,...kc->...c", weights, jnp.take(table, rows, axis=0, mode="clip"))

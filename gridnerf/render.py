@@ -199,13 +199,7 @@ def vertex_visibility(structure: GridStructure, params, origins, directions, nea
     feats = gridlib.trilinear_index_space(structure, table, u)[..., : structure.n_channels]
     sigma = jax.nn.softplus(feats[..., 0])
     w, _ = composite(sigma, step, {})
-    rx, ry, rz = structure.resolution
-    base = jnp.minimum(jnp.floor(jnp.clip(u, 0.0, None)).astype(jnp.int32),
-                       jnp.asarray([rx - 2, ry - 2, rz - 2]))
-    corner = np.array([(dx * ry + dy) * rz + dz for dx in (0, 1) for dy in (0, 1)
-                       for dz in (0, 1)], np.int32)
-    flat = ((base[..., 0] * ry + base[..., 1]) * rz + base[..., 2])[..., None] + corner
-    rows = jnp.take(structure.index.reshape(-1), flat, mode="clip")  # (n, K, 8)
+    rows = gridlib.corner_rows(structure, u)[0]  # (n, K, 8)
     w8 = jnp.broadcast_to(jnp.where(step > 0, w, 0.0)[..., None], rows.shape)
     rows, w8 = rows.reshape(-1), w8.reshape(-1)
     zeros = jnp.zeros((structure.n_rows + 1,), jnp.float32)
