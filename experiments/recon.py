@@ -6,7 +6,8 @@ binning, grey world, colour matrix, exposure matched to the reference, bilinear 
 gridnerf.baseline.process_binned_frame), scored on the test views. The nine built-in scenes
 and the held-out scenes (gridnerf.sim.HELDOUT, which no default is tuned on) are reported in
 separate tables. Runs are cached in runs/<scene>/<preset>/ (re-running reuses finished
-runs). Writes reports/recon.md and reports/recon.json.
+runs). Writes reports/recon.md and reports/recon.json and, with --scenes all, the tables in
+README.md between the recon markers.
 
     python experiments/recon.py [--scenes all|nine|heldout|name,name] [--oracle all|heldout|none]
 """
@@ -84,6 +85,19 @@ def table(rows: list[dict]) -> str:
                            "train s"], body)
 
 
+BEGIN, END = "<!-- recon:begin (written by experiments/recon.py) -->", "<!-- recon:end -->"
+
+
+def update_readme(tables: str, path: Path = Path("README.md")) -> None:
+    """Replace the README's table section between the recon markers (kept when absent)."""
+    if not path.is_file():
+        return
+    text = path.read_text()
+    if BEGIN in text and END in text:
+        head, rest = text.split(BEGIN, 1)
+        path.write_text(f"{head}{BEGIN}\n{tables}\n{END}{rest.split(END, 1)[1]}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="all")
@@ -105,6 +119,8 @@ def main() -> None:
     out.mkdir(exist_ok=True)
     (out / "recon.md").write_text("\n".join(text))
     (out / "recon.json").write_text(json.dumps({"machine": machine, "rows": rows}, indent=2))
+    if args.scenes == "all":
+        update_readme("\n".join(text[2:]).replace("## ", "### ").rstrip("\n"))
     print("\n".join(text))
 
 
