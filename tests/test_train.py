@@ -50,13 +50,10 @@ def test_checkpoint_is_finite_and_loads(tiny_run):
     assert not list(run.glob("*.tmp"))
 
 
-def test_interrupted_training_resumes_from_checkpoint(small_scene, tmp_path, monkeypatch):
+def _crash_after(monkeypatch, n_steps: int) -> None:
+    """Make train.make_step's steps raise KeyboardInterrupt after n_steps calls (a kill)."""
     from gridnerf import train as trainmod
 
-    cfg = cfgmod.preset("tiny")
-    cfg = replace(cfg, train=replace(cfg.train, steps_per_stage=(20, 20), checkpoint_every=10,
-                                     checkpoint_seconds=0.0, log_every=4))
-    run = tmp_path / "run"
     real_make_step, calls = trainmod.make_step, {"n": 0}
 
     def crashing_make_step(*args, **kwargs):
@@ -64,13 +61,24 @@ def test_interrupted_training_resumes_from_checkpoint(small_scene, tmp_path, mon
 
         def wrapped(*a):
             calls["n"] += 1
-            if calls["n"] > 33:  # dies at stage 1 step 14, after its step-10 checkpoint
+            if calls["n"] > n_steps:
                 raise KeyboardInterrupt
             return step(*a)
 
         return wrapped
 
     monkeypatch.setattr(trainmod, "make_step", crashing_make_step)
+
+
+def test_interrupted_training_resumes_from_checkpoint(small_scene, tmp_path, monkeypatch):
+    from gridnerf import train as trainmod
+
+    cfg = cfgmod.preset("tiny")
+    cfg = replace(cfg, train=replace(cfg.train, steps_per_stage=(20, 20), checkpoint_every=10,
+                                     checkpoint_seconds=0.0, log_every=4))
+    run = tmp_path / "run"
+    real_make_step = trainmod.make_step
+    _crash_after(monkeypatch, 33)  # dies at stage 1 step 14, after its step-10 checkpoint
     with pytest.raises(KeyboardInterrupt):
         trainmod.train(small_scene, run, cfg)
     _, _, opt_leaves, header = trainmod.load_state(run)
@@ -157,20 +165,7 @@ def test_checkpoints_by_time_as_well_as_steps(small_scene, tmp_path, monkeypatch
     cfg = replace(cfg, train=replace(cfg.train, steps_per_stage=(20, 20), checkpoint_every=1000,
                                      checkpoint_seconds=1e-9))
     run = tmp_path / "run"
-    real_make_step, calls = trainmod.make_step, {"n": 0}
-
-    def crashing_make_step(*args, **kwargs):
-        step = real_make_step(*args, **kwargs)
-
-        def wrapped(*a):
-            calls["n"] += 1
-            if calls["n"] > 7:
-                raise KeyboardInterrupt
-            return step(*a)
-
-        return wrapped
-
-    monkeypatch.setattr(trainmod, "make_step", crashing_make_step)
+    _crash_after(monkeypatch, 7)
     with pytest.raises(KeyboardInterrupt):
         trainmod.train(small_scene, run, cfg)
     header = trainmod.load_state(run)[3]
