@@ -18,6 +18,7 @@ from skimage.transform import resize
 from gridnerf.color import luminance, srgb_from_cam
 from gridnerf.errors import RawError
 from gridnerf.exposure import alpha_for_luminance
+from gridnerf.illuminant import gains_from_illuminant, grey_world
 from gridnerf.raw import bin2x2, cfa_masks
 
 # Bilinear interpolation kernel for normalised convolution: cross neighbours
@@ -79,10 +80,11 @@ def demosaic_bilinear(raw_bayer, cfa) -> np.ndarray:
 def grey_world_gains(rgb_cam, mask=None) -> np.ndarray:
     """Grey-world von Kries gains: (3,) with `gains_k * mean_k == mean(mean_R, mean_G, mean_B)`.
 
-    The same target as L_ca (`K_avg / Cbar_k`). A channel whose mean is at or
-    below 1e-3 of the brightest channel mean (e.g. an all-zero blue channel, or
-    pure noise with a negative mean) is floored there, capping its gain near
-    1000; an image with no positive channel mean gets unit gains.
+    The same target as L_ca (`K_avg / Cbar_k`): illuminant.grey_world followed by
+    illuminant.gains_from_illuminant. A channel whose mean is at or below 1e-3 of the
+    brightest channel mean (e.g. an all-zero blue channel, or pure noise with a negative
+    mean) is floored there, capping its gain near 1000; an image with no positive channel
+    mean gets unit gains.
 
     Args:
       rgb_cam: (H, W, 3) float, camera-native linear RGB.
@@ -91,20 +93,13 @@ def grey_world_gains(rgb_cam, mask=None) -> np.ndarray:
     Returns:
       (3,) float32 gains.
     """
-    rgb = np.asarray(rgb_cam, np.float64).reshape(-1, 3)
+    rgb = np.asarray(rgb_cam, np.float64)
     if mask is not None:
-        mask = np.asarray(mask, bool).reshape(-1)
-        if mask.shape[0] != rgb.shape[0]:
-            raise ValueError(f"mask has {mask.shape[0]} pixels, image has {rgb.shape[0]}")
-        rgb = rgb[mask]
-    if rgb.shape[0] == 0:
-        return np.ones(3, np.float32)
-    means = rgb.mean(axis=0)
-    top = means.max()
-    if not top > 0.0:
-        return np.ones(3, np.float32)
-    means = np.maximum(means, 1e-3 * top)
-    return (means.mean() / means).astype(np.float32)
+        mask = np.asarray(mask, bool)
+        if mask.size != rgb.size // 3:
+            raise ValueError(f"mask has {mask.size} pixels, image has {rgb.size // 3}")
+        mask = mask.reshape(rgb.shape[:-1])
+    return gains_from_illuminant(grey_world(rgb, mask)).astype(np.float32)
 
 
 def process_dark_frame(raw_bayer, cfa, xyz_to_cam, use_matrix: bool = True) -> np.ndarray:

@@ -186,12 +186,20 @@ class LossConfig(_Section):
     opacity: float = 0.0  # weight of mean (1 - acc)^2: every ray ends on a surface in the box
     tv_fraction: float = 0.25  # fraction of voxels sampled per step for TV terms
     use_gains: bool = True  # False: ablation without the colour-restoration (gain) field
+    # gain map of L_ca and the patch smoothness: "normalized" = S / acc composited with
+    # stop-gradient weights (the colour prior never moves density); "raw" = S as rendered
+    gain_map: Literal["normalized", "raw"] = "normalized"
+    # illuminant estimate behind the L_ca target K_avg / C_k, on the batch's rendered colour
+    ca_illuminant: Literal["grey_world", "shades_of_grey", "grey_edge",
+                           "weighted_grey"] = "grey_world"
+    ca_illuminant_p: float = 6.0  # Minkowski p of shades_of_grey (grey_edge uses p = 1)
 
     def _check(self) -> None:
         for name in ("w_data", "w_ca", "w_smooth", "tv_density", "tv_rgb", "sparsity",
                      "distortion", "opacity"):
             self._range(name, 0.0)
         self._range("tv_fraction", 0.0, 1.0, lo_open=True)
+        self._range("ca_illuminant_p", 1.0)
 
 
 @dataclass(frozen=True)

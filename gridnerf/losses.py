@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 
 from gridnerf import grid as gridlib
+from gridnerf import illuminant as illuminant_lib
 from gridnerf.grid import GridStructure
 
 _TINY = 1e-30
@@ -34,20 +35,57 @@ def data_loss(rgb_low: jax.Array, target: jax.Array, mask: jax.Array) -> jax.Arr
 
 
 def ca_loss(rgb_low: jax.Array, gain: jax.Array, eps: float = 1e-6,
-            stop_grad_mean: bool = True) -> jax.Array:
+            stop_grad_mean: bool = True, illuminant: jax.Array | None = None) -> jax.Array:
     """Chromatic adaptation loss (eq. 14), averaged over the rays of the batch.
 
-    rgb_low: (n, 3) rendered low-light camera RGB; gain: (n, 3) rendered gains S.
-    Target gain K_avg / Cbar_k (grey world) with Cbar_k the batch mean of channel k,
-    guarded as max(Cbar_k, eps * K_avg + 1e-30): a black channel gives a large finite
-    target, never Inf/NaN. stop_grad_mean: the means are constants (default).
+    rgb_low: (n, 3) rendered low-light camera RGB; gain: (n, 3) rendered gains S (use
+    normalized_gain so that the loss cannot reach density through the opacity).
+    Target gain K_avg / C_k (illuminant.gains_from_illuminant) with C the illuminant
+    estimate: `illuminant` (3,) when given (any scale, e.g. illuminant.shades_of_grey of
+    the batch), else grey world, C_k = Cbar_k the batch mean of channel k. Channels at or
+    below eps x the largest are floored there: a black channel gives a large finite target,
+    never Inf/NaN. stop_grad_mean: the estimate is a constant (default).
     """
-    cbar = jnp.mean(rgb_low, axis=0)
+    c = illuminant_lib.grey_world(rgb_low) if illuminant is None else illuminant
     if stop_grad_mean:
-        cbar = jax.lax.stop_gradient(cbar)
-    k_avg = jnp.mean(cbar)
-    target = k_avg / jnp.maximum(cbar, eps * k_avg + _TINY)
+        c = jax.lax.stop_gradient(c)
+    target = illuminant_lib.gains_from_illuminant(c, floor=eps)
     return jnp.mean(jnp.sum((target - gain) ** 2, axis=-1)) / 3.0
+
+
+def normalized_gain(gain: jax.Array, acc: jax.Array, eps: float = 1e-3) -> jax.Array:
+    """Gain map independent of opacity: S / max(sg(acc), eps).
+
+    gain: (n, 3) rendered S = sum_i w_i s_i; acc: (n,) sum_i w_i. A ray that is half
+    transparent renders S ~ 0.5 s; dividing by its opacity gives back the gain of the
+    surface, so L_ca no longer pushes the gains of dark, thin rays to target / acc. acc is
+    a constant here, and S should come from weights that are constants too (render with
+    stop-gradient density, as train.loss_fn does): then the colour prior sends no gradient
+    to density at all. Rays with acc < eps are divided by eps (they render ~0 anyway).
+    """
+    acc = jax.lax.stop_gradient(acc)
+    return gain / jnp.maximum(acc, eps)[..., None]
+
+
+def batch_illuminant(name: str, rgb_low: jax.Array, acc: jax.Array | None = None,
+                     patch_shape: tuple[int, ...] | None = None, p: float = 6.0) -> jax.Array:
+    """The L_ca illuminant estimate (3,) of one batch of rendered rays, a constant.
+
+    name: one of illuminant.ESTIMATORS; rgb_low: (n, 3) rendered low-light camera RGB;
+    acc: (n,) rendered opacity (weighted_grey: surface colour rgb_low / acc weighted by acc,
+    near-black rays left out); patch_shape: (P, h, w, 3) the batch's ray patches (grey_edge
+    differentiates inside each patch); p: Minkowski p of shades_of_grey.
+    """
+    rgb = jax.lax.stop_gradient(rgb_low)
+    if name == "grey_edge":
+        if patch_shape is None:
+            raise ValueError("grey_edge needs the batch's patch shape (P, h, w, 3)")
+        return illuminant_lib.grey_edge(rgb.reshape(patch_shape), p=1.0, sigma=1.0)
+    if name == "weighted_grey":
+        a = jnp.ones(rgb.shape[:-1], rgb.dtype) if acc is None else jax.lax.stop_gradient(acc)
+        surface = rgb / jnp.maximum(a, 1e-3)[..., None]
+        return illuminant_lib.weighted_grey(surface, weights=a)
+    return illuminant_lib.estimate(name, rgb, p=p)
 
 
 def smooth_loss_patch(gain: jax.Array, rgb: jax.Array, eps: float = 1e-2, gamma1: float = 1.0,

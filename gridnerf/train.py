@@ -78,11 +78,25 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
     lc = cfg.loss
     k1, k2 = jax.random.split(key)
     if lc.use_gains:
-        terms["ca"] = losses.ca_loss(out["rgb_low"], out["gain"], stop_grad_mean=lc.ca_stop_grad)
+        gain = out["gain"]
+        if lc.gain_map == "normalized":
+            # the gains composited with stop-gradient density (same samples, same key; XLA
+            # shares the forward pass), divided by the opacity: the colour prior cannot
+            # move density, and half-transparent rays are not pushed to target / acc
+            frozen = {**params, "density": jax.lax.stop_gradient(params["density"])}
+            g_out = render.render_rays(structure, frozen, flat["origins"], flat["directions"],
+                                       near_t, far_t, cfg.render, key=k0)
+            gain = losses.normalized_gain(g_out["gain"], g_out["acc"])
+        c_ill = None  # None: ca_loss's grey world of the batch (the paper's target)
+        if lc.ca_illuminant != "grey_world":
+            c_ill = losses.batch_illuminant(lc.ca_illuminant, out["rgb_low"], out["acc"],
+                                            shape, lc.ca_illuminant_p)
+        terms["ca"] = losses.ca_loss(out["rgb_low"], gain, stop_grad_mean=lc.ca_stop_grad,
+                                     illuminant=c_ill)
         smooth = 0.0
         if lc.smooth_mode in ("patch", "both"):
             smooth = smooth + losses.smooth_loss_patch(
-                out["gain"].reshape(shape), out["rgb_low"].reshape(shape)
+                gain.reshape(shape), out["rgb_low"].reshape(shape)
             )
         if lc.smooth_mode in ("tv", "both"):
             smooth = smooth + losses.edge_aware_gain_tv(

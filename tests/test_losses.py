@@ -225,3 +225,75 @@ def test_l1_sparsity_pulls_thin_fog_harder_than_cauchy():
     g_l1 = jax.grad(lambda d: losses.sparsity_loss(d, mode="l1"))(fog)
     g_cauchy = jax.grad(lambda d: losses.sparsity_loss(d, mode="cauchy"))(fog)
     assert np.all(np.asarray(g_l1) > 10 * np.asarray(g_cauchy)) and np.all(g_cauchy > 0)
+
+
+def _foggy_scene():
+    """A small grid with semi-transparent density and gains that vary along the rays."""
+    structure, params = grid.init_grid((8, 8, 8), -np.ones(3), np.ones(3), color_scale=5e-3)
+    rng = np.random.default_rng(3)
+    m = structure.n_rows
+    params["density"] = jnp.asarray(rng.uniform(-3.0, 0.5, m), jnp.float32)
+    params["rgb"] = jnp.asarray(rng.normal(0.0, 0.5, params["rgb"].shape), jnp.float32)
+    params["log_gain"] = jnp.asarray(rng.normal(0.3, 0.4, (m, 3)), jnp.float32)
+    structure = grid.update_occupancy(structure, params, threshold=1e-6)
+    xy = np.stack(np.meshgrid(np.linspace(-0.6, 0.6, 4), np.linspace(-0.6, 0.6, 4),
+                              indexing="ij"), -1).reshape(1, 4, 4, 2)
+    xy = np.concatenate([xy, xy + 0.05], axis=0)  # (2, 4, 4, 2): two patches
+    origins = np.concatenate([xy, -np.ones((2, 4, 4, 1))], -1).astype(np.float32)
+    directions = np.concatenate([0.1 * xy, 2.0 * np.ones((2, 4, 4, 1))], -1).astype(np.float32)
+    rays = {"origins": jnp.asarray(origins), "directions": jnp.asarray(directions),
+            "target": jnp.full((2, 4, 4, 3), 4e-3), "mask": jnp.ones((2, 4, 4, 3))}
+    return structure, params, rays
+
+
+def _colour_prior_grads(gain_map: str, smooth_mode: str, illuminant: str = "grey_world"):
+    from dataclasses import replace
+
+    from gridnerf import config as cfgmod
+    from gridnerf import train
+
+    c = cfgmod.preset("tiny")
+    c = replace(c, render=replace(c.render, max_samples=16),
+                loss=replace(c.loss, w_data=0.0, tv_density=0.0, tv_rgb=0.0, sparsity=0.0,
+                             w_ca=1.0, w_smooth=1.0, smooth_mode=smooth_mode,
+                             gain_map=gain_map, ca_illuminant=illuminant))
+    structure, params, rays = _foggy_scene()
+    loss = jax.jit(lambda p: train.loss_fn(p, structure, rays, jax.random.PRNGKey(0), c,
+                                           -1.0, 1.0)[0])
+    return jax.grad(loss)(params)
+
+
+@pytest.mark.parametrize("illuminant", ["grey_world", "weighted_grey", "grey_edge"])
+def test_normalized_gain_map_sends_no_gradient_to_density(illuminant):
+    g = _colour_prior_grads("normalized", "both", illuminant)
+    assert finite(g)
+    assert np.all(np.asarray(g["density"]) == 0.0)  # exactly: the prior never moves density
+    assert np.all(np.asarray(g["rgb"]) == 0.0)
+    assert np.abs(np.asarray(g["log_gain"])).max() > 0.0
+    # the rendered gain as it was (S, not divided by acc) leaks into density
+    g_raw = _colour_prior_grads("raw", "patch", illuminant)
+    assert np.abs(np.asarray(g_raw["density"])).max() > 0.0
+
+
+def test_normalized_gain_is_the_surface_gain_of_a_thin_ray():
+    gain_surface = jnp.asarray([[1.5, 1.0, 2.5], [0.8, 1.0, 1.2]])
+    acc = jnp.asarray([0.4, 1e-6])  # a half-transparent ray and an empty one
+    s = gain_surface * acc[:, None]  # what compositing renders for a constant gain
+    out = losses.normalized_gain(s, acc)
+    np.testing.assert_allclose(out[0], gain_surface[0], rtol=1e-6)
+    assert finite(out) and float(jnp.abs(out[1]).max()) < 1e-2  # divided by eps, ~0
+    g = jax.grad(lambda a: jnp.sum(losses.normalized_gain(s, a)))(acc)
+    assert np.all(np.asarray(g) == 0.0)
+
+
+def test_ca_loss_takes_any_illuminant_estimate():
+    rgb = jnp.asarray(np.random.default_rng(4).uniform(0.001, 0.01, (16, 3)), jnp.float32)
+    c = jnp.asarray([0.6, 1.0, 0.3])
+    target = c.mean() / c
+    gain = jnp.broadcast_to(target, rgb.shape)
+    assert float(ca_loss(rgb, gain, illuminant=c)) < 1e-10
+    assert float(ca_loss(rgb, gain, illuminant=7.0 * c)) < 1e-10  # scale-free
+    for name in ("grey_world", "shades_of_grey", "grey_edge", "weighted_grey"):
+        est = losses.batch_illuminant(name, rgb, jnp.ones(16), (1, 4, 4, 3))
+        assert est.shape == (3,) and finite(est)
+        np.testing.assert_allclose(float(jnp.linalg.norm(est)), 1.0, rtol=1e-5)

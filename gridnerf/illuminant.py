@@ -1,0 +1,254 @@
+"""Illuminant estimation on linear camera RGB, von Kries gains and angular error.
+
+Every estimator takes linear camera RGB (`rgb_cam`, black level removed, negatives kept)
+and a validity mask, and returns the illuminant's colour as a unit-norm (3,) vector in
+camera RGB, non-negative. The estimators (colour constancy by image statistics):
+
+- `grey_world` (Buchsbaum 1980; the target of Bright-NeRF's L_ca, eq. 14): the mean
+  colour of the scene is achromatic, so the illuminant is the per-channel mean. Signed
+  means: zero-mean raw noise averages out instead of biasing dark channels upwards.
+- `shades_of_grey` (Finlayson & Trezzi 2004): the Minkowski p-mean of each channel,
+  (mean x^p)^(1/p) on x >= 0; p = 1 is grey world, p -> inf is max-RGB; p ~ 6 is the
+  usual choice. Bright surfaces weigh more, which resists a large single-coloured area.
+- `grey_edge` (van de Weijer, Gevers & Gijsenij 2007, first order): the Minkowski p-mean
+  of each channel's gradient magnitude after Gaussian smoothing: the average *edge* is
+  achromatic. Needs images (or ray patches); on raw noise the gradients measure the noise,
+  so use it on denoised (rendered) colour.
+- `weighted_grey` (3D-aware, for rendered rays): grey world over rays or samples with
+  per-point weights (e.g. the rendered opacity, or `footprint_weights`, the surface area a
+  pixel sees, so near objects stop dominating), leaving out near-black points (their
+  chromaticity is noise and black-level error) and clipped ones.
+
+`gains_from_illuminant` turns an estimate into the von Kries gains of L_ca,
+s_k = K_avg / C_k (mean over channels of the estimate over channel k: a grey illuminant
+gives unit gains); `angular_error_deg` compares an estimate with the true illuminant.
+
+All functions work on numpy arrays (computed in float64, numpy results) and jax arrays
+(jittable, differentiable, no boolean indexing); masks are weights, so a masked entry
+can hold anything, even NaN or Inf.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+ESTIMATORS: tuple[str, ...] = ("grey_world", "shades_of_grey", "grey_edge", "weighted_grey")
+_TINY = 1e-30
+
+
+def _namespace(*arrays):
+    """numpy unless one of the inputs is a jax array (or tracer)."""
+    for a in arrays:
+        if a is not None and not isinstance(a, np.ndarray | np.generic | float | int | list):
+            import jax.numpy as jnp
+
+            return jnp
+    return np
+
+
+def _prepare(rgb, mask, xp):
+    """rgb (..., 3), mask None | (...,) | (..., 3) -> (rgb, w): float arrays (..., 3), w >= 0,
+    rgb zeroed wherever w == 0 or it is not finite (then w is 0 there too)."""
+    rgb = xp.asarray(rgb, dtype=np.float64) if xp is np else xp.asarray(rgb, dtype=float)
+    if rgb.shape[-1:] != (3,):
+        raise ValueError(f"expected (..., 3) camera RGB, got shape {rgb.shape}")
+    if mask is None:
+        w = xp.ones_like(rgb)
+    else:
+        m = xp.asarray(mask).astype(rgb.dtype)
+        if m.shape == rgb.shape[:-1]:
+            m = m[..., None]
+        elif m.shape != rgb.shape:
+            raise ValueError(f"mask shape {m.shape} fits neither {rgb.shape[:-1]} nor "
+                             f"{rgb.shape}")
+        w = xp.broadcast_to(xp.maximum(m, 0.0), rgb.shape)
+    ok = xp.isfinite(rgb) & (w > 0)
+    return xp.where(ok, rgb, 0.0), xp.where(ok, w, 0.0)
+
+
+def _channel_mean(x, w, xp):
+    """(..., 3), (..., 3) -> (3,) weighted mean per channel (0 where no weight)."""
+    axes = tuple(range(x.ndim - 1))
+    total = xp.sum(w, axis=axes)
+    return xp.sum(w * x, axis=axes) / xp.maximum(total, _TINY)
+
+
+def unit(e):
+    """(..., 3) -> (..., 3) non-negative unit vectors; all-zero or negative: (1,1,1)/sqrt(3)."""
+    xp = _namespace(e)
+    e = xp.maximum(xp.asarray(e), 0.0)
+    norm = xp.sqrt(xp.sum(e * e, axis=-1, keepdims=True))
+    ok = norm > _TINY
+    return xp.where(ok, e / xp.where(ok, norm, 1.0), 1.0 / math.sqrt(3.0))
+
+
+def grey_world(rgb_cam, mask=None):
+    """Grey world: rgb_cam (..., 3) linear camera RGB, mask None | (...,) | (..., 3) weights
+    -> (3,) unit illuminant, the normalised signed per-channel mean of the valid entries."""
+    xp = _namespace(rgb_cam, mask)
+    x, w = _prepare(rgb_cam, mask, xp)
+    return unit(_channel_mean(x, w, xp))
+
+
+def shades_of_grey(rgb_cam, mask=None, p: float = 6.0):
+    """Shades of grey: (mean_k max(x, 0)^p)^(1/p) per channel -> (3,) unit illuminant.
+
+    rgb_cam: (..., 3); mask as in grey_world; p >= 1 (1: grey world on clipped values,
+    math.inf: max-RGB). Values are divided by their largest weighted channel mean first,
+    so tiny low-light signals (~1e-3) do not underflow at large p.
+    """
+    if not p >= 1.0:
+        raise ValueError(f"Minkowski p must be >= 1, got {p}")
+    xp = _namespace(rgb_cam, mask)
+    x, w = _prepare(rgb_cam, mask, xp)
+    x = xp.maximum(x, 0.0)
+    if math.isinf(p):
+        axes = tuple(range(x.ndim - 1))
+        return unit(xp.max(xp.where(w > 0, x, 0.0), axis=axes))
+    scale = xp.maximum(xp.max(_channel_mean(x, w, xp)), _TINY)
+    return unit(_channel_mean((x / scale) ** p, w, xp) ** (1.0 / p))
+
+
+def _gauss_1d(sigma: float) -> np.ndarray:
+    radius = max(1, int(math.ceil(3.0 * sigma)))
+    k = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
+    return k / k.sum()
+
+
+def _smooth(x, w, sigma: float, xp):
+    """Normalised Gaussian convolution over the image axes (-3, -2) of (..., H, W, 3):
+    masked pixels neither contribute nor count (edges: the same, by zero padding)."""
+    if sigma <= 0:
+        return x
+    k = _gauss_1d(sigma)
+    r = len(k) // 2
+    num, den = x * w, w
+    for axis in (-3, -2):
+        n = x.shape[axis]
+        pad = [(0, 0)] * x.ndim
+        pad[axis] = (r, r)
+        num_p, den_p = xp.pad(num, pad), xp.pad(den, pad)
+        idx = [slice(None)] * x.ndim
+
+        def take(a, i, idx=idx, axis=axis, n=n):
+            idx[axis] = slice(i, i + n)
+            return a[tuple(idx)]
+
+        num = sum(float(k[i]) * take(num_p, i) for i in range(len(k)))
+        den = sum(float(k[i]) * take(den_p, i) for i in range(len(k)))
+    return num / xp.maximum(den, _TINY)
+
+
+def grey_edge(rgb_cam, mask=None, p: float = 1.0, sigma: float = 1.0):
+    """First-order grey edge: the Minkowski p-mean of |grad (G_sigma * I_k)| per channel.
+
+    rgb_cam: (..., H, W, 3) one image or a batch of images / ray patches (H, W >= 2);
+    mask: None | (..., H, W) | (..., H, W, 3); p >= 1; sigma: Gaussian smoothing in pixels
+    (0: none). Forward differences; a difference counts only where both its pixels are
+    valid. Returns the (3,) unit illuminant.
+    """
+    if not p >= 1.0:
+        raise ValueError(f"Minkowski p must be >= 1, got {p}")
+    xp = _namespace(rgb_cam, mask)
+    x, w = _prepare(rgb_cam, mask, xp)
+    if x.ndim < 3 or x.shape[-3] < 2 or x.shape[-2] < 2:
+        raise ValueError(f"grey edge needs (..., H, W, 3) images with H, W >= 2, got {x.shape}")
+    x = _smooth(x, w, sigma, xp)
+    dy = x[..., 1:, :-1, :] - x[..., :-1, :-1, :]
+    dx = x[..., :-1, 1:, :] - x[..., :-1, :-1, :]
+    wd = w[..., :-1, :-1, :] * (w[..., 1:, :-1, :] > 0) * (w[..., :-1, 1:, :] > 0)
+    mag = xp.sqrt(dx * dx + dy * dy + _TINY)
+    scale = xp.maximum(xp.max(_channel_mean(mag, wd, xp)), _TINY)
+    return unit(_channel_mean((mag / scale) ** p, wd, xp) ** (1.0 / p))
+
+
+def footprint_weights(depth, cos_incidence=None, min_cos: float = 0.1):
+    """Surface area a pixel sees, up to one constant: depth^2 / cos(incidence).
+
+    depth: (...,) z-depth along the camera axis (world units; for NDC renders convert with
+    rays.ndc_depth_to_world first); cos_incidence: optional (...,) |n . view| of the hit
+    surface, floored at min_cos. Use as `weights` of weighted_grey so that the grey-world
+    average runs over surface area rather than pixels.
+    """
+    xp = _namespace(depth, cos_incidence)
+    d = xp.asarray(depth)
+    w = xp.where(xp.isfinite(d), d * d, 0.0)
+    if cos_incidence is not None:
+        w = w / xp.maximum(xp.abs(xp.asarray(cos_incidence)), min_cos)
+    return w
+
+
+def weighted_grey(rgb_cam, weights=None, mask=None, dark: float = 0.1,
+                  clip: float | None = 0.98):
+    """3D-aware grey world for rendered rays or samples.
+
+    rgb_cam: (..., 3) rendered low-light camera RGB; weights: optional (...,) >= 0 per point
+    (rendered opacity `acc`, footprint_weights, sample weights ...); mask as in grey_world.
+    Points whose mean intensity is below `dark` x the weighted mean intensity, or with a
+    channel >= `clip` (normalised raw; None: keep all), are left out; when nothing is
+    left, the plain weighted grey world is returned. -> (3,) unit illuminant.
+    """
+    xp = _namespace(rgb_cam, weights, mask)
+    x, w = _prepare(rgb_cam, mask, xp)
+    if weights is not None:
+        pw = xp.asarray(weights).astype(x.dtype)
+        w = w * xp.where(xp.isfinite(pw), xp.maximum(pw, 0.0), 0.0)[..., None]
+    level = xp.mean(x, axis=-1, keepdims=True)
+    mean_level = xp.mean(_channel_mean(x, w, xp))
+    keep = level >= dark * mean_level
+    if clip is not None:
+        keep = keep & (xp.max(x, axis=-1, keepdims=True) < clip)
+    wk = w * keep
+    full = _channel_mean(x, w, xp)
+    kept = _channel_mean(x, wk, xp)
+    return unit(xp.where(xp.sum(wk) > 0, kept, full))
+
+
+def estimate(name: str, rgb_cam, mask=None, weights=None, p: float | None = None,
+             sigma: float = 1.0):
+    """Dispatch to one of ESTIMATORS by name -> (3,) unit illuminant.
+
+    p: Minkowski p (defaults: 6 for shades_of_grey, 1 for grey_edge); weights: only used
+    by weighted_grey; sigma: only used by grey_edge (images: (..., H, W, 3)).
+    """
+    if name == "grey_world":
+        return grey_world(rgb_cam, mask)
+    if name == "shades_of_grey":
+        return shades_of_grey(rgb_cam, mask, 6.0 if p is None else p)
+    if name == "grey_edge":
+        return grey_edge(rgb_cam, mask, 1.0 if p is None else p, sigma)
+    if name == "weighted_grey":
+        return weighted_grey(rgb_cam, weights, mask)
+    raise ValueError(f"unknown illuminant estimator {name!r}; choose one of "
+                     f"{', '.join(ESTIMATORS)}")
+
+
+def gains_from_illuminant(illuminant, floor: float = 1e-3):
+    """Von Kries gains (..., 3) s_k = K_avg / C_k for an illuminant estimate C (..., 3).
+
+    K_avg is the mean of C over the channels, so any scale of C gives the same gains and a
+    grey C gives unit gains (the L_ca target, Bright-NeRF eq. 14). Channels at or below
+    `floor` x the largest are floored there (a black channel gets a large finite gain,
+    ~1/floor); an estimate with no positive channel gives unit gains.
+    """
+    xp = _namespace(illuminant)
+    c = xp.asarray(illuminant)
+    top = xp.max(c, axis=-1, keepdims=True)
+    ok = top > 0
+    c = xp.maximum(c, floor * top + _TINY)
+    gains = xp.mean(c, axis=-1, keepdims=True) / c
+    return xp.where(ok, gains, 1.0)
+
+
+def angular_error_deg(estimate_rgb, true_rgb):
+    """Angle in degrees between illuminant estimates (..., 3) and the truth (..., 3),
+    scale-free; 2 atan2(|a - b|, |a + b|) of the unit vectors (accurate at small angles)."""
+    xp = _namespace(estimate_rgb, true_rgb)
+    a, b = xp.asarray(estimate_rgb), xp.asarray(true_rgb)
+    a = a / xp.maximum(xp.sqrt(xp.sum(a * a, axis=-1, keepdims=True)), _TINY)
+    b = b / xp.maximum(xp.sqrt(xp.sum(b * b, axis=-1, keepdims=True)), _TINY)
+    diff = xp.sqrt(xp.sum((a - b) ** 2, axis=-1))
+    summ = xp.sqrt(xp.sum((a + b) ** 2, axis=-1))
+    return xp.degrees(2.0 * xp.arctan2(diff, summ))
