@@ -15,12 +15,13 @@ from gridnerf.errors import GridNerfError
 
 
 def _simulate(args) -> None:
-    from gridnerf.sim import HELDOUT, SCENES, simulate_scene
+    from gridnerf.sim import HELDOUT, MIXED, SCENES, simulate_scene
 
-    names = {"all": SCENES, "heldout": HELDOUT}.get(args.name, (args.name,))
+    names = {"all": SCENES, "heldout": HELDOUT, "mixed": MIXED}.get(args.name, (args.name,))
     for name in names:
-        if name not in SCENES + HELDOUT:
-            fix = f"choose one of {', '.join(SCENES + HELDOUT)}, 'all' or 'heldout'"
+        if name not in SCENES + HELDOUT + MIXED:
+            fix = (f"choose one of {', '.join(SCENES + HELDOUT + MIXED)}, 'all', 'heldout' "
+                   "or 'mixed'")
             raise GridNerfError(None, f"unknown scene {name!r}", fix)
         out = Path(args.out) if args.out and len(names) == 1 else Path("data/sim") / name
         path = simulate_scene(
@@ -101,8 +102,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("simulate", help="write a simulated low-light RAW scene")
-    s.add_argument("name", help="scene name (bucket, held_arc_brick, ...), 'all' (the nine "
-                   "scenes) or 'heldout' (the held-out scenes)")
+    s.add_argument("name", help="scene name (bucket, held_arc_brick, mixed_lamp_window, ...), "
+                   "'all' (the nine scenes), 'heldout' (the held-out scenes) or 'mixed' (the "
+                   "mixed-light scenes)")
     s.add_argument("--out", help="scene folder (default data/sim/<name>)")
     s.add_argument("--width", type=_positive_int, default=480)
     s.add_argument("--height", type=_positive_int, default=270)

@@ -13,7 +13,7 @@ import rawpy
 from gridnerf import cli
 from gridnerf.color import CAMERA_XYZ_TO_CAM, luminance, srgb_encode
 from gridnerf.errors import SceneError
-from gridnerf.sim import HELDOUT, SCENES, simulate_scene, writer
+from gridnerf.sim import HELDOUT, MIXED, SCENES, simulate_scene, writer
 from gridnerf.sim import scenes as sc
 from gridnerf.sim import sensor as sn
 from gridnerf.sim import textures as tx
@@ -417,3 +417,83 @@ def test_cli_simulates_heldout_group(tmp_path, monkeypatch, capsys):
     assert (tmp_path / "one" / "sim.json").is_file()
     assert cli.main(["simulate", "teapot", *args]) == 2
     assert "heldout" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- mixed-light scenes
+
+
+def test_mixed_scenes_have_two_illuminants_and_the_others_one():
+    assert len(MIXED) >= 2 and not set(MIXED) & set(SCENES + HELDOUT)
+    for name in MIXED:
+        spec = sc.build_scene(name)
+        assert spec.name == name and spec.layered and len(spec.kelvins) == 2
+        assert max(spec.kelvins) - min(spec.kelvins) >= 2500  # a warm lamp and daylight
+        assert any(isinstance(light, sc.PointLight) for light in spec.lights)
+    for name in SCENES + HELDOUT:  # the single-light path, unchanged (byte-identical files)
+        spec = sc.build_scene(name)
+        assert not spec.layered and spec.kelvins == (spec.sensor.kelvin,)
+
+
+def test_layers_add_up_to_the_single_light_render():
+    """A mixed scene's directional lights split over two layers render, summed, exactly
+    what capture.shade gives with all of them in one colour."""
+    from dataclasses import replace
+
+    from gridnerf.sim.capture import render_view_layers
+
+    spec = sc.build_scene("mixed_lamp_window")
+    lights = tuple(replace(li, kelvin=None) for li in spec.lights if isinstance(li, sc.Light))
+    one = replace(spec, lights=lights, ambient_kelvin=None)
+    two = replace(one, lights=tuple(replace(li, kelvin=5000.0) for li in lights))
+    pose = _poses("mixed_lamp_window", 1)[0]
+    intr = intrinsics(48, 27)
+    rgb, _ = render_view(one, pose, intr, ssaa=1)
+    layers, irradiance, _ = render_view_layers(two, pose, intr, ssaa=1)
+    assert layers.shape == (2, 27, 48, 3) and irradiance.shape == (27, 48, 2)
+    np.testing.assert_allclose(layers.sum(0), rgb, rtol=1e-5, atol=1e-7)
+
+
+def test_mixed_scene_folder_records_both_lights(tmp_path):
+    out = simulate_scene("mixed_lamp_window", tmp_path / "m", width=96, height=54,
+                         n_frames=4, seed=0)
+    m = _manifest(out)
+    assert m["mixed_light"] and len(m["illuminants"]) == 2
+    kelvins = sorted(e["kelvin"] for e in m["illuminants"])
+    assert kelvins == [2700.0, 6500.0]
+    shares = [e["share_of_green_signal"] for e in m["illuminants"]]
+    assert abs(sum(shares) - 1.0) < 1e-9 and min(shares) > 0.2
+    lamp, day = (np.array(e["neutral_cam"]) for e in m["illuminants"])
+    assert lamp[0] / lamp[2] > 2.5 * day[0] / day[2]  # warm vs cool in camera RGB
+    mixed = np.array(m["illuminant_neutral_cam"])
+    assert day[0] / day[2] < mixed[0] / mixed[2] < lamp[0] / lamp[2]
+    # which light dominates where: both regimes cover a good part of the frames
+    share = np.stack([iio.imread(out / "illuminant" / f"frame_{i:03d}.png") / 255.0
+                      for i in range(4)])
+    assert share.shape == (4, 54, 96)
+    assert (share > 0.6).mean() > 0.1 and (share < 0.3).mean() > 0.1
+    # the raw agrees: camera R/B is far higher where the lamp dominates
+    rb = []
+    for region in (share > 0.6, share < 0.3):
+        sums = np.zeros(3)
+        for i in range(4):
+            raw, cfa, black, white, _ = _read_raw(out / "raw" / f"frame_{i:03d}.dng")
+            y = (raw.astype(np.float64) - black[0]) / (white - black[0])
+            colour = cfa[np.arange(54)[:, None] % 2, np.arange(96)[None, :] % 2]
+            for c in (0, 2):
+                sums[c] += y[region[i] & (colour == c)].sum()
+        rb.append(sums[0] / sums[2])
+    assert rb[0] > 1.8 * rb[1]
+    gt = _read_exr(out / "gt" / "frame_001.exr")
+    assert np.isfinite(gt).all() and gt.min() >= 0.0
+
+
+def test_cli_simulates_mixed_group(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    args = ["--width", "48", "--height", "27", "--frames", "1"]
+    assert cli.main(["simulate", "mixed", *args]) == 0
+    for name in MIXED:
+        assert _manifest(tmp_path / "data" / "sim" / name)["scene"] == name
+    from gridnerf.noisefit import sim_clean_mean
+
+    with pytest.raises(ValueError, match="several illuminants"):
+        sim_clean_mean(tmp_path / "data" / "sim" / MIXED[0])

@@ -2,10 +2,11 @@
 
 `simulate_scene(name, out_dir, ...)` writes one scene folder (see `writer`);
 `SCENES` lists the nine scene names; `HELDOUT` the held-out scenes (other camera rigs,
-a wide depth range, high-frequency textures), on which no default is tuned.
+a wide depth range, high-frequency textures), on which no default is tuned; `MIXED` the
+mixed-light scenes (a warm lamp and daylight lighting different parts of the scene).
 """
 
-from gridnerf.sim.scenes import HELDOUT, SCENES
+from gridnerf.sim.scenes import HELDOUT, MIXED, SCENES
 from gridnerf.sim.writer import simulate_scene
 
-__all__ = ["HELDOUT", "SCENES", "simulate_scene"]
+__all__ = ["HELDOUT", "MIXED", "SCENES", "simulate_scene"]

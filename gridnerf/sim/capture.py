@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gridnerf.sim.geometry import cast, dot3, occluded, rotation
-from gridnerf.sim.scenes import Light, SceneSpec
+from gridnerf.sim.scenes import Light, PointLight, SceneSpec
 
 HFOV_DEG = 55.0
 SHADOW_EPS = 1e-3  # shadow rays start this far off the surface
@@ -199,6 +199,80 @@ def shade(spec: SceneSpec, points: np.ndarray, normals: np.ndarray,
     return albedo * irradiance[:, None]
 
 
+def _light_irradiance(spec: SceneSpec, light: Light | PointLight, points: np.ndarray,
+                      normals: np.ndarray) -> np.ndarray:
+    """(N,) irradiance of one light at surface points (N, 3) with unit normals (N, 3)."""
+    occluders = list(spec.props)
+    irradiance = np.zeros(len(points))
+    if isinstance(light, PointLight):
+        samples = np.asarray(light.position, float) + light.radius * _TETRA
+        for q in samples:
+            vec = q - points
+            dist2 = np.maximum(np.sum(vec * vec, axis=1), 1e-12)
+            d = vec / np.sqrt(dist2)[:, None]
+            cos = np.maximum(np.sum(normals * d, axis=1), 0.0)
+            lit = cos > 0.0
+            if light.shadow and lit.any():
+                idx = np.nonzero(lit)[0]
+                start = points[idx] + SHADOW_EPS * normals[idx]
+                dist = np.sqrt(dist2[idx])
+                cos[idx[occluded(occluders, start, d[idx], dist)]] = 0.0
+            irradiance += light.intensity * cos / dist2 / len(samples)
+        return irradiance
+    dirs = _cone_directions(light)
+    for d in dirs:
+        cos = np.maximum(dot3(normals, d), 0.0)
+        lit = cos > 0.0
+        if light.shadow and lit.any():
+            idx = np.nonzero(lit)[0]
+            start = points[idx] + SHADOW_EPS * normals[idx]
+            blocked = occluded(occluders, start, np.broadcast_to(d, start.shape))
+            cos[idx[blocked]] = 0.0
+        irradiance += light.intensity * cos / len(dirs)
+    return irradiance
+
+
+# Sample points of a lamp's sphere (unit tetrahedron): soft shadows of point lights.
+_TETRA = np.array([[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0],
+                   [-1.0, -1.0, 1.0]]) / np.sqrt(3.0)
+
+
+def shade_layers(spec: SceneSpec, points: np.ndarray, normals: np.ndarray,
+                 albedo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lambertian radiance per illuminant: points, normals, albedo (N, 3) ->
+    radiance (N, L, 3) and irradiance (N, L), one layer per spec.kelvins (the ambient
+    fill goes to its own illuminant's layer). Their sum is what `shade` would give if
+    every light had the same colour."""
+    kelvins = spec.kelvins
+    irradiance = np.zeros((len(points), len(kelvins)))
+    irradiance[:, kelvins.index(spec.kelvin_of(None))] += spec.ambient
+    for light in spec.lights:
+        irradiance[:, kelvins.index(spec.kelvin_of(light))] += _light_irradiance(
+            spec, light, points, normals)
+    return albedo[:, None, :] * irradiance[:, :, None], irradiance
+
+
+def _render(spec: SceneSpec, c2w: np.ndarray, intr: Intrinsics, ssaa: int, tile: int,
+            shader, channels: int):
+    """Cast every sub-ray tile by tile; shader(points, normals, albedo) -> (n, channels).
+    Returns the pixel-area means (H, W, channels) float32 and depth (H, W, S) float32."""
+    origins, dirs = pixel_rays(c2w, intr, ssaa)
+    shape = dirs.shape[:-1]
+    rgb = np.zeros((*shape, channels))
+    depth = np.full(shape, np.inf)
+    for y0 in range(0, intr.h, tile):
+        for x0 in range(0, intr.w, tile):
+            block = (slice(y0, y0 + tile), slice(x0, x0 + tile))
+            o, d = origins[block].reshape(-1, 3), dirs[block].reshape(-1, 3)
+            hits = cast(spec.prims, o, d)
+            hit = np.nonzero(hits.prim >= 0)[0]
+            out = np.zeros((len(o), channels))
+            out[hit] = shader(hits.point[hit], hits.normal[hit], hits.albedo[hit])
+            rgb[block] = out.reshape(*depth[block].shape, channels)
+            depth[block] = hits.t.reshape(depth[block].shape)
+    return rgb.mean(axis=2).astype(np.float32), depth.astype(np.float32)
+
+
 def render_view(spec: SceneSpec, c2w: np.ndarray, intr: Intrinsics, ssaa: int = 2,
                 tile: int = 64):
     """Clean, D65-lit view of the scene.
@@ -208,19 +282,26 @@ def render_view(spec: SceneSpec, c2w: np.ndarray, intr: Intrinsics, ssaa: int = 
     (inf where a ray misses everything). Rays are cast one `tile` x `tile` pixel block
     at a time: a block's rays form a narrow cone, so primitives outside it are skipped.
     """
-    origins, dirs = pixel_rays(c2w, intr, ssaa)
-    shape = dirs.shape[:-1]
-    rgb = np.zeros((*shape, 3))
-    depth = np.full(shape, np.inf)
-    for y0 in range(0, intr.h, tile):
-        for x0 in range(0, intr.w, tile):
-            block = (slice(y0, y0 + tile), slice(x0, x0 + tile))
-            o, d = origins[block].reshape(-1, 3), dirs[block].reshape(-1, 3)
-            hits = cast(spec.prims, o, d)
-            hit = np.nonzero(hits.prim >= 0)[0]
-            out = np.zeros((len(o), 3))
-            out[hit] = shade(spec, hits.point[hit], hits.normal[hit], hits.albedo[hit])
-            rgb[block] = out.reshape(*depth[block].shape, 3)
-            depth[block] = hits.t.reshape(depth[block].shape)
-    rgb_linear = rgb.mean(axis=2).astype(np.float32)
-    return rgb_linear, depth.astype(np.float32)
+    return _render(spec, c2w, intr, ssaa, tile,
+                   lambda p, n, a: shade(spec, p, n, a), 3)
+
+
+def render_view_layers(spec: SceneSpec, c2w: np.ndarray, intr: Intrinsics, ssaa: int = 2,
+                       tile: int = 64):
+    """Clean view rendered light by light (mixed illuminants; see shade_layers).
+
+    Returns layers (L, H, W, 3) float32, each the linear sRGB radiance one illuminant
+    (spec.kelvins[l]) contributes as if it were D65 (their sum is the colour-constant
+    reference), irradiance (H, W, L) float32 per illuminant (pixel-area means, 0 where
+    rays miss) and depth (H, W, S) as render_view.
+    """
+    n = len(spec.kelvins)
+
+    def shader(p, nrm, a):
+        radiance, irradiance = shade_layers(spec, p, nrm, a)
+        return np.concatenate([radiance.reshape(len(p), 3 * n), irradiance], axis=1)
+
+    out, depth = _render(spec, c2w, intr, ssaa, tile, shader, 4 * n)
+    h, w = out.shape[:2]
+    layers = out[..., : 3 * n].reshape(h, w, n, 3).transpose(2, 0, 1, 3)
+    return np.ascontiguousarray(layers), out[..., 3 * n:], depth

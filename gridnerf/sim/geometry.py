@@ -375,8 +375,10 @@ def cast(prims: list[Primitive], origins: np.ndarray, dirs: np.ndarray) -> Hits:
     return Hits(t=t_best, prim=prim_best, point=point, normal=normal, albedo=albedo)
 
 
-def occluded(prims: list[Primitive], origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    """(N,) bool: does a ray (origin + t dir, t > 0) hit any primitive at all."""
+def occluded(prims: list[Primitive], origins: np.ndarray, dirs: np.ndarray,
+             t_max: np.ndarray | None = None) -> np.ndarray:
+    """(N,) bool: does a ray (origin + t dir, t > 0) hit any primitive at all (before
+    t_max (N,), when given: a point light's distance)."""
     origins = np.asarray(origins, np.float64)
     dirs = np.asarray(dirs, np.float64)
     blocked = np.zeros(len(origins), bool)
@@ -386,5 +388,6 @@ def occluded(prims: list[Primitive], origins: np.ndarray, dirs: np.ndarray) -> n
             continue
         o, d = _to_local(prim, origins[idx], dirs[idx])
         t = _HIT[prim.kind](prim, o, d)[0]
-        blocked[idx[np.isfinite(t)]] = True
+        hit = np.isfinite(t) if t_max is None else np.isfinite(t) & (t < t_max[idx])
+        blocked[idx[hit]] = True
     return blocked

@@ -11,6 +11,12 @@ The held-out scenes (`HELDOUT`) change what the nine share: handheld converging 
 grain). They are held out: no default of the method is tuned on them; use them only to
 check that results carry over.
 
+The mixed-light scenes (`MIXED`) are lit by two illuminants of different colour
+temperature, a lamp (`PointLight`, falling off with distance) and daylight (a directional
+`Light` plus the ambient fill), each dominating its own part of the scene; they are
+rendered light by light (capture.render_view_layers) and the writer records both lights
+and a per-frame map of which one dominates where.
+
 Geometry and sensor settings are fixed per scene name; the seed only moves the
 cameras and draws the noise.
 """
@@ -33,18 +39,36 @@ SCENES: tuple[str, ...] = (
 HELDOUT: tuple[str, ...] = (
     "held_arc_brick", "held_slide_shelf", "held_deep_hall", "held_arc_table",
 )
+# Lit by two illuminants of different colour temperature (a lamp and daylight), each
+# dominating its own part of the scene: a global white balance cannot be right everywhere.
+MIXED: tuple[str, ...] = ("mixed_lamp_window", "mixed_desk_daylight")
 RIGS: tuple[str, ...] = ("tripod", "arc", "slide")
 
 
 @dataclass(frozen=True)
 class Light:
     """A directional light: `direction` points TOWARD the light; `soft` is the shadow
-    penumbra half-angle in radians (0 = hard); `shadow=False` lights through everything."""
+    penumbra half-angle in radians (0 = hard); `shadow=False` lights through everything;
+    `kelvin`: its colour temperature (None: the scene's illuminant, sensor.kelvin)."""
 
     direction: tuple[float, float, float]
     intensity: float
     shadow: bool = True
     soft: float = 0.04
+    kelvin: float | None = None
+
+
+@dataclass(frozen=True)
+class PointLight:
+    """A lamp: a point light at `position` whose irradiance falls off as 1 / distance^2
+    (`intensity` is the irradiance at 1 unit, facing it); `radius` softens its shadows
+    (4 fixed sample points); `kelvin` as for Light."""
+
+    position: tuple[float, float, float]
+    intensity: float
+    shadow: bool = True
+    radius: float = 0.05
+    kelvin: float | None = None
 
 
 @dataclass(frozen=True)
@@ -76,10 +100,32 @@ class SceneSpec:
     rig: str = "tripod"
     yaw_spread_deg: float = 18.0
     baseline: float = 0.4
+    ambient_kelvin: float | None = None  # colour of the ambient fill (None: sensor.kelvin)
 
     @property
     def prims(self) -> list[Primitive]:
         return [*self.room, *self.props]
+
+    def kelvin_of(self, light: Light | PointLight | None) -> float:
+        """Colour temperature of a light (None: the ambient fill)."""
+        k = self.ambient_kelvin if light is None else light.kelvin
+        return float(self.sensor.kelvin if k is None else k)
+
+    @property
+    def kelvins(self) -> tuple[float, ...]:
+        """The distinct illuminant colour temperatures, lights first, in order of appearance
+        (one layer each when rendered by capture.render_view_layers)."""
+        out: list[float] = []
+        for light in (*self.lights, None):
+            if self.kelvin_of(light) not in out:
+                out.append(self.kelvin_of(light))
+        return tuple(out)
+
+    @property
+    def layered(self) -> bool:
+        """Rendered light by light (mixed illuminants or lamps), not by capture.shade."""
+        return (self.ambient_kelvin is not None
+                or any(isinstance(li, PointLight) or li.kelvin is not None for li in self.lights))
 
 
 def _bias(name: str) -> tuple[tuple[float, float], tuple[float, float]]:
@@ -104,6 +150,9 @@ _SENSORS = {
     "held_slide_shelf": (3000, "Canon EOS 5D Mark IV", "RGGB", 18.0, 0.035, 4.5),
     "held_deep_hall": (2400, "Sony ILCE-7SM2", "RGGB", 7.0, 0.014, 6.0),
     "held_arc_table": (3150, "Sony ILCE-7SM2", "GRBG", 28.0, 0.05, 4.0),
+    # mixed light: kelvin is the lamp's; each scene names its lights' own temperatures
+    "mixed_lamp_window": (2700, "Sony ILCE-7SM2", "RGGB", 12.0, 0.024, 5.0),
+    "mixed_desk_daylight": (2400, "Canon EOS 5D Mark IV", "RGGB", 16.0, 0.03, 4.5),
 }
 
 
@@ -535,13 +584,72 @@ _HELD = {"held_arc_brick": _held_arc_brick, "held_slide_shelf": _held_slide_shel
          "held_deep_hall": _held_deep_hall, "held_arc_table": _held_arc_table}
 
 
+# ---------------------------------------------------------------- mixed-light scenes
+
+def _mixed_lamp_window() -> SceneSpec:
+    """Mixed light. A table before a pale plaster wall, lit by a warm 2700 K lamp at the
+    left (a point light 2 m before the wall, ~1 m from the nearest props, falling off with
+    distance) and by cool 6500 K daylight from a window at the right (directional, with
+    the sky's ambient fill): the lamp gives about half the light, most of it on the left
+    of the scene, the window dominates the right, and each fills the other's shadows."""
+    plaster = tx.noise((0.86, 0.85, 0.82), (0.74, 0.73, 0.7), cells=24, seed=31)
+    room = _room(plaster, _wood([(0.62, 0.45, 0.3), (0.52, 0.37, 0.24)], 34))
+    props = [
+        _f([-0.55, 0.3, 0.05], 0.16, 0.3, 0.12, tx.solid((0.9, 0.9, 0.88))),  # white vase
+        _e([-0.55, 0.72, 0.05], [0.14] * 3, tx.image("colorwheel")),
+        _b([0.0, 0.25, -0.15], [0.25, 0.25, 0.25], tx.checker((0.2, 0.45, 0.8),
+                                                                 (0.92, 0.9, 0.86), (6, 3)),
+           yaw=0.3),
+        _e([0.05, 0.68, -0.15], [0.16, 0.18, 0.16], tx.image("coffee", (2, 1))),
+        _b([0.6, 0.2, 0.2], [0.2, 0.2, 0.2], tx.image("rocket"), yaw=-0.4),
+        _e([0.62, 0.55, 0.2], [0.13] * 3, tx.stripes([(0.9, 0.15, 0.1), (0.95, 0.9, 0.8)], 8,
+                                                     angle_deg=90)),
+    ]
+    lights = (PointLight((-1.5, 1.3, -1.0), 3.0, radius=0.06, kelvin=2700.0),
+              Light((0.85, 0.45, 0.25), 0.7, kelvin=6500.0))
+    return SceneSpec(name="mixed_lamp_window", room=room, props=tuple(props),
+                     sensor=_sensor("mixed_lamp_window"), lights=lights, ambient=0.1,
+                     ambient_kelvin=6500.0)
+
+
+def _mixed_desk_daylight() -> SceneSpec:
+    """Mixed light. A desk scene: books, a mug and a globe before a grey-blue wall, under
+    5600 K daylight from high at the left (directional, with its ambient fill) and a
+    2400 K desk lamp low at the front right (a point light close to the props): the
+    lamp's warm pool covers the right foreground, daylight dominates the rest."""
+    wall = tx.stripes([(0.62, 0.66, 0.7), (0.58, 0.62, 0.66)], 36)
+    room = _room(wall, tx.noise((0.55, 0.5, 0.45), (0.7, 0.66, 0.6), 20, seed=32))
+    props = [
+        _b([-0.5, 0.15, 0.0], [0.3, 0.15, 0.2], tx.per_face(
+            {5: tx.text(_INK, _PAPER, rows=6, cols=14, seed=33)}, tx.solid((0.5, 0.1, 0.12))),
+           yaw=0.15),
+        _b([-0.48, 0.42, -0.02], [0.24, 0.12, 0.17], tx.solid((0.12, 0.3, 0.55)), yaw=0.05),
+        _e([-0.45, 0.75, 0.0], [0.2] * 3, tx.image("hubble_deep_field", (2, 1))),
+        _f([0.35, 0.14, 0.25], 0.1, 0.14, 0.1, tx.text(_INK, (0.93, 0.92, 0.9), rows=3,
+                                                       cols=12, repeat=(-1, 1), seed=34)),
+        _b([0.5, 0.3, -0.35], [0.2, 0.3, 0.12], tx.image("astronaut"), yaw=-0.3),
+        _e([0.05, 0.1, 0.45], [0.1, 0.1, 0.1], tx.checker((0.95, 0.8, 0.1), (0.3, 0.6, 0.3),
+                                                           (8, 4))),
+    ]
+    lights = (Light((-0.55, 0.75, 0.4), 0.6, kelvin=5600.0),
+              PointLight((1.0, 0.8, 0.9), 2.5, radius=0.05, kelvin=2400.0))
+    return SceneSpec(name="mixed_desk_daylight", room=room, props=tuple(props),
+                     sensor=_sensor("mixed_desk_daylight"), lights=lights, ambient=0.12,
+                     ambient_kelvin=5600.0)
+
+
+_MIX = {"mixed_lamp_window": _mixed_lamp_window, "mixed_desk_daylight": _mixed_desk_daylight}
+
+
 def build_scene(name: str) -> SceneSpec:
-    """The SceneSpec for one of SCENES or HELDOUT (raises ValueError for other names)."""
+    """The SceneSpec for one of SCENES, HELDOUT or MIXED (ValueError for other names)."""
     if name in _HELD:
         return _HELD[name]()
+    if name in _MIX:
+        return _MIX[name]()
     if name not in _PROPS:
         raise ValueError(f"unknown scene {name!r}; choose one of "
-                         f"{', '.join(SCENES + HELDOUT)}")
+                         f"{', '.join(SCENES + HELDOUT + MIXED)}")
     wall, table = _ROOMS[name]()
     return SceneSpec(name=name, room=_room(wall, table), props=tuple(_PROPS[name]()),
                      sensor=_sensor(name))

@@ -7,6 +7,8 @@ Folder layout (the contract every loader follows):
                        split (every 8th frame is test). No scene bounds: a trainer must
                        find near/far itself, as with a real capture
   gt/<name>.exr|.png   clean normal-light references (linear float32 / sRGB 8-bit)
+  illuminant/<name>.png  mixed-light scenes only: 8-bit map of the first illuminant's share
+                       of the camera green signal per pixel (255 = all of it)
   sim.json             manifest, written LAST (its presence marks a complete scene);
                        it keeps the true "near_far" (min/max z-depth over all rendered
                        sub-rays) and the camera "rig" for reference only
@@ -26,6 +28,7 @@ import json
 import os
 import shutil
 import zlib
+from dataclasses import replace
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -36,8 +39,14 @@ from gridnerf.dng import MIN_SIZE, write_dng
 from gridnerf.errors import SceneError
 from gridnerf.image_io import write_exr, write_png
 from gridnerf.sim import sensor
-from gridnerf.sim.capture import HFOV_DEG, camera_path, intrinsics, render_view
-from gridnerf.sim.scenes import HELDOUT, SCENES, build_scene
+from gridnerf.sim.capture import (
+    HFOV_DEG,
+    camera_path,
+    intrinsics,
+    render_view,
+    render_view_layers,
+)
+from gridnerf.sim.scenes import HELDOUT, MIXED, SCENES, build_scene
 
 # Scene-folder format version, part of the cache key: bump it whenever the written
 # files change so that folders written before are rebuilt. 2: camera rigs, held-out
@@ -111,25 +120,77 @@ def _render_all(spec, poses, intr):
     return frames, [near, far]
 
 
+def _render_layers(spec, poses, intr):
+    """Light-by-light renders of every view: layers (N, L, H, W, 3), irradiance
+    (N, H, W, L) float32 and [near, far]."""
+    n = len(spec.kelvins)
+    layers = np.zeros((len(poses), n, intr.h, intr.w, 3), np.float32)
+    irradiance = np.zeros((len(poses), intr.h, intr.w, n), np.float32)
+    near, far = np.inf, 0.0
+    for i, c2w in enumerate(poses):
+        layers[i], irradiance[i], depth = render_view_layers(spec, c2w, intr, ssaa=SSAA)
+        finite = depth[np.isfinite(depth)]
+        if finite.size:
+            near, far = min(near, float(finite.min())), max(far, float(finite.max()))
+    return layers, irradiance, [near, far]
+
+
+def _mixed_light(spec, layers, irradiance):
+    """Camera signal per view (N, H, W, 3) of a layered scene, its mean green, the
+    per-pixel share of the first illuminant in camera green (N, H, W) and the manifest's
+    illuminant entries (each light's kelvin, neutral, share of the green signal) and the
+    signal-weighted global neutral."""
+    lights = [replace(spec.sensor, kelvin=k) for k in spec.kelvins]
+    to_cam = [sensor.cam_from_scene(p) for p in lights]
+    white = np.stack([m @ np.ones(3) for m in to_cam])  # (L, 3) cam RGB of white per light
+    rgb_cam = sum(np.einsum("n...j,kj->n...k", layers[:, i], m.astype(np.float32))
+                  for i, m in enumerate(to_cam))
+    green = irradiance.astype(np.float64) * white[:, 1]  # (N, H, W, L) green per light
+    total = green.sum(-1)
+    share = np.where(total > 0, green[..., 0] / np.maximum(total, 1e-30), 0.0)
+    signal = green.reshape(-1, len(lights)).sum(0)
+    frac = signal / max(signal.sum(), 1e-30)
+    mixed = (frac[:, None] * white / white[:, 1:2]).sum(0)
+    entries = [{"kelvin": p.kelvin, "neutral_cam": (w / w[1]).tolist(),
+                "share_of_green_signal": float(f)}
+               for p, w, f in zip(lights, white, frac, strict=True)]
+    mean_layers = layers.reshape(len(layers), len(lights), -1, 3).mean(axis=(0, 2),
+                                                                      dtype=np.float64)
+    mean_green = float(sum(m[1] @ ml for m, ml in zip(to_cam, mean_layers, strict=True)))
+    return rgb_cam, mean_green, share, entries, (mixed / mixed[1]).tolist()
+
+
 def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed: int) -> None:
     spec = build_scene(name)
     params = spec.sensor
     salt = zlib.crc32(name.encode())
     intr = intrinsics(width, height)
     poses = camera_path(spec, n_frames, np.random.default_rng([seed, salt, 0]))
-    frames, near_far = _render_all(spec, poses, intr)
+    if spec.layered:
+        layers, irradiance, near_far = _render_layers(spec, poses, intr)
+        frames = layers.sum(axis=1)  # every light white balanced: the colour-constant view
+        rgb_cams, mean_green, share, lights, neutral = _mixed_light(spec, layers, irradiance)
+        del layers, irradiance
+    else:
+        frames, near_far = _render_all(spec, poses, intr)
 
     mean_rgb_linear = frames.reshape(-1, 3).mean(axis=0, dtype=np.float64)
     gt_scale = GT_MEAN_LUMINANCE / float(luminance(mean_rgb_linear))
-    mean_green = float(sensor.cam_from_scene(params)[1] @ mean_rgb_linear)
+    if not spec.layered:
+        mean_green = float(sensor.cam_from_scene(params)[1] @ mean_rgb_linear)
     e_scale = params.electrons / mean_green  # electrons per unit of relative camera signal
 
     names = frame_names(n_frames)
-    for sub in ("raw", "images", "gt"):
+    for sub in ("raw", "images", "gt", *(("illuminant",) if spec.layered else ())):
         (folder / sub).mkdir(parents=True)
     black = np.full((2, 2), float(sensor.BLACK_LEVEL))
     for i, stem in enumerate(names):
-        rgb_cam = sensor.scene_to_cam(frames[i], params)
+        if spec.layered:
+            rgb_cam = rgb_cams[i]
+            iio.imwrite(folder / "illuminant" / f"{stem}.png",
+                        np.round(255.0 * share[i]).astype(np.uint8), extension=".png")
+        else:
+            rgb_cam = sensor.scene_to_cam(frames[i], params)
         electrons = sensor.mosaic(rgb_cam, params.cfa) * e_scale
         raw_bayer = sensor.expose(electrons, params, np.random.default_rng([seed, salt, 1, i]))
         write_dng(folder / "raw" / f"{stem}.dng", raw_bayer, params.cfa, black,
@@ -154,12 +215,27 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
         "train_filenames": [p for i, p in enumerate(paths) if i not in test],
         "test_filenames": [paths[i] for i in test],
     })
+    mixed = {}
+    if spec.layered:
+        mixed = {
+            "illuminants": lights,
+            "illuminant_note": (
+                "several illuminants: illuminant_neutral_cam is their mix weighted by each "
+                "one's share of the camera green signal (what one global gain should undo), "
+                "illuminant_kelvin the strongest one's; illuminant/<frame>.png holds per "
+                "pixel round(255 * share of the first illuminant in camera green); the "
+                "references white balance every light (as if each were D65)"),
+        }
+        main = max(lights, key=lambda e: e["share_of_green_signal"])
     _write_json(folder / "sim.json", {
         **_key(name, width, height, n_frames, seed),
         "held_out": name in HELDOUT, "rig": spec.rig,
+        **({"mixed_light": True} if spec.layered else {}),
         "frames": names, "test_frames": [names[i] for i in test],
-        "illuminant_kelvin": params.kelvin,
-        "illuminant_neutral_cam": sensor.illuminant_neutral(params).tolist(),
+        "illuminant_kelvin": main["kelvin"] if spec.layered else params.kelvin,
+        "illuminant_neutral_cam": (neutral if spec.layered
+                                   else sensor.illuminant_neutral(params).tolist()),
+        **mixed,
         "lux": params.lux, "exposure_time_s": params.exposure_time, "iso": params.iso,
         "electrons_mean_green": params.electrons, "electrons_per_unit_signal": e_scale,
         "K_dn_per_electron": params.k_gain,
@@ -180,7 +256,7 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
 
 def simulate_scene(name: str, out_dir, width: int = 480, height: int = 270,
                    n_frames: int = 24, seed: int = 0, overwrite: bool = False) -> Path:
-    """Write scene `name` (one of SCENES or HELDOUT) into out_dir and return out_dir.
+    """Write scene `name` (one of SCENES, HELDOUT or MIXED) into out_dir; returns out_dir.
 
     If out_dir already holds a complete scene written with the same parameters
     (checked against the `sim.json` manifest, written last), it is reused and
@@ -190,9 +266,9 @@ def simulate_scene(name: str, out_dir, width: int = 480, height: int = 270,
     `<out_dir>.tmp-<pid>` and renamed at the end. Deterministic for a seed.
     """
     out = Path(out_dir)
-    if name not in SCENES + HELDOUT:
+    if name not in SCENES + HELDOUT + MIXED:
         raise SceneError(out, f"unknown simulated scene {name!r}",
-                         f"choose one of {', '.join(SCENES + HELDOUT)}")
+                         f"choose one of {', '.join(SCENES + HELDOUT + MIXED)}")
     if min(width, height) < MIN_SIZE or n_frames < 1:
         raise SceneError(out, f"cannot simulate {width}x{height} with {n_frames} frames",
                          f"use width and height of at least {MIN_SIZE} pixels (LibRaw's "
