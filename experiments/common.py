@@ -7,13 +7,13 @@ from pathlib import Path
 
 from gridnerf import config as cfgmod
 from gridnerf.eval_run import evaluate_run
-from gridnerf.sim import HELDOUT, SCENES, simulate_scene
+from gridnerf.sim import HELDOUT, MIXED, SCENES, simulate_scene
 from gridnerf.train import train
 
 
 def scene_dir(scene: str) -> Path:
-    """A built-in or held-out scene name (simulated on first use) or a folder path."""
-    if scene in SCENES or scene in HELDOUT:
+    """A built-in, held-out or mixed-light scene name (simulated on first use) or a folder."""
+    if scene in SCENES or scene in HELDOUT or scene in MIXED:
         return simulate_scene(scene, Path("data/sim") / scene)
     return Path(scene)
 
