@@ -23,7 +23,7 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
-from gridnerf import checkpoint, dataset, grid, losses, render, runfolder
+from gridnerf import checkpoint, dataset, grid, illuminant, losses, render, runfolder
 from gridnerf import config as cfgmod
 from gridnerf.config import Config
 from gridnerf.errors import CheckpointError, NumericsError
@@ -35,16 +35,41 @@ CHECKPOINT = runfolder.CHECKPOINT
 def grid_box(scene: Scene) -> tuple[np.ndarray, np.ndarray, float, float]:
     """Grid bounding box and ray t-range in grid space.
 
-    Forward-facing: NDC box; z runs from the near plane (-1) to just past the
-    far bound. Otherwise a world AABB around the cameras' far bound.
+    Forward-facing: NDC box (ndc z = 1 - 2 / depth for depth in the normalised world,
+    where the near bound is 1 / 0.75); z runs from the near bound to just past the far
+    bound, so no voxel lies in front of the near bound (NDC's own near plane, depth 1,
+    is z = -1: a quarter of z would otherwise sit before the near bound, where
+    low-texture content collapses into a billboard). Rays start at the near bound
+    (NDC t = (z + 1) / 2). Otherwise a world AABB around the cameras' far bound.
     Returns bbox_min (3,), bbox_max (3,), near_t, far_t.
     """
     if scene.forward_facing:
+        z_near = float(np.clip(1.0 - 2.0 / max(scene.near, 1.0), -1.0, 0.9))
         z_far = min(1.0 - 2.0 / (1.25 * scene.far), 0.999) if scene.far > 1.0 else 0.999
-        return np.array([-1.25, -1.25, -1.0]), np.array([1.25, 1.25, z_far]), 0.0, 1.0
+        z_far = max(z_far, z_near + 0.05)
+        return (np.array([-1.25, -1.25, z_near]), np.array([1.25, 1.25, z_far]),
+                0.5 * (z_near + 1.0), 1.0)
     centre = scene.cameras.c2w[:, :, 3].mean(axis=0)
     r = float(scene.far)
     return centre - r, centre + r, float(scene.near), float(scene.far)
+
+
+def resolve_resolution(res, bbox_min, bbox_max, image_hw: tuple[int, int],
+                       forward_facing: bool) -> tuple[int, int, int]:
+    """Vertex counts of a stage: `res` (x, y, z), where y = 0 means "from the aspect".
+
+    A y of 0 becomes the count that gives y voxels the footprint of x voxels: in NDC the
+    box's x and y extents map to image pixels at W/2 and H/2 pixels per unit, so a 16:9
+    frame gets y = 0.56 x on the full NDC box (a square grid would spend 1.8x the vertices
+    on y for nothing); a world box uses the ratio of its extents.
+    """
+    rx, ry, rz = (int(r) for r in res)
+    if ry > 0:
+        return rx, ry, rz
+    ext = np.asarray(bbox_max, np.float64) - np.asarray(bbox_min, np.float64)
+    h, w = image_hw
+    ratio = ext[1] * h / (ext[0] * w) if forward_facing else ext[1] / ext[0]
+    return rx, max(2, int(round((rx - 1) * ratio)) + 1), rz
 
 
 def make_optimizer(cfg: Config, steps: int, stage: int = 0) -> optax.GradientTransformation:
@@ -151,12 +176,11 @@ def make_step(cfg: Config, tx, near_t: float, far_t: float):
 def data_statistics(data: dataset.RayData, key, n_patches: int = 256) -> tuple[float, np.ndarray]:
     """Mean target level and grey-world log gains (3,) of the training data (masked means)."""
     sample = jax.jit(partial(dataset.batch, n_patches=n_patches, patch=8))(data, key)
-    y = np.asarray(sample["target"]).reshape(-1, 3)
-    m = np.asarray(sample["mask"]).reshape(-1, 3)
+    y = np.asarray(sample["target"], np.float64).reshape(-1, 3)
+    m = np.asarray(sample["mask"], np.float64).reshape(-1, 3)
     means = (y * m).sum(0) / np.maximum(m.sum(0), 1.0)
-    means = np.maximum(means, 1e-6 * max(float(means.max()), 1e-12) + 1e-12)
-    log_gain = np.log(means.mean() / means)
-    return float(means.mean()), log_gain
+    gains = illuminant.gains_from_illuminant(illuminant.grey_world(y, m), floor=1e-6)
+    return float(max(means.mean(), 1e-12)), np.log(gains)
 
 
 def save_state(run: Path, structure, params, opt_state, header: dict) -> None:
@@ -197,7 +221,11 @@ def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage:
     elif structure.sh_degree != cfg.grid.sh_degree:
         problem = f"its sh_degree is {structure.sh_degree}, the config's {cfg.grid.sh_degree}"
     elif opt_leaves and stage < len(stages):
-        if tuple(structure.resolution) != tuple(stages[stage][0]):
+        want = tuple(stages[stage][0])
+        have = tuple(structure.resolution)
+        if want[1] == 0:  # y from the aspect: compare x and z
+            have, want = have[::2], want[::2]
+        if have != want:
             problem = (f"its grid is {tuple(structure.resolution)}, the config's stage {stage} "
                        f"is {tuple(stages[stage][0])}")
         else:
@@ -238,8 +266,10 @@ def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, nea
     return vis, mass
 
 
-def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fit: bool):
-    """Carve, optionally refit the box to the content, and resample to resolution `res`.
+def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fit: bool,
+                    forward_facing: bool = True):
+    """Carve, optionally refit the box to the content, and resample to resolution `res`
+    (a y of 0 is resolved on the new box, see resolve_resolution).
 
     Carving keeps vertices some training ray weights by more than grid.prune_threshold
     (visibility) or whose own alpha exceeds it (density), dilated by grid.prune_dilate.
@@ -258,10 +288,11 @@ def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fi
               if fit else (np.asarray(structure.bbox_min), np.asarray(structure.bbox_max)))
     old_box = np.prod(np.asarray(structure.bbox_max) - np.asarray(structure.bbox_min))
     structure, params = grid.prune(structure, params, keep)
+    res = resolve_resolution(res, lo, hi, data.image_hw, forward_facing)
     structure, params = grid.resample(structure, params, res, lo, hi)
     info = {"bbox_min": np.asarray(lo).tolist(), "bbox_max": np.asarray(hi).tolist(),
             "box_fraction_of_previous": float(np.prod(hi - lo) / old_box),
-            "occupied_fraction": structure.n_rows / float(np.prod(res))}
+            "occupied_fraction": structure.n_rows / float(np.prod(res)), "resolution": res}
     return structure, params, info
 
 
@@ -301,7 +332,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     else:
         color_scale, log_gain = data_statistics(data, jax.random.fold_in(key, 1))
         structure, params = grid.init_grid(
-            cfg.grid.resolutions[0],
+            resolve_resolution(cfg.grid.resolutions[0], bbox_min, bbox_max, data.image_hw,
+                               scene.forward_facing),
             bbox_min,
             bbox_max,
             sh_degree=cfg.grid.sh_degree,
@@ -329,8 +361,9 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         if stage > 0 and start == 0 and not opt_leaves:
             structure, params, info = next_stage_grid(
                 structure, params, res, data, cfg, near_t, far_t,
-                fit=cfg.grid.fit_box and stage == 1)
-            print(f"stage {stage}: {res} grid, box {np.round(info['bbox_min'], 3).tolist()}.."
+                fit=cfg.grid.fit_box and stage == 1, forward_facing=scene.forward_facing)
+            print(f"stage {stage}: {info['resolution']} grid, box "
+                  f"{np.round(info['bbox_min'], 3).tolist()}.."
                   f"{np.round(info['bbox_max'], 3).tolist()}, "
                   f"{100 * info['occupied_fraction']:.1f}% of the box occupied")
         tx = make_optimizer(cfg, steps, stage)

@@ -73,6 +73,7 @@ def scene_copy(small_scene, tmp_path):
     (["--set", "grid.prune_mode=alpha"], ["grid.prune_mode", "'visibility'", "'density'"]),
     (["--set", "data.target=gt"], ["data.target", "'raw'", "'reference'"]),
     (["--set", "grid.resolutions=[[1,8,8],[16,16,16]]"], ["grid.resolutions", ">= 2"]),
+    (["--set", "grid.resolutions=[[8,1,8],[16,0,16]]"], ["grid.resolutions", "may be 0"]),
     (["--set", "loss.use_gains=maybe"], ["loss.use_gains", "true or false"]),
     (["--set", "train.checkpoint_seconds=-1"], ["train.checkpoint_seconds", ">= 0"]),
     (["--set", "grid.prune_threshold=2"], ["grid.prune_threshold", "<= 1"]),

@@ -128,9 +128,9 @@ def test_eval_writes_metrics_and_images(tiny_run):
 def test_config_overrides_and_round_trip(tmp_path):
     cfg = cfgmod.override(
         cfgmod.preset("default"),
-        ["train.steps_per_stage=[5,6]", "loss.use_gains=false", "grid.sh_degree=1"],
+        ["train.steps_per_stage=[5,6,7]", "loss.use_gains=false", "grid.sh_degree=1"],
     )
-    assert cfg.train.steps_per_stage == (5, 6)
+    assert cfg.train.steps_per_stage == (5, 6, 7)
     assert cfg.loss.use_gains is False and cfg.grid.sh_degree == 1
     cfgmod.save(cfg, tmp_path / "c.json")
     assert cfgmod.load(tmp_path / "c.json") == cfg
@@ -171,3 +171,58 @@ def test_checkpoints_by_time_as_well_as_steps(small_scene, tmp_path, monkeypatch
     header = trainmod.load_state(run)[3]
     assert (header["stage"], header["step"]) == (0, 7)  # saved after every step by time
     assert not list(run.glob("*.tmp"))
+
+
+def test_resolve_resolution_follows_the_aspect():
+    from gridnerf.train import resolve_resolution
+
+    lo, hi = np.array([-1.25, -1.25, -0.5]), np.array([1.25, 1.25, 0.9])
+    # 16:9 frame on the square NDC box: y voxels get the pixel footprint of x voxels
+    assert resolve_resolution((97, 0, 32), lo, hi, (270, 480), True) == (97, 55, 32)
+    # given counts are kept; a world box uses the ratio of its extents
+    assert resolve_resolution((64, 40, 32), lo, hi, (270, 480), True) == (64, 40, 32)
+    assert resolve_resolution((65, 0, 8), np.zeros(3), np.array([2.0, 1.0, 1.0]),
+                              (270, 480), False) == (65, 33, 8)
+
+
+def test_forward_facing_box_starts_at_the_near_bound():
+    from types import SimpleNamespace
+
+    from gridnerf.train import grid_box
+
+    # normalised world: near = 1 / 0.75 -> ndc z = 1 - 2 / near = -0.5, ray t = 0.25
+    scene = SimpleNamespace(forward_facing=True, near=1.0 / 0.75, far=12.0)
+    lo, hi, near_t, far_t = grid_box(scene)
+    assert lo[2] == pytest.approx(-0.5) and near_t == pytest.approx(0.25) and far_t == 1.0
+    assert hi[2] == pytest.approx(1.0 - 2.0 / (1.25 * 12.0))
+    # a near bound at the NDC near plane keeps the whole z range
+    lo, _, near_t, _ = grid_box(SimpleNamespace(forward_facing=True, near=1.0, far=12.0))
+    assert lo[2] == -1.0 and near_t == 0.0
+
+
+def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch):
+    """y = 0 stages: the y count follows the frame aspect and the fitted box, and a run
+    interrupted inside such a stage resumes (the checkpoint's y is not compared)."""
+    from gridnerf import train as trainmod
+
+    cfg = cfgmod.override(cfgmod.preset("tiny"), [
+        "grid.resolutions=[[16,0,8],[24,0,12]]", "train.steps_per_stage=[10,10]",
+        "train.checkpoint_every=5", "train.checkpoint_seconds=0"])
+    run = tmp_path / "run"
+    real_make_step = trainmod.make_step
+    _crash_after(monkeypatch, 17)  # dies in stage 1 after its step-5 checkpoint
+    with pytest.raises(KeyboardInterrupt):
+        trainmod.train(small_scene, run, cfg)
+    structure, _, _, header = trainmod.load_state(run)
+    assert (header["stage"], header["step"]) == (1, 5)
+    lo, hi = np.asarray(structure.bbox_min), np.asarray(structure.bbox_max)
+    from conftest import sim_near_far
+
+    from gridnerf.scene import load_scene
+    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
+    h, w = scene.cameras.height // 2, scene.cameras.width // 2
+    assert structure.resolution == trainmod.resolve_resolution(
+        (24, 0, 12), lo, hi, (h, w), scene.forward_facing)
+    monkeypatch.setattr(trainmod, "make_step", real_make_step)
+    summary = trainmod.train(small_scene, run, cfg)
+    assert summary["resolution"] == list(structure.resolution)
