@@ -18,6 +18,18 @@ def scene_dir(scene: str) -> Path:
     return Path(scene)
 
 
+def simulated_folders(spec: str):
+    """(name, folder) of the simulated scenes named by `spec` ('all': nine + held-out +
+    mixed, or comma-separated names) that exist under data/sim; says which are skipped."""
+    names = SCENES + HELDOUT + MIXED if spec == "all" else tuple(spec.split(","))
+    for name in names:
+        folder = Path("data/sim") / name
+        if not (folder / "sim.json").exists():
+            print(f"skipping {name}: simulate it first (gridnerf simulate {name})")
+            continue
+        yield name, folder
+
+
 def run_variant(scene: str, name: str, preset: str, overrides: list[str]) -> dict:
     """Train (resuming if possible) and evaluate runs/<scene>/<name>; returns eval metrics."""
     sdir = scene_dir(scene)

@@ -23,11 +23,11 @@ import json
 from pathlib import Path
 
 import numpy as np
+from common import simulated_folders
 
 from gridnerf import illuminant as il
 from gridnerf import raw
 from gridnerf.scene import raw_files
-from gridnerf.sim import HELDOUT, MIXED, SCENES
 
 ORDER = ("grey_world", "shades_of_grey", "grey_edge", "weighted_grey")
 
@@ -93,13 +93,8 @@ def main() -> None:
                     help="renders: weighted_grey weighs pixels by surface area (depth^2)")
     ap.add_argument("--out", default="reports/illuminants")
     args = ap.parse_args()
-    names = SCENES + HELDOUT + MIXED if args.scenes == "all" else args.scenes.split(",")
     rows, record = [], {}
-    for name in names:
-        folder = Path("data/sim") / name
-        if not (folder / "sim.json").exists():
-            print(f"skipping {name}: simulate it first (gridnerf simulate {name})")
-            continue
+    for name, folder in simulated_folders(args.scenes):
         truth = np.array(json.loads((folder / "sim.json").read_text())["illuminant_neutral_cam"])
         sources = {"raw": estimates(*raw_images(folder))}
         run = Path("runs") / name / (args.runs or "")

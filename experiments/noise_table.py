@@ -22,9 +22,10 @@ import json
 from pathlib import Path
 
 import numpy as np
+from common import simulated_folders
 
 from gridnerf import noisefit
-from gridnerf.sim import HELDOUT, MIXED, SCENES
+from gridnerf.sim import MIXED
 
 
 def render_mean(run: Path):
@@ -62,13 +63,8 @@ def main() -> None:
     ap.add_argument("--runs", default=None, help="also fit with renders of runs/<scene>/RUN")
     ap.add_argument("--out", default="reports/noise")
     args = ap.parse_args()
-    names = SCENES + HELDOUT + MIXED if args.scenes == "all" else args.scenes.split(",")
     rows, record = [], {}
-    for name in names:
-        folder = Path("data/sim") / name
-        if not (folder / "sim.json").exists():
-            print(f"skipping {name}: simulate it first (gridnerf simulate {name})")
-            continue
+    for name, folder in simulated_folders(args.scenes):
         truth = noisefit.sim_truth(folder)
         fits = {}
         if name not in MIXED:
