@@ -253,6 +253,16 @@ def _read_split(meta: dict, names: list[str], path) -> dict | None:
         if unknown:
             raise SceneError(path, f"{key} split names {unknown[:3]} that are not frames",
                              "list only frames present in `frames` (file_path or stem)")
+        twice = sorted({s for s in stems if stems.count(s) > 1})
+        if twice:
+            raise SceneError(path, f"the {key} split lists {twice[:3]} more than once",
+                             "list each frame once")
+    if "train" in lists and "test" in lists:
+        both = [s for s in lists["test"] if s in set(lists["train"])]
+        if both:
+            raise SceneError(path, f"frames {both[:3]} are in both the train and the test "
+                             "split (a test view seen in training flatters every metric)",
+                             "list each frame in one split only")
     if "train" not in lists:
         lists["train"] = [n for n in names if n not in set(lists["test"])]
     if "test" not in lists:

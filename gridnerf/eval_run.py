@@ -77,6 +77,10 @@ def evaluate_run(run: Path) -> dict:
     """Render the test views, compare with gt/, write eval/ images and eval/metrics.json."""
     t0 = time.perf_counter()
     cfg, scene, structure, params, summary = load_run(run)
+    if len(scene.test_idx) == 0:
+        raise SceneError(scene.path, "the scene's test split is empty: there is nothing to "
+                         "score", "list frames in test_filenames of transforms.json (or "
+                         "remove the split lists: every 8th frame is then a test frame)")
     out_dir = run / "eval"
     out_dir.mkdir(parents=True, exist_ok=True)
     alphas = exposures(structure, params, scene, cfg)

@@ -177,6 +177,12 @@ def _poses(scene: pathlib.Path, files):
         if missing:
             raise SceneError(transforms, f"frames {missing[:5]} have no raw file in raw/",
                              "add the raw files or remove those frames from transforms.json")
+        unused = sorted(set(files) - set(cams.names))
+        if unused:
+            warnings.warn(f"{transforms}: {len(unused)} raw file(s) in raw/ have no frame "
+                          f"entry ({', '.join(unused[:5])}{', ...' if len(unused) > 5 else ''})"
+                          "; they are not used (add them to `frames` to train on them)",
+                          stacklevel=3)
         return cams.names, cams, split, near_far, transforms, None
     names = tuple(sorted(files))
     if sparse.is_dir():
@@ -221,15 +227,31 @@ def _near_far(scene: pathlib.Path, near_far, colmap_points, colmap_cams) -> tupl
     raise BoundsMissing(scene, colmap_cams)
 
 
+def impossible_values(raw_bayer: np.ndarray, black: np.ndarray, white: np.ndarray,
+                      below: float = 0.05) -> np.ndarray:
+    """(N,) count of pixel values no sensor reading can have: above the white level, or
+    more than `below` x (white - black) under the black level (read noise is a few DN;
+    14-bit frames have ~16k DN of range). Overwritten bytes in a frame's pixel data read
+    as random 16-bit values, most of them above a 12- or 14-bit white level.
+    raw_bayer: (N, H, W) uint16; black: (N, 2, 2); white: (N,)."""
+    counts = np.zeros(len(raw_bayer), np.int64)
+    for k, frame in enumerate(raw_bayer):
+        low = float(black[k].min()) - below * float(white[k] - black[k].max())
+        counts[k] = np.count_nonzero(frame > white[k]) + np.count_nonzero(frame < low)
+    return counts
+
+
 def unusable_frames(raw_bayer: np.ndarray, black: np.ndarray, white: np.ndarray,
                     dark_ratio: float = 0.25, bright_ratio: float = 4.0,
-                    clipped_max: float = 0.2) -> dict[int, str]:
+                    clipped_max: float = 0.2, corrupt_max: float = 1e-4) -> dict[int, str]:
     """Frames that are readable but wrong, compared with the scene's other frames.
 
     raw_bayer: (N, H, W) uint16; black: (N, 2, 2); white: (N,). Per frame, on every 4th
-    pixel: the mean normalised signal and the clipped fraction. A frame is unusable when
-    its signal is below dark_ratio or above bright_ratio times the median frame's (a black
-    frame, a frame from another exposure), or more than clipped_max of it is clipped.
+    pixel: the mean normalised signal and the clipped fraction; on every pixel: the values
+    outside what a sensor can read (impossible_values). A frame is unusable when more than
+    corrupt_max of its pixels are impossible (corrupt data), its signal is below dark_ratio
+    or above bright_ratio times the median frame's (a black frame, a frame from another
+    exposure), or more than clipped_max of it is clipped.
     Returns {frame index: reason}. Raises SceneError when every frame is at the black level
     (nothing to learn from).
     """
@@ -244,9 +266,13 @@ def unusable_frames(raw_bayer: np.ndarray, black: np.ndarray, white: np.ndarray,
                          f"{float(mean.max()):.2g} of the white level)",
                          "check the exposure, the lens cap and the black level in the RAW files")
     med = float(np.median(mean))
+    impossible = impossible_values(raw_bayer, black, white)
     bad = {}
     for k in range(len(sub)):
-        if clipped[k] > clipped_max:
+        if impossible[k] > corrupt_max * raw_bayer[k].size:
+            bad[k] = (f"{impossible[k]} pixel values lie outside the sensor's range "
+                      "(above the white level or far below black): corrupt pixel data")
+        elif clipped[k] > clipped_max:
             bad[k] = f"{100 * clipped[k]:.0f}% of the pixels are clipped"
         elif mean[k] < dark_ratio * med:
             bad[k] = f"signal {mean[k]:.3g} is below {dark_ratio} x the scene median {med:.3g}"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import pathlib
 import shutil
 
 import numpy as np
@@ -270,3 +271,58 @@ def test_simulated_frames_are_all_usable(small_scene):
         warnings.simplefilter("error")  # no frame may be flagged
         scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
     assert len(scene.train_idx) + len(scene.test_idx) == len(scene.names)
+
+
+def test_corrupt_pixel_data_is_named_and_left_out():
+    from gridnerf.scene import unusable_frames
+
+    rng = np.random.default_rng(0)
+    n, h, w = 6, 64, 96
+    black, white = np.full((n, 2, 2), 512.0), np.full(n, 16383.0)
+    raw_bayer = (512 + rng.poisson(40.0, (n, h, w))).astype(np.uint16)
+    # 1250 overwritten values (2500 random bytes) in frame 2: random 16-bit numbers
+    flat = raw_bayer[2].reshape(-1)
+    flat[rng.choice(flat.size, 1250, replace=False)] = rng.integers(0, 65536, 1250)
+    bad = unusable_frames(raw_bayer, black, white)
+    assert list(bad) == [2] and "corrupt" in bad[2]
+    # read noise that takes values a few DN below black is not corruption
+    noisy = np.clip(512 + rng.poisson(2.0, (n, h, w)) + rng.normal(0.0, 6.0, (n, h, w)),
+                    0, 16383).astype(np.uint16)
+    assert (noisy < 512).any() and unusable_frames(noisy, black, white) == {}
+
+
+def _edit_transforms(root, fn):
+    path = root / "transforms.json"
+    meta = json.loads(path.read_text())
+    fn(meta)
+    path.write_text(json.dumps(meta))
+
+
+@pytest.mark.parametrize("edit, needle", [
+    (lambda m: m.update(train_filenames=[m["frames"][1]["file_path"]] * 2), "more than once"),
+    (lambda m: m.update(train_filenames=[f["file_path"] for f in m["frames"]],
+                        test_filenames=[m["frames"][0]["file_path"]]), "both the train"),
+])
+def test_bad_splits_are_refused(small_scene, tmp_path, edit, needle):
+    root = tmp_path / "s"
+    shutil.copytree(small_scene, root)
+    _edit_transforms(root, edit)
+    with pytest.raises(SceneError, match=needle):
+        load_scene(root, near_far=sim_near_far(root))
+
+
+def test_raw_files_without_a_frame_entry_are_named(small_scene, tmp_path):
+    root = tmp_path / "s"
+    shutil.copytree(small_scene, root)
+    dropped = {}
+
+    def drop_last(meta):
+        dropped["name"] = pathlib.Path(meta["frames"][-1]["file_path"]).stem
+        meta["frames"] = meta["frames"][:-1]
+        for key in ("train_filenames", "test_filenames"):
+            if key in meta:
+                meta[key] = [f for f in meta[key] if dropped["name"] not in f]
+
+    _edit_transforms(root, drop_last)
+    with pytest.warns(UserWarning, match=f"no frame entry.*{dropped.get('name', '')}"):
+        load_scene(root, near_far=sim_near_far(root))
