@@ -16,12 +16,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from gridnerf import atomic
 from gridnerf.errors import PoseError, SceneError
 
 # OpenCV camera axes (x right, y down, z forward) <-> OpenGL (x right, y up, z backward).
@@ -310,9 +310,7 @@ def write_transforms(path, cams: Cameras, train_names, test_names, near_far=None
         meta["test_filenames"] = [f"raw/{n}.dng" for n in test_names or []]
     if near_far is not None:
         meta["near_far"] = [float(near_far[0]), float(near_far[1])]
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(meta, indent=2))
-    os.replace(tmp, path)
+    atomic.write_text(path, json.dumps(meta, indent=2))
 
 
 def load_colmap(sparse_dir, names=None) -> tuple[Cameras, np.ndarray]:

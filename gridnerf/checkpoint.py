@@ -3,7 +3,7 @@
 A checkpoint is one `.npz` holding named arrays plus a JSON header. It is
 written to `<name>.tmp` and moved into place with `os.replace`, so a crash
 never leaves a half-written file that looks valid; a failed write (disk full)
-removes the `.tmp` and raises `CheckpointError`. Non-finite arrays are
+removes the `.tmp` and raises `WriteError` (gridnerf.atomic). Non-finite arrays are
 refused (`NumericsError`): no NaN or Inf ever reaches a checkpoint. A file
 that cannot be read back raises `CheckpointError` naming it and the fix.
 """
@@ -11,7 +11,6 @@ that cannot be read back raises `CheckpointError` naming it and the fix.
 from __future__ import annotations
 
 import json
-import os
 import zipfile
 import zlib
 from collections.abc import Callable
@@ -20,38 +19,18 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from gridnerf import atomic
 from gridnerf.errors import CheckpointError, NumericsError
 
 
 def _atomic_write(path: Path, write: Callable) -> None:
-    """Write `path` via `<path>.tmp` + fsync + os.replace; on OSError (disk full, read-only
-    folder) the tmp file is removed and CheckpointError names the file."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+    """gridnerf.atomic.write with `write(file object)` (WriteError on disk full)."""
+
+    def fill(tmp: Path) -> None:
         with open(tmp, "wb") as f:
             write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise CheckpointError(path, f"cannot write the file ({exc.strerror or exc}); the "
-                              "previous version is kept", "free disk space or fix the "
-                              "folder's permissions, then rerun (training resumes from the "
-                              "last checkpoint)") from None
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    _atomic_write(path, lambda f: f.write(data))
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    atomic_write_bytes(path, text.encode())
+    atomic.write(path, fill)
 
 
 def flatten(tree) -> list[np.ndarray]:

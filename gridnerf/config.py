@@ -413,9 +413,9 @@ def from_dict(d: dict, source: Path | None = None) -> Config:
 
 
 def save(cfg: Config, path: Path) -> None:
-    from gridnerf.checkpoint import atomic_write_text
+    from gridnerf import atomic
 
-    atomic_write_text(Path(path), json.dumps(to_dict(cfg), indent=2))
+    atomic.write_text(Path(path), json.dumps(to_dict(cfg), indent=2))
 
 
 def load(path: Path) -> Config:

@@ -159,3 +159,25 @@ def image_rays(data_c2w: np.ndarray, intrinsics: np.ndarray, height: int, width:
     c2w = jnp.broadcast_to(jnp.asarray(data_c2w, jnp.float32), (height, width, 3, 4))
     intr = jnp.broadcast_to(jnp.asarray(intrinsics, jnp.float32), (height, width, 4))
     return pixel_rays(c2w, intr, u.astype(jnp.float32), v.astype(jnp.float32))
+
+
+def grid_box(scene: Scene) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Grid bounding box and ray t-range in grid space.
+
+    Forward-facing: NDC box (ndc z = 1 - 2 / depth for depth in the normalised world,
+    where the near bound is 1 / 0.75); z runs from the near bound to just past the far
+    bound, so no voxel lies in front of the near bound (NDC's own near plane, depth 1,
+    is z = -1: a quarter of z would otherwise sit before the near bound, where
+    low-texture content collapses into a billboard). Rays start at the near bound
+    (NDC t = (z + 1) / 2). Otherwise a world AABB around the cameras' far bound.
+    Returns bbox_min (3,), bbox_max (3,), near_t, far_t.
+    """
+    if scene.forward_facing:
+        z_near = float(np.clip(1.0 - 2.0 / max(scene.near, 1.0), -1.0, 0.9))
+        z_far = min(1.0 - 2.0 / (1.25 * scene.far), 0.999) if scene.far > 1.0 else 0.999
+        z_far = max(z_far, z_near + 0.05)
+        return (np.array([-1.25, -1.25, z_near]), np.array([1.25, 1.25, z_far]),
+                0.5 * (z_near + 1.0), 1.0)
+    centre = scene.cameras.c2w[:, :, 3].mean(axis=0)
+    r = float(scene.far)
+    return centre - r, centre + r, float(scene.near), float(scene.far)

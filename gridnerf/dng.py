@@ -29,12 +29,13 @@ Tag numbers and types follow the DNG 1.4 specification and TIFF/EP:
 
 from __future__ import annotations
 
-import os
 from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
 import tifffile
+
+from gridnerf import atomic
 
 # TIFF field types.
 _BYTE, _ASCII, _SHORT, _LONG, _RATIONAL, _SRATIONAL = 1, 2, 3, 4, 5, 10
@@ -131,7 +132,7 @@ def write_dng(
     """Write a Bayer mosaic as an uncompressed 16-bit DNG, atomically.
 
     Args:
-      path: destination file (`.dng`); written to `<path>.tmp` then `os.replace`d.
+      path: destination file (`.dng`); written to written atomically (gridnerf.atomic).
       raw_bayer: (H, W) uint16 visible mosaic, black level included; H, W >= 22.
       cfa: (2, 2) int colour index per CFA position, 0=R 1=G 2=B (`cfa[y % 2, x % 2]`).
       black_level: (2, 2) float per CFA position; non-integers are kept (RATIONAL tag).
@@ -172,9 +173,7 @@ def write_dng(
     if iso is not None:
         extratags.append((TAG_ISO, _SHORT, 1, int(round(float(iso))), True))
 
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
+    def fill(tmp: Path) -> None:
         with open(tmp, "wb") as fh:
             tifffile.imwrite(
                 fh,
@@ -189,7 +188,5 @@ def write_dng(
                 software=False,
                 extratags=extratags,
             )
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+
+    atomic.write(path, fill)

@@ -44,5 +44,9 @@ class CheckpointError(GridNerfError):
     """A checkpoint cannot be read, written or does not fit the run's config."""
 
 
+class WriteError(GridNerfError):
+    """A file cannot be written (disk full, permissions); the previous version is kept."""
+
+
 class RunLockedError(GridNerfError):
     """Another process is training in the same run folder."""

@@ -20,12 +20,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gridnerf import baseline, color, dataset, evaluate, exposure, image_io, raw, render
+from gridnerf import atomic, baseline, color, dataset, evaluate, exposure, image_io, raw, render
 from gridnerf import config as cfgmod
-from gridnerf.checkpoint import atomic_write_text
 from gridnerf.errors import SceneError
-from gridnerf.runfolder import open_scene
-from gridnerf.train import CHECKPOINT, grid_box, load_state
+from gridnerf.runfolder import CHECKPOINT, load_state, open_scene
 
 
 def load_run(run: Path):
@@ -43,7 +41,7 @@ def load_run(run: Path):
 
 def render_view(structure, params, scene, cfg, c2w, intrinsics, height, width) -> dict:
     """Render one camera: dict of (H, W, ...) host arrays (rgb_low, gain, rgb_restored, ...)."""
-    near_t, far_t = grid_box(scene)[2:]
+    near_t, far_t = dataset.grid_box(scene)[2:]
     o, d = dataset.image_rays(c2w, intrinsics, height, width)
     o, d = dataset.to_grid_space(scene.forward_facing, _ndc_intrinsics(scene), o, d)
     return render.render_image(structure, params, o, d, near_t, far_t, cfg.render)
@@ -59,7 +57,7 @@ def exposures(structure, params, scene, cfg) -> dict[str, float]:
     data = dataset.build(scene, scene.train_idx, cfg.data.binning, cfg.data.downscale,
                          cfg.data.target)
     rays = dataset.batch(data, jax.random.PRNGKey(cfg.train.seed + 7), 128, 8)
-    near_t, far_t = grid_box(scene)[2:]
+    near_t, far_t = dataset.grid_box(scene)[2:]
     out = render.render_image(
         structure, params, rays["origins"], rays["directions"], near_t, far_t, cfg.render
     )
@@ -146,7 +144,7 @@ def evaluate_run(run: Path) -> dict:
         "per_view": per_view,
         "summary": {m: evaluate.summarize(v) for m, v in per_view.items() if v},
     }
-    atomic_write_text(out_dir / "metrics.json", json.dumps(result, indent=2))
+    atomic.write_text(out_dir / "metrics.json", json.dumps(result, indent=2))
     return result
 
 

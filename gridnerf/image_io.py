@@ -1,8 +1,7 @@
 """Image and video files: linear EXR, 8-bit sRGB PNG, H.264 mp4.
 
-Every write is atomic: the data goes to `<file>.tmp` in the destination
-folder, which then replaces `<file>` with `os.replace`, so an interrupted run
-never leaves a half-written image under the final name. Readers raise
+Every write is atomic (gridnerf.atomic): an interrupted run never leaves a
+half-written image under the final name. Readers raise
 `SceneError` naming the file and the fix when it is missing or unreadable.
 
 Naming: `rgb_linear` is linear sRGB (EXR, any range), `rgb_srgb` is
@@ -11,8 +10,7 @@ sRGB-encoded in [0, 1] (PNG, mp4 frames).
 
 from __future__ import annotations
 
-import os
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -20,6 +18,7 @@ import imageio_ffmpeg
 import numpy as np
 import OpenEXR
 
+from gridnerf import atomic
 from gridnerf.errors import SceneError
 
 
@@ -33,19 +32,6 @@ def _check_rgb(path: str | Path, image: np.ndarray, what: str) -> np.ndarray:
             "pass an RGB image with channels last",
         )
     return image
-
-
-def _atomic_write(path: str | Path, write: Callable[[str], None]) -> None:
-    """Call `write(tmp_path)` then move the temporary file onto `path`."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        write(str(tmp))
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def _to_uint8(rgb_srgb: np.ndarray) -> np.ndarray:
@@ -73,7 +59,7 @@ def write_exr(path: str | Path, rgb_linear: np.ndarray) -> None:
     rgb_linear = _check_rgb(path, rgb_linear, "EXR")
     pixels = np.ascontiguousarray(rgb_linear, dtype=np.float32)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    _atomic_write(path, lambda tmp: OpenEXR.File(header, {"RGB": pixels}).write(tmp))
+    atomic.write(path, lambda tmp: OpenEXR.File(header, {"RGB": pixels}).write(str(tmp)))
 
 
 def read_exr(path: str | Path) -> np.ndarray:
@@ -111,7 +97,8 @@ def write_png(path: str | Path, rgb_srgb: np.ndarray) -> None:
         1/255 (NaN is written as 0). uint8 input is written as is.
     """
     rgb_uint8 = _to_uint8(_check_rgb(path, rgb_srgb, "PNG"))
-    _atomic_write(path, lambda tmp: iio.imwrite(tmp, rgb_uint8, plugin="pillow", extension=".png"))
+    atomic.write(path, lambda tmp: iio.imwrite(tmp, rgb_uint8, plugin="pillow",
+                                               extension=".png"))
 
 
 def read_png(path: str | Path) -> np.ndarray:
@@ -165,9 +152,9 @@ def write_mp4(
         raise SceneError(path, f"fps must be positive, got {fps}", "pass fps > 0")
     h, w = shape[0] + shape[0] % 2, shape[1] + shape[1] % 2
 
-    def write(tmp: str) -> None:
+    def write(tmp: Path) -> None:
         writer = imageio_ffmpeg.write_frames(
-            tmp,
+            str(tmp),
             (w, h),
             fps=fps,
             codec="libx264",
@@ -184,4 +171,4 @@ def write_mp4(
         finally:
             writer.close()
 
-    _atomic_write(path, write)
+    atomic.write(path, write)

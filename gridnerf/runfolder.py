@@ -22,10 +22,9 @@ import json
 import os
 from pathlib import Path
 
-from gridnerf import bounds
+from gridnerf import atomic, bounds, checkpoint, grid
 from gridnerf import config as cfgmod
-from gridnerf.checkpoint import atomic_write_text
-from gridnerf.errors import ConfigError, RunLockedError, SceneError
+from gridnerf.errors import CheckpointError, ConfigError, RunLockedError, SceneError
 from gridnerf.scene import BoundsMissing, Scene, load_scene
 
 BOUNDS = "bounds.json"
@@ -165,7 +164,7 @@ def trim_metrics(run: Path, stage: int, step: int) -> None:
                 kept.append(line)
         except (ValueError, KeyError, TypeError):
             continue
-    atomic_write_text(path, "".join(f"{line}\n" for line in kept))
+    atomic.write_text(path, "".join(f"{line}\n" for line in kept))
 
 
 def open_scene(scene_dir, run: Path, estimate: bool = True) -> Scene:
@@ -192,5 +191,34 @@ def open_scene(scene_dir, run: Path, estimate: bool = True) -> Scene:
         print(f"scene bounds estimated ({found.source}): near {found.near:.4g}, "
               f"far {found.far:.4g}")
         Path(run).mkdir(parents=True, exist_ok=True)
-        atomic_write_text(saved, json.dumps(found.to_dict(), indent=2))
+        atomic.write_text(saved, json.dumps(found.to_dict(), indent=2))
         return load_scene(scene_dir, near_far=(found.near, found.far))
+
+
+def save_state(run: Path, structure, params, opt_state, header: dict) -> None:
+    """Atomic checkpoint: grid layout + params, optimiser state, progress header."""
+    state = grid.to_state(structure, params)
+    keys = sorted(state)
+    checkpoint.save(
+        run / CHECKPOINT,
+        {"grid": [state[k] for k in keys], "opt_state": checkpoint.flatten(opt_state)},
+        {**header, "grid_keys": keys},
+    )
+
+
+def load_state(run: Path):
+    """(structure, params, opt_leaves, header) from the run's checkpoint (CheckpointError
+    naming the file if it is unreadable)."""
+    path = Path(run) / CHECKPOINT
+    groups, header = checkpoint.load(path)
+    try:
+        state = dict(zip(header["grid_keys"], groups["grid"], strict=True))
+        structure, params = grid.from_state(state)
+        missing = [k for k in ("stage", "step", "train_seconds", "key") if k not in header]
+        if missing:
+            raise KeyError(f"header lacks {missing}")
+    except (KeyError, ValueError, TypeError, IndexError) as exc:
+        raise CheckpointError(path, f"the checkpoint is incomplete ({type(exc).__name__}: "
+                              f"{exc})", f"delete {CHECKPOINT} to train the run again from "
+                              "the start") from None
+    return structure, params, groups.get("opt_state", []), header

@@ -23,35 +23,13 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
-from gridnerf import checkpoint, dataset, grid, illuminant, losses, render, runfolder
+from gridnerf import atomic, checkpoint, dataset, grid, illuminant, losses, render, runfolder
 from gridnerf import config as cfgmod
 from gridnerf.config import Config
 from gridnerf.errors import CheckpointError, NumericsError
-from gridnerf.scene import Scene
+from gridnerf.runfolder import load_state, save_state
 
 CHECKPOINT = runfolder.CHECKPOINT
-
-
-def grid_box(scene: Scene) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """Grid bounding box and ray t-range in grid space.
-
-    Forward-facing: NDC box (ndc z = 1 - 2 / depth for depth in the normalised world,
-    where the near bound is 1 / 0.75); z runs from the near bound to just past the far
-    bound, so no voxel lies in front of the near bound (NDC's own near plane, depth 1,
-    is z = -1: a quarter of z would otherwise sit before the near bound, where
-    low-texture content collapses into a billboard). Rays start at the near bound
-    (NDC t = (z + 1) / 2). Otherwise a world AABB around the cameras' far bound.
-    Returns bbox_min (3,), bbox_max (3,), near_t, far_t.
-    """
-    if scene.forward_facing:
-        z_near = float(np.clip(1.0 - 2.0 / max(scene.near, 1.0), -1.0, 0.9))
-        z_far = min(1.0 - 2.0 / (1.25 * scene.far), 0.999) if scene.far > 1.0 else 0.999
-        z_far = max(z_far, z_near + 0.05)
-        return (np.array([-1.25, -1.25, z_near]), np.array([1.25, 1.25, z_far]),
-                0.5 * (z_near + 1.0), 1.0)
-    centre = scene.cameras.c2w[:, :, 3].mean(axis=0)
-    r = float(scene.far)
-    return centre - r, centre + r, float(scene.near), float(scene.far)
 
 
 def resolve_resolution(res, bbox_min, bbox_max, image_hw: tuple[int, int],
@@ -183,35 +161,6 @@ def data_statistics(data: dataset.RayData, key, n_patches: int = 256) -> tuple[f
     return float(max(means.mean(), 1e-12)), np.log(gains)
 
 
-def save_state(run: Path, structure, params, opt_state, header: dict) -> None:
-    """Atomic checkpoint: grid layout + params, optimiser state, progress header."""
-    state = grid.to_state(structure, params)
-    keys = sorted(state)
-    checkpoint.save(
-        run / CHECKPOINT,
-        {"grid": [state[k] for k in keys], "opt_state": checkpoint.flatten(opt_state)},
-        {**header, "grid_keys": keys},
-    )
-
-
-def load_state(run: Path):
-    """(structure, params, opt_leaves, header) from the run's checkpoint (CheckpointError
-    naming the file if it is unreadable)."""
-    path = Path(run) / CHECKPOINT
-    groups, header = checkpoint.load(path)
-    try:
-        state = dict(zip(header["grid_keys"], groups["grid"], strict=True))
-        structure, params = grid.from_state(state)
-        missing = [k for k in ("stage", "step", "train_seconds", "key") if k not in header]
-        if missing:
-            raise KeyError(f"header lacks {missing}")
-    except (KeyError, ValueError, TypeError, IndexError) as exc:
-        raise CheckpointError(path, f"the checkpoint is incomplete ({type(exc).__name__}: "
-                              f"{exc})", f"delete {CHECKPOINT} to train the run again from "
-                              "the start") from None
-    return structure, params, groups.get("opt_state", []), header
-
-
 def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage: int,
                   stages: list) -> None:
     """CheckpointError unless the checkpoint's arrays fit `cfg` (shapes and stage count)."""
@@ -315,7 +264,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     scene = runfolder.open_scene(scene_dir, run)
     data = dataset.build(scene, scene.train_idx, cfg.data.binning, cfg.data.downscale,
                          cfg.data.target)
-    bbox_min, bbox_max, near_t, far_t = grid_box(scene)
+    bbox_min, bbox_max, near_t, far_t = dataset.grid_box(scene)
     key = jax.random.PRNGKey(cfg.train.seed)
     stages = list(zip(cfg.grid.resolutions, cfg.train.steps_per_stage, strict=True))
 
@@ -433,5 +382,5 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         "voxels": int(structure.n_rows),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
-    checkpoint.atomic_write_text(run / "summary.json", json.dumps(summary, indent=2))
+    atomic.write_text(run / "summary.json", json.dumps(summary, indent=2))
     return summary

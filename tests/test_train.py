@@ -188,7 +188,7 @@ def test_resolve_resolution_follows_the_aspect():
 def test_forward_facing_box_starts_at_the_near_bound():
     from types import SimpleNamespace
 
-    from gridnerf.train import grid_box
+    from gridnerf.dataset import grid_box
 
     # normalised world: near = 1 / 0.75 -> ndc z = 1 - 2 / near = -0.5, ray t = 0.25
     scene = SimpleNamespace(forward_facing=True, near=1.0 / 0.75, far=12.0)

@@ -34,6 +34,7 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 
+from gridnerf import atomic
 from gridnerf.color import luminance, srgb_encode
 from gridnerf.dng import MIN_SIZE, write_dng
 from gridnerf.errors import SceneError
@@ -103,9 +104,7 @@ def _is_complete(out: Path, key: dict) -> bool:
 
 
 def _write_json(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    os.replace(tmp, path)
+    atomic.write_text(path, json.dumps(data, indent=2) + "\n")
 
 
 def _render_all(spec, poses, intr):
