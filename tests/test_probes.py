@@ -227,3 +227,19 @@ def test_bad_transforms_json_is_one_clear_error(scene_copy, tmp_path, capsys, ed
     _fails(capsys, ["train", str(scene_copy), "--out", str(run), "--preset", "tiny"],
            "transforms.json", *needles)
     assert not run.exists()
+
+
+def test_eval_of_a_scene_without_test_views(run_copy, scene_copy, capsys):
+    """An empty test split is named, not scored as `{}`."""
+    path = scene_copy / "transforms.json"
+    meta = json.loads(path.read_text())
+    meta["train_filenames"] = [f["file_path"] for f in meta["frames"]]
+    meta["test_filenames"] = []
+    path.write_text(json.dumps(meta))
+    summary = json.loads((run_copy / "summary.json").read_text())
+    summary["scene"] = str(scene_copy)
+    (run_copy / "summary.json").write_text(json.dumps(summary))
+    before = _snapshot(run_copy)
+    _fails(capsys, ["eval", str(run_copy)], str(scene_copy), "test split is empty",
+           "test_filenames")
+    assert _snapshot(run_copy) == before and not (run_copy / "eval").exists()
