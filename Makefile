@@ -7,8 +7,10 @@ BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 TCMALLOC := /usr/lib/x86_64-linux-gnu/libtcmalloc_minimal.so.4
 # Preload tcmalloc when present: JAX train steps ran 1.3-2x faster than with glibc malloc
-# (measured on this project's 2-core machines, jax 0.10).
-RUN     := env $(if $(wildcard $(TCMALLOC)),LD_PRELOAD=$(TCMALLOC),) XLA_FLAGS="$(XLA_FLAGS)" $(BIN)/
+# (measured on this project's 2-core machines, jax 0.10). Tested when the recipe runs, not
+# when make reads this file, so the first run on a fresh machine (system-deps installs it
+# on the way) preloads it too.
+RUN     = env $$(test -e $(TCMALLOC) && echo LD_PRELOAD=$(TCMALLOC)) XLA_FLAGS="$(XLA_FLAGS)" $(BIN)/
 # A scene name means the built-in simulated scene data/sim/<name>; anything with a slash is a folder.
 SCENE_DIR := $(if $(findstring /,$(SCENE)),$(SCENE),data/sim/$(SCENE))
 SCENE_NAME := $(notdir $(patsubst %/,%,$(SCENE_DIR)))
@@ -37,24 +39,24 @@ data: $(STAMP)
 	@if [ -n "$(findstring /,$(SCENE))" ]; then \
 	  test -d "$(SCENE_DIR)" || { echo "error: scene folder $(SCENE_DIR) does not exist" >&2; exit 2; }; \
 	else \
-	  $(RUN)gridnerf simulate $(SCENE) --out $(SCENE_DIR); \
+	  $(RUN)gridnerf simulate "$(SCENE)" --out "$(SCENE_DIR)"; \
 	fi
 
 poses: $(STAMP)
-	$(RUN)gridnerf poses $(SCENE_DIR)
+	$(RUN)gridnerf poses "$(SCENE_DIR)"
 
 train: data
-	$(RUN)gridnerf train $(SCENE_DIR) --out $(RUN_DIR) --preset $(PRESET)
-	$(RUN)gridnerf eval $(RUN_DIR)
+	$(RUN)gridnerf train "$(SCENE_DIR)" --out "$(RUN_DIR)" --preset "$(PRESET)"
+	$(RUN)gridnerf eval "$(RUN_DIR)"
 
 eval: $(STAMP)
-	$(RUN)gridnerf eval $(RUN_DIR)
+	$(RUN)gridnerf eval "$(RUN_DIR)"
 
 render: $(STAMP)
-	$(RUN)gridnerf render $(RUN_DIR) --path spiral
+	$(RUN)gridnerf render "$(RUN_DIR)" --path spiral
 
 ablate: $(STAMP)
-	$(RUN)python experiments/ablate.py --scene $(SCENE)
+	$(RUN)python experiments/ablate.py --scene "$(SCENE)"
 
 report: $(STAMP)
 	$(RUN)python experiments/report.py
