@@ -149,9 +149,14 @@ def _read_frames(names, files: dict[str, pathlib.Path]):
                                  "use a 2x2 RGB Bayer sensor")
             raw_bayer = np.empty((len(names), *frame.raw_bayer.shape), np.uint16)
         elif frame.raw_bayer.shape != first.raw_bayer.shape:
-            h, w = frame.raw_bayer.shape
-            raise SceneError(frame.path, f"frame is {w}x{h} but {pathlib.Path(first.path).name} "
-                             f"is {first.raw_bayer.shape[1]}x{first.raw_bayer.shape[0]}",
+            odd, other = frame, first
+            if k == 1 and len(names) > 2:  # frame 0 may be the odd one: a third frame decides
+                third = raw.read_raw(files[names[2]])
+                if third.raw_bayer.shape == frame.raw_bayer.shape:
+                    odd, other = first, frame
+            (h, w), (oh, ow) = odd.raw_bayer.shape, other.raw_bayer.shape
+            raise SceneError(odd.path, f"frame is {w}x{h} but {pathlib.Path(other.path).name} "
+                             f"is {ow}x{oh}",
                              "all frames must have one size: remove or re-export this frame")
         elif not np.array_equal(frame.cfa, first.cfa):
             raise SceneError(frame.path, f"CFA pattern {frame.cfa.tolist()} differs from "

@@ -326,3 +326,14 @@ def test_raw_files_without_a_frame_entry_are_named(small_scene, tmp_path):
     _edit_transforms(root, drop_last)
     with pytest.warns(UserWarning, match=f"no frame entry.*{dropped.get('name', '')}"):
         load_scene(root, near_far=sim_near_far(root))
+
+
+@pytest.mark.parametrize("odd", [0, 4])
+def test_odd_sized_frame_is_the_one_named(small_scene, tmp_path, odd):
+    root = tmp_path / "s"
+    shutil.copytree(small_scene, root)
+    names = sorted(p.stem for p in (root / "raw").glob("*.dng"))
+    _rewrite(root / "raw" / f"{names[odd]}.dng", lambda m, f: m[:-2, :-2])
+    with pytest.raises(SceneError) as info:
+        load_scene(root, near_far=sim_near_far(root))
+    assert info.value.path.endswith(f"{names[odd]}.dng"), str(info.value)
