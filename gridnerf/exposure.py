@@ -14,6 +14,8 @@ paper's matrix-free output, which cannot undo the sensor's channel mixing.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from gridnerf import color
@@ -27,10 +29,13 @@ def display_matrix(xyz_to_cam: np.ndarray, use_color_matrix: bool) -> np.ndarray
 def alpha_for_luminance(rgb_linear: np.ndarray, target: float = 0.18) -> float:
     """Scalar alpha with mean(luminance(alpha * rgb_linear)) == target.
 
-    rgb_linear: (..., 3). A black or non-finite input gives alpha = 1 rather than Inf/NaN.
+    rgb_linear: (..., 3). A black or non-finite input gives alpha = 1 rather than Inf/NaN,
+    with a warning (the output will be black or unexposed).
     """
     y = float(np.mean(color.luminance(np.asarray(rgb_linear, np.float64))))
     if not np.isfinite(y) or y <= 1e-12:
+        warnings.warn(f"the image to expose is {'black' if np.isfinite(y) else 'not finite'} "
+                      f"(mean luminance {y:.3g}); exposure alpha = 1", stacklevel=2)
         return 1.0
     return target / y
 

@@ -47,6 +47,7 @@ class RawFrame:
     black_level: (2, 2) float32 per CFA position.
     xyz_to_cam: (3, 3) float64 XYZ -> camera matrix for D65.
     as_shot_neutral: (3,) float64 camera RGB of a neutral, G normalised to 1.
+    has_color_matrix: False when the file gave no colour matrix and sRGB primaries stand in.
     """
 
     path: str
@@ -58,6 +59,7 @@ class RawFrame:
     as_shot_neutral: np.ndarray
     exposure_time: float | None
     iso: float | None
+    has_color_matrix: bool = True
 
 
 def _check_cfa(cfa) -> np.ndarray:
@@ -239,6 +241,7 @@ def read_raw(path) -> RawFrame:
         as_shot_neutral=np.asarray(neutral, np.float64),
         exposure_time=tags.get("exposure_time", shutter if shutter > 0 else None),
         iso=tags.get("iso", iso if iso > 0 else None),
+        has_color_matrix=bool(np.any(rgb_xyz != 0) or "color_matrix" in tags),
     )
 
 

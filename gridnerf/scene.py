@@ -127,18 +127,56 @@ def _exiftool_exposure(path: pathlib.Path) -> tuple[float | None, float | None]:
                          "re-create it with `exiftool -json` or delete it") from None
 
 
-def _relative_exposure(times, isos) -> np.ndarray:
+def _relative_exposure(times, isos, names=None) -> np.ndarray:
+    """(N,) exposure time x ISO of each frame over the median frame's; a quantity that some
+    frames lack is left out for all of them (with a warning naming those frames)."""
     exposure = np.ones(len(times))
-    for values in (times, isos):
-        if all(v is not None and v > 0 for v in values):
+    for what, values in (("exposure time", times), ("ISO", isos)):
+        known = [v is not None and v > 0 for v in values]
+        if all(known):
             exposure *= np.asarray(values, dtype=np.float64)
+        elif any(known):
+            lacking = [str(names[k]) if names is not None else str(k)
+                       for k, ok in enumerate(known) if not ok]
+            warnings.warn(f"{len(lacking)} of {len(values)} frames have no {what} "
+                          f"({', '.join(lacking[:5])}): {what} differences between the "
+                          "frames are ignored (add it to the files or a .json sidecar)",
+                          stacklevel=3)
     return exposure / np.median(exposure)
+
+
+def metadata_outliers(meta: dict, first_range: float) -> dict[int, str]:
+    """Frames whose header disagrees with the scene's other frames (a corrupted header
+    reads as a different white level, black level or colour matrix): {index: reason}.
+
+    meta: per-frame lists "white" (N,), "black" (N, 2, 2), "matrix" (N, 3, 3). The
+    reference is the most common white level and matrix and the median black level; black
+    levels may drift by 1 % of the white-black range (cameras that measure it per frame).
+    """
+    white = np.asarray(meta["white"], np.float64)
+    black = np.asarray(meta["black"], np.float64)
+    matrix = np.asarray(meta["matrix"], np.float64)
+    values, counts = np.unique(white, return_counts=True)
+    white_ref = values[np.argmax(counts)]
+    keys = [m.round(4).tobytes() for m in matrix]
+    matrix_ref = matrix[max(range(len(keys)), key=keys.count)]
+    black_ref = np.median(black, axis=0)
+    bad = {}
+    for k in range(len(white)):
+        if white[k] != white_ref:
+            bad[k] = f"white level {white[k]:g} differs from the other frames' {white_ref:g}"
+        elif np.abs(black[k] - black_ref).max() > 0.01 * first_range:
+            bad[k] = (f"black level {black[k].ravel().tolist()} differs from the other "
+                      f"frames' {black_ref.ravel().tolist()}")
+        elif not np.allclose(matrix[k], matrix_ref, rtol=1e-3, atol=1e-4):
+            bad[k] = "colour matrix differs from the other frames'"
+    return {k: f"{why} (corrupt header?)" for k, why in bad.items()}
 
 
 def _read_frames(names, files: dict[str, pathlib.Path]):
     """Read every frame into one (N, H, W) uint16 array plus per-frame metadata."""
     first = None
-    meta = {"black": [], "white": [], "neutral": [], "time": [], "iso": []}
+    meta = {"black": [], "white": [], "neutral": [], "time": [], "iso": [], "matrix": []}
     raw_bayer = None
     for k, name in enumerate(names):
         frame = raw.read_raw(files[name])
@@ -166,6 +204,7 @@ def _read_frames(names, files: dict[str, pathlib.Path]):
         sidecar_time, sidecar_iso = _exiftool_exposure(files[name].with_suffix(".json"))
         meta["black"].append(frame.black_level)
         meta["white"].append(frame.white_level)
+        meta["matrix"].append(frame.xyz_to_cam)
         meta["neutral"].append(frame.as_shot_neutral)
         meta["time"].append(sidecar_time or frame.exposure_time)
         meta["iso"].append(sidecar_iso or frame.iso)
@@ -317,7 +356,13 @@ def load_scene(path, near_far: tuple[float, float] | None = None) -> Scene:
         index = {n: k for k, n in enumerate(names)}
         train = np.array([index[n] for n in split["train"]], dtype=int)
         test = np.array([index[n] for n in split["test"]], dtype=int)
-    bad = unusable_frames(raw_bayer, np.stack(meta["black"]), np.asarray(meta["white"]))
+    if not first.has_color_matrix:
+        warnings.warn(f"{first.path}: the RAW file has no colour matrix; sRGB primaries are "
+                      "assumed, so colours may be off (use files with a ColorMatrix tag)",
+                      stacklevel=2)
+    bad = metadata_outliers(meta, float(meta["white"][0] - np.max(meta["black"][0])))
+    bad.update({k: why for k, why in unusable_frames(
+        raw_bayer, np.stack(meta["black"]), np.asarray(meta["white"])).items() if k not in bad})
     for k, why in bad.items():
         warnings.warn(f"{files[names[k]]}: {why}; the frame is left out", stacklevel=2)
     train = np.array([k for k in train if k not in bad], dtype=int)
@@ -337,7 +382,7 @@ def load_scene(path, near_far: tuple[float, float] | None = None) -> Scene:
         cfa=np.asarray(first.cfa, int),
         xyz_to_cam=np.asarray(first.xyz_to_cam, np.float64),
         as_shot_neutral=np.stack(meta["neutral"]).astype(np.float64),
-        exposure=_relative_exposure(meta["time"], meta["iso"]),
+        exposure=_relative_exposure(meta["time"], meta["iso"], names),
         train_idx=train,
         test_idx=test,
         near=float(near_n),

@@ -249,7 +249,8 @@ def test_auto_exposure_hits_target():
     assert np.mean(luminance(alpha * rgb_linear)) == pytest.approx(0.18, rel=1e-9)
     alpha = alpha_for_luminance(rgb_linear, target=0.4)
     assert np.mean(luminance(alpha * rgb_linear)) == pytest.approx(0.4, rel=1e-9)
-    assert alpha_for_luminance(np.zeros((3, 3, 3))) == 1.0
+    with pytest.warns(UserWarning, match="black"):
+        assert alpha_for_luminance(np.zeros((3, 3, 3))) == 1.0
 
 
 def test_process_dark_frame_restores_colour_and_exposure():

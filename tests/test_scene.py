@@ -337,3 +337,53 @@ def test_odd_sized_frame_is_the_one_named(small_scene, tmp_path, odd):
     with pytest.raises(SceneError) as info:
         load_scene(root, near_far=sim_near_far(root))
     assert info.value.path.endswith(f"{names[odd]}.dng"), str(info.value)
+
+
+def _rewrite_header(path, **changes):
+    """Rewrite one DNG with some header fields changed (mosaic and exposure kept)."""
+    from gridnerf import dng
+
+    f = raw.read_raw(path)
+    fields = dict(cfa=f.cfa, black_level=f.black_level, white_level=int(f.white_level),
+                  xyz_to_cam=f.xyz_to_cam, as_shot_neutral=f.as_shot_neutral,
+                  exposure_time=f.exposure_time, iso=f.iso)
+    fields.update(changes)
+    dng.write_dng(path, f.raw_bayer, **fields)
+
+
+def test_frames_whose_header_disagrees_are_named_and_left_out(small_scene, tmp_path):
+    root = tmp_path / "s"
+    shutil.copytree(small_scene, root)
+    names = sorted(p.stem for p in (root / "raw").glob("*.dng"))
+    first = raw.read_raw(root / "raw" / f"{names[0]}.dng")
+    _rewrite_header(root / "raw" / f"{names[2]}.dng", white_level=4095 + 512)
+    _rewrite_header(root / "raw" / f"{names[6]}.dng", xyz_to_cam=first.xyz_to_cam[::-1])
+    with pytest.warns(UserWarning) as record:
+        scene = load_scene(root, near_far=sim_near_far(root))
+    text = " ".join(str(w.message) for w in record)
+    assert f"{names[2]}.dng" in text and "white level" in text
+    assert f"{names[6]}.dng" in text and "colour matrix" in text
+    left = set(scene.train_idx) | set(scene.test_idx)
+    assert 2 not in left and 6 not in left and len(left) == len(names) - 2
+
+
+def test_missing_exposure_metadata_is_named(small_scene, tmp_path):
+    root = tmp_path / "s"
+    shutil.copytree(small_scene, root)
+    names = sorted(p.stem for p in (root / "raw").glob("*.dng"))
+    _rewrite_header(root / "raw" / f"{names[1]}.dng", exposure_time=None)
+    with pytest.warns(UserWarning, match=f"no exposure time \\({names[1]}\\)"):
+        scene = load_scene(root, near_far=sim_near_far(root))
+    assert np.all(np.isfinite(scene.exposure))
+
+
+def test_missing_colour_matrix_is_named(small_scene, monkeypatch):
+    import dataclasses
+
+    from gridnerf import scene as scene_mod
+
+    real = raw.read_raw
+    monkeypatch.setattr(scene_mod.raw, "read_raw",
+                        lambda p: dataclasses.replace(real(p), has_color_matrix=False))
+    with pytest.warns(UserWarning, match="no colour matrix; sRGB primaries"):
+        load_scene(small_scene, near_far=sim_near_far(small_scene))
