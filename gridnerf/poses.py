@@ -23,6 +23,7 @@ import os
 import shutil
 import tempfile
 import time
+import warnings
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -213,6 +214,15 @@ def sfm_images(scene: Path, files: dict, names: list[str], source: str, work: Pa
     return folder, {n: f"{n}.png" for n in names}, scene / "raw"
 
 
+def _unreadable(path: Path) -> str | None:
+    """Why COLMAP could not read this preview image (None when it decodes)."""
+    try:
+        iio.imread(path)
+    except Exception as exc:  # noqa: BLE001 - any decoder failure means COLMAP skips it
+        return f"its preview image cannot be decoded ({type(exc).__name__})"
+    return None
+
+
 def _install(rec, scene: Path) -> Path:
     """Write rec as scene/sparse/0, moving an existing model to sparse/0.prev."""
     sparse = scene / "sparse" / "0"
@@ -237,7 +247,8 @@ def estimate_poses(scene_dir, min_registered_fraction: float = 0.5,
     frames by raw_preview). use_known_intrinsics: when a transforms.json already gives one
     shared camera, keep its intrinsics fixed (calibrated SfM; small forward-facing
     baselines constrain the focal length poorly); otherwise COLMAP estimates a shared
-    `camera_model`. Returns {"registered": k, "total": n, "dropped": [stems], "seconds": t,
+    `camera_model`. Returns {"registered": k, "total": n, "dropped": {stem: why} (no
+    preview, unreadable preview, not registered; each also a warning), "seconds": t,
     "intrinsics": "known" | "estimated", model statistics, "near_far": ...} plus the pose
     agreement with a previous transforms.json. Raises PoseError naming the image folder
     when fewer than 2 or fewer than min_registered_fraction of the frames register.
@@ -253,10 +264,13 @@ def estimate_poses(scene_dir, min_registered_fraction: float = 0.5,
     with tempfile.TemporaryDirectory(prefix="gridnerf-colmap-") as tmp:
         work = Path(tmp)
         image_dir, previews, where = sfm_images(scene, files, names, source, work)
-        usable = [n for n in names if n in previews]
+        dropped = {n: "it has no preview image" for n in names if n not in previews}
+        dropped.update({n: why for n in names if n in previews
+                        and (why := _unreadable(image_dir / previews[n]))})
+        usable = [n for n in names if n not in dropped]
         if len(usable) < 2:
-            raise PoseError(where, f"{len(usable)} of {len(names)} raw frames have a preview "
-                            "image", "put JPEG previews named like the raw files there")
+            raise PoseError(where, f"{len(usable)} of {len(names)} raw frames have a readable "
+                            "preview image", "put JPEG previews named like the raw files there")
         known = None
         if use_known_intrinsics:
             known = known_intrinsics(prev_cams, image_dir, previews[usable[0]])
@@ -264,6 +278,11 @@ def estimate_poses(scene_dir, min_registered_fraction: float = 0.5,
         registered = set() if rec is None else {
             Path(im.name).stem for im in rec.images.values() if im.has_pose}
         registered_names = [n for n in names if n in registered]
+        dropped.update({n: "COLMAP could not register it (too few feature matches with the "
+                        "other frames)" for n in usable if n not in registered})
+        for name, why in dropped.items():
+            warnings.warn(f"{where / previews.get(name, name)}: {why}; the frame is left out "
+                          "of the poses", stacklevel=2)
         k, n = len(registered_names), len(names)
         if k < 2 or k < min_registered_fraction * n:
             raise PoseError(where, f"COLMAP registered only {k} of {n} frames", _FIX)
@@ -288,7 +307,7 @@ def estimate_poses(scene_dir, min_registered_fraction: float = 0.5,
     report = {
         "registered": k,
         "total": n,
-        "dropped": [x for x in names if x not in registered],
+        "dropped": dropped,
         "seconds": round(time.perf_counter() - start, 2),
         "source": source,
         "intrinsics": "known" if known else "estimated",
