@@ -23,6 +23,7 @@ import numpy as np
 import optax
 
 from gridnerf import grid, losses, render
+from gridnerf.config import RenderConfig
 
 
 def synthetic_scene(resolution, sh_degree: int, seed: int = 0):
@@ -86,9 +87,9 @@ def bench(sh_degree: int, skip: bool, fitted: bool, k: int, args) -> dict:
     # fitted: N from the longest ray of a full 512 x 512 view; else the box diagonal
     o_all, d_all = patch_rays(1, 512, 512, 0)
     n_fit = (render.fit_n_candidates(structure, o_all, d_all, 0.0, 1.0, args.spv)
-             if fitted else None)
-    cfg = render.RenderOptions(samples_per_voxel=args.spv, max_samples=k, skip_empty=skip,
-                               n_candidates=n_fit)
+             if fitted else 0)
+    cfg = RenderConfig(samples_per_voxel=args.spv, max_samples=k, skip_empty=skip,
+                       n_candidates=n_fit)
     n_cand = render.n_candidates(structure, cfg)
     target = np.full((origins.shape[0], 3), 5e-3, np.float32)
     step, opt = make_step(structure, cfg, args.patches, args.patch)

@@ -169,11 +169,14 @@ class RenderConfig(_Section):
     # (held_arc_brick: -1.3 dB, oracle too); the carved 192x108x64 stage has <= 49.
     max_samples: int = 64
     chunk: int = 8192  # rays per chunk when rendering whole images
+    skip_empty: bool = True  # False: every candidate sample is shaded, K = N (tests, benchmarks)
+    n_candidates: int = 0  # static candidate count N per ray; 0: enough to cross the box diagonal
 
     def _check(self) -> None:
         self._range("samples_per_voxel", 0.0, lo_open=True)
         self._require("max_samples", self.max_samples >= 1, "a whole number >= 1")
         self._require("chunk", self.chunk >= 1, "a whole number >= 1")
+        self._require("n_candidates", self.n_candidates >= 0, "a whole number >= 0 (0 = auto)")
 
 
 @dataclass(frozen=True)

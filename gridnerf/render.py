@@ -14,39 +14,29 @@ forward-facing scenes, or world rays with near/far). Marching happens in index s
    carries its own step, so dropping empty candidates changes nothing (exact skipping).
 
 Rays with more than K occupied candidates are truncated after the K-th (`n_occupied` in
-the output says how many there were). The options object may be this module's
-RenderOptions or gridnerf.config.RenderConfig: fields are read by name, with defaults.
+the output says how many there were). Options are gridnerf.config.RenderConfig (static
+under jit): samples_per_voxel, max_samples (K), chunk, skip_empty, n_candidates (N, 0 = auto).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from gridnerf import grid as gridlib
+from gridnerf.config import RenderConfig
 from gridnerf.grid import GridStructure
 
 _TINY = 1e-12
 
 
-@dataclass(frozen=True)
-class RenderOptions:
-    samples_per_voxel: float = 2.0  # candidate density along a ray (cheap bitmask test)
-    max_samples: int = 64  # K: occupied samples kept per ray (expensive gather)
-    chunk: int = 8192  # rays per jitted call in render_image
-    skip_empty: bool = True  # False: every candidate is shaded (K = N)
-    n_candidates: int | None = None  # N; None: enough to cross the box diagonal
-
-
-def n_candidates(structure: GridStructure, cfg) -> int:
+def n_candidates(structure: GridStructure, cfg: RenderConfig) -> int:
     """Static candidate count N: cfg.n_candidates or the box diagonal in voxels x spv."""
-    n = getattr(cfg, "n_candidates", None)
-    if n:
-        return int(n)
+    if cfg.n_candidates:
+        return int(cfg.n_candidates)
     diag = math.sqrt(sum((r - 1) ** 2 for r in structure.resolution))
     return int(math.ceil(diag * float(cfg.samples_per_voxel)))
 
@@ -143,7 +133,7 @@ def march(structure: GridStructure, origins, directions, near_t, far_t, cfg, key
               else jax.random.uniform(key, (n,), jnp.float32))
     pos = jnp.arange(n_cand, dtype=jnp.float32)[None, :] + offset[:, None]  # (n, N) in steps
     inside = pos * step_vox[:, None] < seg_vox[:, None]
-    if getattr(cfg, "skip_empty", True):
+    if cfg.skip_empty:
         t_cand = t_enter[:, None] + pos * dt[:, None]
         u_cand = o_u[:, None, :] + t_cand[..., None] * d_u[:, None, :]
         occupied = inside & _occupied(structure, u_cand)
@@ -166,7 +156,7 @@ def render_rays(structure: GridStructure, params, origins, directions, near_t, f
     """Render rays through the grid.
 
     origins, directions: (n, 3) grid coordinates (directions need not be unit);
-    near_t, far_t: scalars or (n,); cfg: RenderOptions-like (static under jit);
+    near_t, far_t: scalars or (n,); cfg: RenderConfig (static under jit);
     key: optional PRNG key -> one random offset per ray for the candidate grid (training).
     Returns rgb_low (n,3) low-light camera RGB, gain (n,3) = sum w s, rgb_restored (n,3) =
     sum w c_l s, depth (n,) expected t (not divided by acc), acc (n,), n_occupied (n,) int32,
@@ -216,7 +206,7 @@ def render_image(structure: GridStructure, params, origins, directions, near_t, 
     near_t, far_t: scalars or (H, W). One jit per chunk shape: the last chunk is padded.
     """
     shape = origins.shape[:-1]
-    chunk = int(chunk or getattr(cfg, "chunk", 8192))
+    chunk = int(chunk or cfg.chunk)
     o = np.asarray(origins, np.float32).reshape(-1, 3)
     d = np.asarray(directions, np.float32).reshape(-1, 3)
     near = np.broadcast_to(np.asarray(near_t, np.float32), shape).reshape(-1)

@@ -12,7 +12,7 @@ from gridnerf.config import RenderConfig
 
 LO, HI = -np.ones(3), np.ones(3)
 KEYS = ("rgb_low", "gain", "rgb_restored", "depth", "acc")
-CFG = render.RenderOptions(samples_per_voxel=2.0, max_samples=40)  # shared: jit cache hits
+CFG = RenderConfig(samples_per_voxel=2.0, max_samples=40)  # shared: jit cache hits
 
 
 def random_scene(sh_degree=0, res=(8, 7, 6), seed=0, prune_half=True):
@@ -45,13 +45,13 @@ def render_np(structure, params, o, d, near, far, cfg, **kw):
 
 
 @pytest.mark.parametrize(("sh_degree", "skip", "spv", "n_cand"), [
-    (0, True, 2.0, None), (2, True, 1.5, 12), (0, False, 1.5, 12), (2, False, 2.0, None)])
+    (0, True, 2.0, 0), (2, True, 1.5, 12), (0, False, 1.5, 12), (2, False, 2.0, 0)])
 def test_fast_renderer_matches_reference(sh_degree, skip, spv, n_cand):
     """n_cand = 12 is fewer than most segments need: steps stretch beyond 1 / spv."""
     structure, params = random_scene(sh_degree)
     o, d = random_rays()
-    cfg = render.RenderOptions(samples_per_voxel=spv, max_samples=40, skip_empty=skip,
-                               n_candidates=n_cand)
+    cfg = RenderConfig(samples_per_voxel=spv, max_samples=40, skip_empty=skip,
+                       n_candidates=n_cand)
     fast = render_np(structure, params, o, d, 0.2, 3.0, cfg)
     ref = render.render_rays_reference(structure, params, o, d, 0.2, 3.0, cfg)
     assert fast["n_occupied"].max() <= 40  # no truncation: skipping must be exact
@@ -73,7 +73,7 @@ def test_skipping_with_density_occupancy_is_exact_at_threshold_zero():
     fast = render_np(structure, params, o, d, 0.0, 4.0, CFG)
     ref = render.render_rays_reference(structure, params, o, d, 0.0, 4.0, CFG)
     dense = render_np(structure, params, o, d, 0.0, 4.0,
-                      render.RenderOptions(samples_per_voxel=2.0, skip_empty=False))
+                      RenderConfig(samples_per_voxel=2.0, skip_empty=False))
     assert fast["n_occupied"].sum() < 0.6 * dense["n_occupied"].sum()  # most were skipped
     assert ref["acc"].max() > 0.5
     for k in KEYS:
@@ -85,7 +85,7 @@ def test_constant_colour_and_unit_gains_composite_exactly():
     c = np.array([0.3, 1.0, 2.0], np.float32)  # c_l = 0.02 * c
     params["rgb"] = jnp.broadcast_to(jnp.asarray(np.log(np.expm1(c))), params["rgb"].shape)
     o, d = random_rays(32, seed=5)
-    cfg = render.RenderOptions(samples_per_voxel=2.0, max_samples=64)
+    cfg = RenderConfig(samples_per_voxel=2.0, max_samples=64)
     out = render_np(structure, params, o, d, 0.0, 5.0, cfg)
     acc = out["acc"][:, None]
     assert 0.05 < out["acc"].max() < 1.0
@@ -139,7 +139,7 @@ def test_empty_grid_renders_zeros():
     structure, params = random_scene(0)
     structure, params = grid.prune(structure, params, np.zeros(structure.n_rows, bool))
     o, d = random_rays()
-    for cfg in (CFG, render.RenderOptions(samples_per_voxel=2.0, skip_empty=False)):
+    for cfg in (CFG, RenderConfig(samples_per_voxel=2.0, skip_empty=False)):
         out = render_np(structure, params, o, d, 0.0, 10.0, cfg)
         assert all_finite(out)
         for k in KEYS:
@@ -187,7 +187,7 @@ def test_overflowing_rays_are_counted_and_truncated():
     structure, params = random_scene(0)
     o, d = random_rays()
     small = render_np(structure, params, o, d, 0.0, 5.0,
-                      render.RenderOptions(samples_per_voxel=2.0, max_samples=4))
+                      RenderConfig(samples_per_voxel=2.0, max_samples=4))
     full = render_np(structure, params, o, d, 0.0, 5.0, CFG)
     assert full["n_occupied"].max() <= 40
     assert np.array_equal(small["n_occupied"], full["n_occupied"])
@@ -216,7 +216,7 @@ def test_fitted_candidate_count_renders_the_same():
     assert 0 < n_fit < render.n_candidates(structure, CFG)
     a = render_np(structure, params, o, d, 0.2, 3.0, CFG)
     b = render_np(structure, params, o, d, 0.2, 3.0,
-                  render.RenderOptions(samples_per_voxel=2.0, max_samples=40, n_candidates=n_fit))
+                  RenderConfig(samples_per_voxel=2.0, max_samples=40, n_candidates=n_fit))
     for k in KEYS:
         np.testing.assert_allclose(a[k], b[k], atol=1e-6, err_msg=k)
 
@@ -241,7 +241,7 @@ def test_vertex_visibility_sees_the_first_surface_only():
     g = np.linspace(-0.5, 0.5, 8)
     o = np.stack([*np.meshgrid(g, g, indexing="ij"), np.full((8, 8), -1.5)], -1).reshape(-1, 3)
     d = np.tile([0.0, 0.0, 1.0], (64, 1))
-    cfg = render.RenderOptions(samples_per_voxel=2.0, max_samples=64)
+    cfg = RenderConfig(samples_per_voxel=2.0, max_samples=64)
     vis_max, vis_sum = render.vertex_visibility(structure, params, jnp.asarray(o, jnp.float32),
                                                 jnp.asarray(d, jnp.float32), 0.0, 5.0, cfg)
     vis_max, vis_sum = np.asarray(vis_max), np.asarray(vis_sum)
