@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gridnerf import devices
 from gridnerf import grid as gridlib
 from gridnerf.config import RenderConfig
 from gridnerf.grid import GridStructure
@@ -204,6 +205,7 @@ def render_image(structure: GridStructure, params, origins, directions, near_t, 
     """Chunked render of (H, W, 3) rays -> dict of (H, W, ...) numpy arrays.
 
     near_t, far_t: scalars or (H, W). One jit per chunk shape: the last chunk is padded.
+    Each chunk is split over all local devices (gridnerf.devices).
     """
     shape = origins.shape[:-1]
     chunk = int(chunk or cfg.chunk)
@@ -212,13 +214,14 @@ def render_image(structure: GridStructure, params, origins, directions, near_t, 
     near = np.broadcast_to(np.asarray(near_t, np.float32), shape).reshape(-1)
     far = np.broadcast_to(np.asarray(far_t, np.float32), shape).reshape(-1)
     n = o.shape[0]
-    chunk = max(1, min(chunk, n))
+    n_dev = devices.device_count()
+    chunk = -(-max(1, min(chunk, n)) // n_dev) * n_dev  # chunks split evenly over devices
     outs: dict[str, list] = {}
     for start in range(0, n, chunk):
         sl = slice(start, min(start + chunk, n))
         pad = chunk - (sl.stop - sl.start)
-        args = [np.pad(a[sl], [(0, pad)] + [(0, 0)] * (a.ndim - 1), mode="edge")
-                for a in (o, d, near, far)]
+        args = devices.put_rays(*[np.pad(a[sl], [(0, pad)] + [(0, 0)] * (a.ndim - 1),
+                                          mode="edge") for a in (o, d, near, far)])
         res = _render_jit(structure, params, *args, cfg=cfg)
         for name, v in res.items():
             outs.setdefault(name, []).append(np.asarray(v)[: chunk - pad])

@@ -23,7 +23,17 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
-from gridnerf import atomic, checkpoint, dataset, grid, illuminant, losses, render, runfolder
+from gridnerf import (
+    atomic,
+    checkpoint,
+    dataset,
+    devices,
+    grid,
+    illuminant,
+    losses,
+    render,
+    runfolder,
+)
 from gridnerf import config as cfgmod
 from gridnerf.config import Config
 from gridnerf.errors import CheckpointError, NumericsError
@@ -135,12 +145,18 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
 
 
 def make_step(cfg: Config, tx, near_t: float, far_t: float):
-    """Jitted step: (params, opt_state, structure, data, key) -> (params, opt_state, loss, aux)."""
+    """Jitted step: (params, opt_state, structure, data, key) -> (params, opt_state, loss, aux).
+
+    The batch's patches are split over all local devices (gridnerf.devices); parameters are
+    replicated. train.batch_patches must be a multiple of the device count.
+    """
+    devices.check_divisible(cfg.train.batch_patches, "train.batch_patches")
 
     @jax.jit
     def step(params, opt_state, structure, data, key):
         kb, kl = jax.random.split(key)
-        rays = dataset.batch(data, kb, cfg.train.batch_patches, cfg.train.patch_size)
+        rays = devices.shard_rays(
+            dataset.batch(data, kb, cfg.train.batch_patches, cfg.train.patch_size))
         (total, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(
             params, structure, rays, kl, cfg, near_t, far_t
         )
