@@ -19,28 +19,11 @@ from gridnerf.color import luminance, srgb_from_cam
 from gridnerf.errors import RawError
 from gridnerf.exposure import alpha_for_luminance
 from gridnerf.illuminant import gains_from_illuminant, grey_world
-from gridnerf.raw import bin2x2, cfa_masks
+from gridnerf.raw import bin2x2, cfa_masks, check_cfa
 
 # Bilinear interpolation kernel for normalised convolution: cross neighbours
 # weigh twice the diagonal ones, the centre four times.
 _BILINEAR = np.array([[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]])
-
-
-def _check_cfa(cfa) -> np.ndarray:
-    cfa = np.asarray(cfa)
-    if cfa.shape != (2, 2) or not np.issubdtype(cfa.dtype, np.integer):
-        raise RawError(
-            None,
-            f"CFA pattern must be a (2, 2) int array, got {cfa.dtype}{cfa.shape}",
-            "pass colour indices per CFA position, e.g. [[0, 1], [1, 2]] for RGGB",
-        )
-    if set(cfa.ravel().tolist()) != {0, 1, 2}:
-        raise RawError(
-            None,
-            f"CFA pattern {cfa.tolist()} is not an RGB Bayer pattern",
-            "use colour indices 0=R, 1=G, 2=B, each present at least once",
-        )
-    return cfa
 
 
 def demosaic_bilinear(raw_bayer, cfa) -> np.ndarray:
@@ -64,7 +47,7 @@ def demosaic_bilinear(raw_bayer, cfa) -> np.ndarray:
             f"expected a 2D Bayer mosaic of at least 2x2, got shape {raw_bayer.shape}",
             "pass the single-channel raw frame (H, W), not a demosaicked image",
         )
-    masks = cfa_masks(_check_cfa(cfa), *raw_bayer.shape)
+    masks = cfa_masks(check_cfa(cfa), *raw_bayer.shape)
     raw = raw_bayer.astype(np.float64)
     channels = []
     for c in range(3):
@@ -145,7 +128,7 @@ def process_binned_frame(raw_bayer, cfa, xyz_to_cam, gt_linear) -> np.ndarray:
     raw_bayer: (H, W) normalised mosaic; gt_linear: (H, W, 3) the reference, linear sRGB.
     Returns rgb_linear (H, W, 3) float32.
     """
-    rgb = bin2x2(np.asarray(raw_bayer, np.float32), _check_cfa(cfa)).astype(np.float64)
+    rgb = bin2x2(np.asarray(raw_bayer, np.float32), check_cfa(cfa)).astype(np.float64)
     rgb = rgb * grey_world_gains(rgb).astype(np.float64)
     rgb = rgb @ srgb_from_cam(np.asarray(xyz_to_cam, np.float64)).T
     rgb = resize(rgb, np.asarray(gt_linear).shape[:2], order=1, anti_aliasing=False)

@@ -62,11 +62,16 @@ class RawFrame:
     has_color_matrix: bool = True
 
 
-def _check_cfa(cfa) -> np.ndarray:
-    """(2, 2) int Bayer pattern (one R, two G, one B) or ValueError."""
+def check_cfa(cfa) -> np.ndarray:
+    """The (2, 2) int64 Bayer pattern (one R, two G, one B as 0, 1, 2), or RawError: the one
+    CFA validation of the package."""
     cfa = np.asarray(cfa)
-    if cfa.shape != (2, 2) or sorted(cfa.ravel().tolist()) != [0, 1, 1, 2]:
-        raise ValueError(f"cfa must be a (2, 2) Bayer pattern of 0=R 1=G 2=B, got {cfa.tolist()}")
+    ok = (cfa.shape == (2, 2) and np.issubdtype(cfa.dtype, np.integer)
+          and sorted(cfa.ravel().tolist()) == [0, 1, 1, 2])
+    if not ok:
+        raise RawError(None, f"CFA pattern {cfa.tolist()} ({cfa.dtype}{cfa.shape}) is not a "
+                       "(2, 2) RGB Bayer pattern", "pass colour indices per CFA position, one R, "
+                       "two G, one B, e.g. [[0, 1], [1, 2]] for RGGB")
     return cfa.astype(np.int64)
 
 
@@ -262,19 +267,20 @@ def saturated_mask(frame: RawFrame) -> np.ndarray:
 
 def cfa_masks(cfa, height: int, width: int) -> np.ndarray:
     """(height, width, 3) float32 one-hot of the colour measured at each pixel."""
-    colour = _tile(_check_cfa(cfa), height, width)
+    colour = _tile(check_cfa(cfa), height, width)
     return (colour[..., None] == np.arange(3)).astype(np.float32)
 
 
-def bin2x2(raw_bayer: np.ndarray, cfa) -> np.ndarray:
+def bin2x2(raw_bayer: np.ndarray, cfa, dtype=np.float32) -> np.ndarray:
     """Bin each 2x2 CFA block to one RGB pixel: (H, W) -> rgb_cam (H//2, W//2, 3) float32.
 
     R and B are copied, the two greens averaged. An odd last row/column is cropped.
+    dtype: float32 (training) or float64 (the simulator's previews).
     """
-    cfa = _check_cfa(cfa)
+    cfa = check_cfa(cfa)
     raw_bayer = np.asarray(raw_bayer)
     h2, w2 = raw_bayer.shape[0] // 2, raw_bayer.shape[1] // 2
-    rgb_cam = np.zeros((h2, w2, 3), np.float32)
+    rgb_cam = np.zeros((h2, w2, 3), dtype)
     for dy in range(2):
         for dx in range(2):
             rgb_cam[..., cfa[dy, dx]] += raw_bayer[dy : 2 * h2 : 2, dx : 2 * w2 : 2]
@@ -284,7 +290,7 @@ def bin2x2(raw_bayer: np.ndarray, cfa) -> np.ndarray:
 
 def bin2x2_mask(valid: np.ndarray, cfa) -> np.ndarray:
     """(H, W) bool -> (H//2, W//2, 3) bool; a binned channel is valid iff all its sources are."""
-    cfa = _check_cfa(cfa)
+    cfa = check_cfa(cfa)
     valid = np.asarray(valid, bool)
     h2, w2 = valid.shape[0] // 2, valid.shape[1] // 2
     out = np.ones((h2, w2, 3), bool)

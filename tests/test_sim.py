@@ -13,6 +13,7 @@ import rawpy
 from gridnerf import cli
 from gridnerf.color import CAMERA_XYZ_TO_CAM, luminance, srgb_encode
 from gridnerf.errors import SceneError
+from gridnerf.raw import bin2x2
 from gridnerf.sim import HELDOUT, MIXED, SCENES, simulate_scene, writer
 from gridnerf.sim import scenes as sc
 from gridnerf.sim import sensor as sn
@@ -127,7 +128,7 @@ def test_mosaic_and_cfa_patterns():
     assert raw[0, :2].tolist() == [2.0, 1.0] and raw[1, :2].tolist() == [3.0, 2.0]
     warm = sn.illuminant_neutral(sn.SensorParams(kelvin=2500.0))
     assert warm[2] < 0.5 * warm[1]
-    np.testing.assert_allclose(sn.bin2x2(raw, np.array(sn.CFA_PATTERNS["GRBG"]))[0, 0],
+    np.testing.assert_allclose(bin2x2(raw, np.array(sn.CFA_PATTERNS["GRBG"]), np.float64)[0, 0],
                                [1.0, 2.0, 3.0])
 
 

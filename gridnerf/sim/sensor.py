@@ -27,6 +27,7 @@ import numpy as np
 import scipy.ndimage
 import skimage.transform
 
+from gridnerf import raw
 from gridnerf.color import (
     CAMERA_XYZ_TO_CAM,
     D65_XYZ,
@@ -163,24 +164,6 @@ def grey_world_neutral(rgb_cam: np.ndarray) -> np.ndarray:
 PREVIEW_MEAN_LUMINANCE = 0.18
 
 
-def bin2x2(raw_norm: np.ndarray, cfa: np.ndarray) -> np.ndarray:
-    """Half-resolution demosaic: raw_norm (H, W) -> rgb_cam (H // 2, W // 2, 3).
-
-    Each output pixel averages the photosites of each colour in one 2x2 CFA block
-    (the two greens are averaged). Odd trailing rows/columns are dropped.
-    """
-    h2, w2 = raw_norm.shape[0] // 2, raw_norm.shape[1] // 2
-    blocks = raw_norm[: 2 * h2, : 2 * w2].reshape(h2, 2, w2, 2)
-    rgb_cam = np.zeros((h2, w2, 3), np.float64)
-    count = np.zeros(3)
-    for dy in range(2):
-        for dx in range(2):
-            c = int(cfa[dy, dx])
-            rgb_cam[..., c] += blocks[:, dy, :, dx]
-            count[c] += 1
-    return rgb_cam / count
-
-
 def preview_srgb(raw_bayer: np.ndarray, cfa: np.ndarray, black_level: np.ndarray,
                  white_level: int, xyz_to_cam: np.ndarray, luma_sigma: float = 1.5,
                  chroma_sigma: float = 4.0) -> np.ndarray:
@@ -196,7 +179,7 @@ def preview_srgb(raw_bayer: np.ndarray, cfa: np.ndarray, black_level: np.ndarray
     black = np.asarray(black_level, np.float64)
     black_map = np.tile(black, (h // 2 + 1, w // 2 + 1))[:h, :w]
     raw_norm = (raw_bayer.astype(np.float64) - black_map) / (white_level - black_map)
-    rgb_cam = bin2x2(raw_norm, cfa)
+    rgb_cam = raw.bin2x2(raw_norm, cfa, dtype=np.float64)
     means = np.maximum(rgb_cam.reshape(-1, 3).mean(axis=0), 1e-6)
     rgb_cam_wb = rgb_cam * (means[1] / means)
     rgb_linear = np.einsum("...j,kj->...k", rgb_cam_wb, srgb_from_cam(xyz_to_cam))
