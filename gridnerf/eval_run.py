@@ -20,7 +20,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gridnerf import atomic, baseline, color, dataset, evaluate, exposure, image_io, raw, render
+from gridnerf import (
+    atomic,
+    baseline,
+    color,
+    dataset,
+    evaluate,
+    exposure,
+    image_io,
+    raw,
+    rays,
+    render,
+)
 from gridnerf import config as cfgmod
 from gridnerf.errors import SceneError
 from gridnerf.runfolder import CHECKPOINT, load_state, open_scene
@@ -173,10 +184,8 @@ def camera_path(scene, kind: str, n_frames: int) -> np.ndarray:
     the mean camera's image plane; radii from the 90th percentile of camera offsets.
     """
     c2w = scene.cameras.c2w
-    centre = c2w[:, :, 3].mean(0)
-    rot = c2w[:, :, :3].mean(0)
-    u, _, vt = np.linalg.svd(rot)
-    rot = u @ vt
+    avg = rays.average_pose(c2w)
+    centre, rot = avg[:, 3], avg[:, :3]
     focus = centre - rot[:, 2] * 0.5 * (scene.near + scene.far) * 0.5
     offsets = (c2w[:, :, 3] - centre) @ rot
     radii = np.percentile(np.abs(offsets), 90, axis=0) + 1e-3
@@ -189,12 +198,7 @@ def camera_path(scene, kind: str, n_frames: int) -> np.ndarray:
         local = np.stack([np.cos(t) * radii[0], np.sin(t) * radii[1], np.zeros_like(t)], 1)
     poses = []
     for p in centre + local @ rot.T:
-        back = p - focus
-        back /= np.linalg.norm(back)
-        right = np.cross(rot[:, 1], back)
-        right /= np.linalg.norm(right)
-        up = np.cross(back, right)
-        poses.append(np.stack([right, up, back, p], 1))
+        poses.append(np.concatenate([rays.look_at(p, focus, rot[:, 1]), p[:, None]], 1))
     return np.stack(poses)
 
 

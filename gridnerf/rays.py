@@ -49,6 +49,17 @@ def camera_rays(cams: Cameras, i: int, xp=np):
     return np.ascontiguousarray(origins), directions
 
 
+def look_at(position, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """(3, 3) camera-to-world rotation (OpenGL axes: the camera looks along -z) from
+    `position` towards `target`, its y axis in the plane of `up` and the view direction."""
+    f = np.asarray(target, float) - np.asarray(position, float)
+    f /= np.linalg.norm(f)
+    x = np.cross(f, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(x, f)
+    return np.stack([x, y, -f], axis=1)
+
+
 def average_pose(c2w: np.ndarray) -> np.ndarray:
     """(N, 3, 4) -> (3, 4): mean position; axes from the mean backward and up vectors,
     re-orthonormalised (LLFF's poses_avg, OpenGL axes)."""

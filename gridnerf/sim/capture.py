@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gridnerf import rays
 from gridnerf.sim.geometry import cast, dot3, occluded, rotation
 from gridnerf.sim.scenes import Light, PointLight, SceneSpec
 
@@ -43,13 +44,9 @@ def intrinsics(width: int, height: int, hfov_deg: float = HFOV_DEG) -> Intrinsic
 
 
 def look_at(position: np.ndarray, target: np.ndarray, roll: float = 0.0) -> np.ndarray:
-    """(3, 3) camera-to-world rotation looking from `position` at `target` (world up = +y)."""
-    f = np.asarray(target, float) - np.asarray(position, float)
-    f /= np.linalg.norm(f)
-    x = np.cross(f, [0.0, 1.0, 0.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(x, f)
-    return np.stack([x, y, -f], axis=1) @ rotation(roll=roll)
+    """(3, 3) camera-to-world rotation looking from `position` at `target` (world up = +y),
+    rolled by `roll` radians about the view axis."""
+    return rays.look_at(position, target, [0.0, 1.0, 0.0]) @ rotation(roll=roll)
 
 
 def camera_path(spec: SceneSpec, n_frames: int, rng: np.random.Generator) -> np.ndarray:
