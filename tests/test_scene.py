@@ -387,3 +387,18 @@ def test_missing_colour_matrix_is_named(small_scene, monkeypatch):
                         lambda p: dataclasses.replace(real(p), has_color_matrix=False))
     with pytest.warns(UserWarning, match="no colour matrix; sRGB primaries"):
         load_scene(small_scene, near_far=sim_near_far(small_scene))
+
+
+def test_dng_with_overwritten_pixel_bytes_is_named(small_scene, tmp_path):
+    """2000 random bytes written into a frame's pixel data (the hostile probe of issue 7)."""
+    root = tmp_path / "s"
+    shutil.copytree(small_scene, root)
+    names = sorted(p.stem for p in (root / "raw").glob("*.dng"))
+    path = root / "raw" / f"{names[4]}.dng"
+    data = bytearray(path.read_bytes())
+    at = len(data) // 2  # the uncompressed mosaic fills all but the header
+    data[at:at + 2000] = np.random.default_rng(0).integers(0, 256, 2000, np.uint8).tobytes()
+    path.write_bytes(bytes(data))
+    with pytest.warns(UserWarning, match=f"{names[4]}.dng: .*corrupt pixel data"):
+        scene = load_scene(root, near_far=sim_near_far(root))
+    assert 4 not in scene.train_idx and 4 not in scene.test_idx
