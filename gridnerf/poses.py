@@ -29,8 +29,8 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 
+from gridnerf import baseline, color, raw
 from gridnerf import cameras as cam_mod
-from gridnerf import color, raw
 from gridnerf.errors import PoseError, SceneError
 from gridnerf.scene import raw_files
 
@@ -181,19 +181,14 @@ def known_intrinsics(prev: cam_mod.Cameras | None, images_dir: Path, preview: st
 def raw_preview(path) -> np.ndarray:
     """An SfM preview straight from a RAW frame: rgb_srgb (H, W, 3) uint8.
 
-    Bilinear demosaic (normalised convolution per channel), white balance by AsShotNeutral,
+    Bilinear demosaic (baseline.demosaic_bilinear), white balance by AsShotNeutral,
     a 1-pixel Gaussian denoise, a gain to mean 0.25 and the sRGB curve. On simulated dark
     scenes it keeps more texture than a camera JPEG with strong noise reduction.
     """
     from scipy import ndimage
 
     frame = raw.read_raw(path)
-    raw_bayer = raw.normalize(frame)
-    masks = raw.cfa_masks(frame.cfa, *raw_bayer.shape)
-    kernel = np.array([[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]], np.float32)
-    rgb_cam = np.stack([
-        ndimage.convolve(raw_bayer * masks[..., c], kernel, mode="mirror")
-        / ndimage.convolve(masks[..., c], kernel, mode="mirror") for c in range(3)], axis=-1)
+    rgb_cam = baseline.demosaic_bilinear(raw.normalize(frame), frame.cfa)
     rgb_cam = ndimage.gaussian_filter(rgb_cam / frame.as_shot_neutral, (1.0, 1.0, 0.0))
     rgb_cam *= 0.25 / max(float(rgb_cam.mean()), 1e-8)
     rgb_srgb = color.srgb_encode(rgb_cam)

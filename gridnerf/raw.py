@@ -251,13 +251,21 @@ def read_raw(path) -> RawFrame:
 
 
 def normalize(frame: RawFrame) -> np.ndarray:
-    """(raw - black) / (white - black) per CFA position: raw_bayer (H, W) float32.
+    """(raw - black) / (white - black) per CFA position: raw_bayer (H, W) float32."""
+    return normalize_mosaic(frame.raw_bayer, frame.black_level, frame.white_level)
 
-    Values below the black level stay negative (clipping them biases dark channels).
+
+def normalize_mosaic(raw_bayer: np.ndarray, black_level, white_level,
+                     dtype=np.float32) -> np.ndarray:
+    """The one raw normalisation: (raw - black) / (white - black) per CFA position.
+
+    raw_bayer: (H, W) mosaic; black_level: (2, 2) per CFA position; white_level: scalar.
+    Returns (H, W) `dtype` (float64 for the simulator's previews). Values below the black
+    level stay negative (clipping them biases dark channels).
     """
-    height, width = frame.raw_bayer.shape
-    black = _tile(np.asarray(frame.black_level, np.float32), height, width)
-    return (frame.raw_bayer.astype(np.float32) - black) / (np.float32(frame.white_level) - black)
+    height, width = raw_bayer.shape
+    black = _tile(np.asarray(black_level, dtype), height, width)
+    return (np.asarray(raw_bayer).astype(dtype) - black) / (dtype(white_level) - black)
 
 
 def saturated_mask(frame: RawFrame) -> np.ndarray:

@@ -63,11 +63,7 @@ class Scene:
 
     def raw_normalized(self, i: int) -> np.ndarray:
         """raw_bayer (H, W) float32: (raw - black) / (white - black), negatives kept."""
-        height, width = self.raw_bayer.shape[1:]
-        black = np.tile(self.black_level[i], ((height + 1) // 2, (width + 1) // 2))
-        black = black[:height, :width].astype(np.float32)
-        white = np.float32(self.white_level[i])
-        return (self.raw_bayer[i].astype(np.float32) - black) / (white - black)
+        return raw.normalize_mosaic(self.raw_bayer[i], self.black_level[i], self.white_level[i])
 
     def saturated(self, i: int) -> np.ndarray:
         """(H, W) bool: pixels at or above the white level."""

@@ -176,9 +176,7 @@ def preview_srgb(raw_bayer: np.ndarray, cfa: np.ndarray, black_level: np.ndarray
     Returns rgb_srgb: (H, W, 3) float32 in [0, 1].
     """
     h, w = raw_bayer.shape
-    black = np.asarray(black_level, np.float64)
-    black_map = np.tile(black, (h // 2 + 1, w // 2 + 1))[:h, :w]
-    raw_norm = (raw_bayer.astype(np.float64) - black_map) / (white_level - black_map)
+    raw_norm = raw.normalize_mosaic(raw_bayer, black_level, white_level, np.float64)
     rgb_cam = raw.bin2x2(raw_norm, cfa, dtype=np.float64)
     means = np.maximum(rgb_cam.reshape(-1, 3).mean(axis=0), 1e-6)
     rgb_cam_wb = rgb_cam * (means[1] / means)
