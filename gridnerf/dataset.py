@@ -53,7 +53,7 @@ def build(scene: Scene, frames: np.ndarray, binning: bool, downscale: int = 1,
     (rgb_linear) box-downscaled to the binned size, exposure 1, all valid.
     """
     cams = scene.cameras
-    full = np.array([cams.fx[0], cams.fy[0], cams.width, cams.height], np.float32)
+    full = ndc_intrinsics(scene)
     c2w = cams.c2w[frames].astype(np.float32)
     black = scene.black_level[frames].astype(np.float32)
     white = scene.white_level[frames].astype(np.float32)
@@ -104,6 +104,13 @@ def pixel_rays(c2w, intrinsics, u, v):
     u, v (...) pixel column/row. Returns origins, directions (..., 3), camera-frame z = -1."""
     fx, fy, cx, cy = (intrinsics[..., k] for k in range(4))
     return rays.pixel_rays(c2w, fx, fy, cx, cy, u, v, xp=jnp)
+
+
+def ndc_intrinsics(scene: Scene) -> np.ndarray:
+    """(4,) float32 fx, fy, width, height of camera 0 at full resolution: the one NDC warp of
+    a scene (every view, training or rendered, goes through the same warp)."""
+    c = scene.cameras
+    return np.array([c.fx[0], c.fy[0], c.width, c.height], np.float32)
 
 
 def to_grid_space(ndc: bool, ndc_intrinsics, origins, directions):

@@ -54,13 +54,9 @@ def render_view(structure, params, scene, cfg, c2w, intrinsics, height, width) -
     """Render one camera: dict of (H, W, ...) host arrays (rgb_low, gain, rgb_restored, ...)."""
     near_t, far_t = dataset.grid_box(scene)[2:]
     o, d = dataset.image_rays(c2w, intrinsics, height, width)
-    o, d = dataset.to_grid_space(scene.forward_facing, _ndc_intrinsics(scene), o, d)
+    o, d = dataset.to_grid_space(scene.forward_facing,
+                                 jnp.asarray(dataset.ndc_intrinsics(scene)), o, d)
     return render.render_image(structure, params, o, d, near_t, far_t, cfg.render)
-
-
-def _ndc_intrinsics(scene):
-    c = scene.cameras
-    return jnp.asarray([c.fx[0], c.fy[0], c.width, c.height], jnp.float32)
 
 
 def exposures(structure, params, scene, cfg) -> dict[str, float]:
