@@ -137,6 +137,9 @@ class GridConfig(_Section):
     # box (thin fog reaches 1% somewhere), 0.05 keeps ~50% at the same PSNR
     prune_threshold: float = 0.05
     prune_dilate: int = 1  # keep this many vertices around survivors when pruning
+    # NDC box across x/y: "reference" +-1.25 (the mean camera's frustum and a margin) or
+    # "frustums" (every training camera's frustum: arcs and slides see far beyond the mean)
+    ndc_xy: Literal["reference", "frustums"] = "reference"
     fit_box: bool = True  # after the first stage, shrink the box to the visible content
     fit_quantile: float = 0.005  # rendered mass left outside the fitted box at each end
     fit_margin: float = 2.0  # margin around the content, in voxels of the first stage

@@ -281,6 +281,9 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     data = dataset.build(scene, scene.train_idx, cfg.data.binning, cfg.data.downscale,
                          cfg.data.target)
     bbox_min, bbox_max, near_t, far_t = dataset.grid_box(scene)
+    if scene.forward_facing and cfg.grid.ndc_xy == "frustums":
+        bbox_min[:2], bbox_max[:2] = dataset.frustum_xy(scene, scene.train_idx, bbox_min,
+                                                        bbox_max, near_t)
     key = jax.random.PRNGKey(cfg.train.seed)
     stages = list(zip(cfg.grid.resolutions, cfg.train.steps_per_stage, strict=True))
 

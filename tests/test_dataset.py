@@ -72,3 +72,29 @@ def test_oracle_data_are_the_downscaled_references(small_scene):
     want = raw.downscale(image_io.read_exr(scene.gt_linear_paths[scene.names[frames[0]]]), 2)
     np.testing.assert_allclose(np.asarray(data.pixels[0]), want, rtol=1e-6)
     assert bool(jnp.all(data.valid)) and np.allclose(np.asarray(data.inv_exposure), 1.0)
+
+
+def test_frustum_box_covers_every_camera(small_scene):
+    """The reference camera's frustum is NDC x, y in [-1, 1]; a camera turned by 17 degrees
+    reaches further, and the union of the training frustums holds both."""
+    import dataclasses
+
+    from scipy.spatial.transform import Rotation
+
+    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
+    cams = scene.cameras
+    c2w = cams.c2w.copy()
+    c2w[0] = np.eye(3, 4)
+    c2w[1] = np.concatenate([Rotation.from_euler("y", 17, degrees=True).as_matrix(),
+                             np.zeros((3, 1))], 1)
+    n = len(cams.names)
+    centred = dataclasses.replace(cams.with_c2w(c2w), cx=np.full(n, cams.width / 2.0),
+                                  cy=np.full(n, cams.height / 2.0))
+    scene = dataclasses.replace(scene, cameras=centred)
+    lo, hi, near_t, _ = dataset.grid_box(scene)
+    ref_lo, ref_hi = dataset.frustum_xy(scene, [0], lo, hi, near_t, margin=0.0)
+    np.testing.assert_allclose(ref_lo, [-1.0, -1.0], atol=0.02)
+    np.testing.assert_allclose(ref_hi, [1.0, 1.0], atol=0.02)
+    both_lo, both_hi = dataset.frustum_xy(scene, [0, 1], lo, hi, near_t, margin=0.0)
+    assert both_lo[0] < -1.5 and both_hi[0] >= ref_hi[0] - 1e-6  # turned left: sees -x
+    assert both_lo[1] <= ref_lo[1] + 1e-6 and both_hi[1] >= ref_hi[1] - 1e-6
