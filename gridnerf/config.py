@@ -131,8 +131,10 @@ class GridConfig(_Section):
     resolutions: tuple[tuple[int, int, int], ...] = ((48, 0, 24), (96, 0, 48), (192, 0, 64))
     sh_degree: int = 0  # spherical-harmonic degree of the low-light colour (0 = no view dependence)
     init_density: float = -4.0  # raw density at init (softplus: sigma 0.018 per voxel)
-    # "visibility": max ray weight over training rays; "density": the vertex's own alpha
-    prune_mode: Literal["visibility", "density"] = "visibility"
+    # "visibility": max ray weight over training rays; "density": the vertex's own alpha;
+    # "ray_mass": vertices some training ray needs to keep grid.prune_mass of its weight
+    prune_mode: Literal["visibility", "density", "ray_mass"] = "visibility"
+    prune_mass: float = 0.9  # "ray_mass": share of each ray's weight that carving keeps
     # carve vertices whose weight (or alpha) is below this; 0.01 kept 96% of the coarse
     # box (thin fog reaches 1% somewhere), 0.05 keeps ~50% at the same PSNR
     prune_threshold: float = 0.05
@@ -141,6 +143,10 @@ class GridConfig(_Section):
     # "frustums" (every training camera's frustum: arcs and slides see far beyond the mean)
     ndc_xy: Literal["reference", "frustums"] = "reference"
     fit_box: bool = True  # after the first stage, shrink the box to the visible content
+    # refit x/y too (False: depth only; in a forward-facing capture every pixel sees
+    # something, so the cameras, not the content, bound x/y: dim sky can fall below the
+    # mass quantile and be cut off)
+    fit_xy: bool = True
     fit_quantile: float = 0.005  # rendered mass left outside the fitted box at each end
     fit_margin: float = 2.0  # margin around the content, in voxels of the first stage
     occupancy_threshold: float = 0.005  # cells whose max alpha is below this are skipped
@@ -156,6 +162,7 @@ class GridConfig(_Section):
                       f"a whole number from 0 to {MAX_SH_DEGREE}")
         self._range("init_density")
         self._range("prune_threshold", 0.0, 1.0)
+        self._range("prune_mass", 0.0, 1.0, lo_open=True)
         self._require("prune_dilate", self.prune_dilate >= 0, "a whole number >= 0")
         self._range("fit_quantile", 0.0, 0.5, hi_open=True)
         self._range("fit_margin", 0.0)

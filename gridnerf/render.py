@@ -179,22 +179,40 @@ def render_rays(structure: GridStructure, params, origins, directions, near_t, f
             "s_vox": (t - t[:, :1]) * speed, "step_vox": step}
 
 
+def essential_samples(w: jax.Array, mass: float) -> jax.Array:
+    """(n, K) weights -> (n, K) bool: the heaviest samples of each ray that together hold
+    `mass` of its total weight. A ray through fog needs most of its samples, a ray that
+    ends on a surface only those at the surface."""
+    order = jnp.argsort(-w, axis=-1)  # heaviest first
+    ws = jnp.take_along_axis(w, order, axis=-1)
+    before = jnp.cumsum(ws, axis=-1) - ws
+    n_ess = jnp.sum(before < mass * jnp.sum(w, axis=-1, keepdims=True), axis=-1)
+    rank = jnp.argsort(order, axis=-1)
+    return (rank < n_ess[:, None]) & (w > 0.0)
+
+
 def vertex_visibility(structure: GridStructure, params, origins, directions, near_t, far_t,
-                      cfg) -> tuple[jax.Array, jax.Array]:
+                      cfg, mass: float = 0.9) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Per vertex (M,): the largest rendering weight w_i = T_i alpha_i any of these rays
     gives a sample in a cell touching it (svox2's weight-threshold pruning criterion: free
-    space and everything hidden behind surfaces score ~0), and the sum of those weights
-    (where the rendered mass is; a floater that serves one view holds little of it)."""
+    space and everything hidden behind surfaces score ~0); the sum of those weights
+    (where the rendered mass is; a floater that serves one view holds little of it); and
+    1 where some ray needs the vertex to keep `mass` of its weight (essential_samples),
+    else 0: carving by it never takes more than 1 - mass of any training ray's opacity."""
     u, _, step, _ = march(structure, origins, directions, near_t, far_t, cfg)
     table = gridlib.feature_table(structure, params, pad_to=8)
     feats = gridlib.trilinear_index_space(structure, table, u)[..., : structure.n_channels]
     sigma = jax.nn.softplus(feats[..., 0])
     w, _ = composite(sigma, step, {})
+    w = jnp.where(step > 0, w, 0.0)
+    ess = essential_samples(w, mass).astype(jnp.float32)
     rows = gridlib.corner_rows(structure, u)[0]  # (n, K, 8)
-    w8 = jnp.broadcast_to(jnp.where(step > 0, w, 0.0)[..., None], rows.shape)
-    rows, w8 = rows.reshape(-1), w8.reshape(-1)
+    w8 = jnp.broadcast_to(w[..., None], rows.shape).reshape(-1)
+    e8 = jnp.broadcast_to(ess[..., None], rows.shape).reshape(-1)
+    rows = rows.reshape(-1)
     zeros = jnp.zeros((structure.n_rows + 1,), jnp.float32)
-    return zeros.at[rows].max(w8)[:-1], zeros.at[rows].add(w8 / 8.0)[:-1]
+    return (zeros.at[rows].max(w8)[:-1], zeros.at[rows].add(w8 / 8.0)[:-1],
+            zeros.at[rows].max(e8)[:-1])
 
 
 _render_jit = jax.jit(render_rays, static_argnames=("cfg",))

@@ -207,11 +207,13 @@ def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage:
 
 def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, near_t: float,
                       far_t: float, stride: int = 2) -> np.ndarray:
-    """Per vertex (M,): max and sum of the rendering weights over the training rays (every
-    `stride`-th pixel per axis): the carving criterion and where the rendered mass is."""
+    """Per vertex (M,) over the training rays (every `stride`-th pixel per axis): max and
+    sum of the rendering weights and whether some ray needs it to keep grid.prune_mass of
+    its weight (render.vertex_visibility): the carving criteria and where the mass is."""
     h, w = data.image_hw
-    fn = jax.jit(render.vertex_visibility, static_argnames=("cfg",))
+    fn = jax.jit(render.vertex_visibility, static_argnames=("cfg", "mass"))
     vis = np.zeros(structure.n_rows, np.float32)
+    essential = np.zeros(structure.n_rows, bool)
     mass = np.zeros(structure.n_rows, np.float64)
     chunk = int(cfg.render.chunk)
     for f in range(int(data.c2w.shape[0])):
@@ -225,10 +227,12 @@ def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, nea
             # padding rays start far outside the box, so they miss it and weigh nothing
             oc = np.pad(o[sl], ((0, pad), (0, 0)), constant_values=1e6)
             dc = np.pad(d[sl], ((0, pad), (0, 0)), mode="edge")
-            v_max, v_sum = fn(structure, params, oc, dc, near_t, far_t, cfg.render)
+            v_max, v_sum, v_ess = fn(structure, params, oc, dc, near_t, far_t, cfg.render,
+                                     mass=cfg.grid.prune_mass)
             vis = np.maximum(vis, np.asarray(v_max))
             mass += np.asarray(v_sum, np.float64)
-    return vis, mass
+            essential |= np.asarray(v_ess) > 0
+    return vis, mass, essential
 
 
 def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fit: bool,
@@ -241,16 +245,22 @@ def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fi
     Returns (structure, params, info) with info = box and occupancy figures.
     """
     gc = cfg.grid
-    vis, mass = vertex_visibility(structure, params, data, cfg, near_t, far_t)
+    vis, mass, essential = vertex_visibility(structure, params, data, cfg, near_t, far_t)
     if gc.prune_mode == "visibility":
         keep = grid.dilate_rows(structure, vis > gc.prune_threshold, gc.prune_dilate)
+    elif gc.prune_mode == "ray_mass":
+        keep = grid.dilate_rows(structure, essential, gc.prune_dilate)
     else:
         keep = grid.density_keep_mask(structure, params, gc.prune_threshold, gc.prune_dilate)
     if not keep.any() or not mass.sum() > 0:
         raise NumericsError(None, "the coarse grid is empty: no vertex is visible from the "
                             "training views", "check the poses and the frames' exposure")
-    lo, hi = (grid.content_box(structure, mass, gc.fit_quantile, margin=gc.fit_margin)
-              if fit else (np.asarray(structure.bbox_min), np.asarray(structure.bbox_max)))
+    lo, hi = np.asarray(structure.bbox_min), np.asarray(structure.bbox_max)
+    if fit:
+        fit_lo, fit_hi = grid.content_box(structure, mass, gc.fit_quantile, margin=gc.fit_margin)
+        axes = slice(None) if gc.fit_xy else slice(2, 3)  # x/y kept: only depth is refitted
+        lo, hi = lo.copy(), hi.copy()
+        lo[axes], hi[axes] = fit_lo[axes], fit_hi[axes]
     old_box = np.prod(np.asarray(structure.bbox_max) - np.asarray(structure.bbox_min))
     structure, params = grid.prune(structure, params, keep)
     res = resolve_resolution(res, lo, hi, data.image_hw, forward_facing)

@@ -242,11 +242,23 @@ def test_vertex_visibility_sees_the_first_surface_only():
     o = np.stack([*np.meshgrid(g, g, indexing="ij"), np.full((8, 8), -1.5)], -1).reshape(-1, 3)
     d = np.tile([0.0, 0.0, 1.0], (64, 1))
     cfg = RenderConfig(samples_per_voxel=2.0, max_samples=64)
-    vis_max, vis_sum = render.vertex_visibility(structure, params, jnp.asarray(o, jnp.float32),
-                                                jnp.asarray(d, jnp.float32), 0.0, 5.0, cfg)
-    vis_max, vis_sum = np.asarray(vis_max), np.asarray(vis_sum)
+    vis_max, vis_sum, ess = render.vertex_visibility(
+        structure, params, jnp.asarray(o, jnp.float32), jnp.asarray(d, jnp.float32), 0.0, 5.0,
+        cfg)
+    vis_max, vis_sum, ess = np.asarray(vis_max), np.asarray(vis_sum), np.asarray(ess)
+    assert ess[surface := (z == 5) | (z == 6)].max() == 1.0 and ess[(z <= 3) | (z >= 8)].max() == 0
     assert vis_max.shape == vis_sum.shape == (structure.n_rows,)
-    surface = (z == 5) | (z == 6)  # corners of the first opaque cells
+    # surface: corners of the first opaque cells
     assert vis_max[z == 5].max() > 0.5 and vis_sum[surface].sum() > 0.8 * vis_sum.sum()
     assert vis_max[z >= 8].max() < 1e-3  # hidden behind the slab
     assert vis_max[z <= 3].max() < 1e-3  # free space in front of it
+
+
+def test_essential_samples_keep_the_mass_of_each_ray():
+    w = jnp.asarray([[0.02] * 10 + [0.7, 0.05, 0.0, 0.0],   # thin fog, then a surface
+                     [0.05] * 14])                            # fog only
+    ess = np.asarray(render.essential_samples(w, 0.8))
+    # 0.95 in all: the surface (0.7), the next (0.05) and one fog sample reach 0.8 x 0.95
+    assert ess[0, 10:].tolist() == [True, True, False, False] and ess[0, :10].sum() == 1
+    kept = (np.asarray(w) * ess).sum(-1) / np.asarray(w).sum(-1)
+    assert np.all(kept >= 0.8) and ess[1].sum() >= 11  # fog: almost every sample is needed

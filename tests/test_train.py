@@ -226,3 +226,22 @@ def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch
     monkeypatch.setattr(trainmod, "make_step", real_make_step)
     summary = trainmod.train(small_scene, run, cfg)
     assert summary["resolution"] == list(structure.resolution)
+
+
+def test_ray_mass_carving_and_depth_only_refit(small_scene, tmp_path):
+    from gridnerf.train import train
+
+    cfg = cfgmod.override(cfgmod.preset("tiny"), [
+        "grid.prune_mode=ray_mass", "grid.prune_mass=0.9", "grid.fit_xy=false"])
+    run = tmp_path / "run"
+    summary = train(small_scene, run, cfg)
+    structure = load_state_of(run)
+    lo, hi = np.asarray(structure.bbox_min), np.asarray(structure.bbox_max)
+    np.testing.assert_allclose([lo[0], lo[1], hi[0], hi[1]], [-1.25, -1.25, 1.25, 1.25])
+    assert 0 < summary["occupied_fraction"] < 1.0
+
+
+def load_state_of(run):
+    from gridnerf.train import load_state
+
+    return load_state(run)[0]
