@@ -181,26 +181,22 @@ def shade(spec: SceneSpec, points: np.ndarray, normals: np.ndarray,
           albedo: np.ndarray) -> np.ndarray:
     """Lambertian radiance (N, 3) at surface points (N, 3) with unit normals (N, 3)."""
     irradiance = np.full(len(points), spec.ambient)
-    occluders = list(spec.props)
     for light in spec.lights:
-        dirs = _cone_directions(light)
-        for d in dirs:
-            cos = np.maximum(dot3(normals, d), 0.0)
-            lit = cos > 0.0
-            if light.shadow and lit.any():
-                idx = np.nonzero(lit)[0]
-                start = points[idx] + SHADOW_EPS * normals[idx]
-                blocked = occluded(occluders, start, np.broadcast_to(d, start.shape))
-                cos[idx[blocked]] = 0.0
-            irradiance += light.intensity * cos / len(dirs)
+        _add_irradiance(irradiance, spec, light, points, normals)
     return albedo * irradiance[:, None]
 
 
 def _light_irradiance(spec: SceneSpec, light: Light | PointLight, points: np.ndarray,
                       normals: np.ndarray) -> np.ndarray:
     """(N,) irradiance of one light at surface points (N, 3) with unit normals (N, 3)."""
+    return _add_irradiance(np.zeros(len(points)), spec, light, points, normals)
+
+
+def _add_irradiance(irradiance: np.ndarray, spec: SceneSpec, light: Light | PointLight,
+                    points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Add one light's irradiance at surface points (N, 3) with unit normals (N, 3) to
+    `irradiance` (N,) in place (sample by sample, so sums keep their order) and return it."""
     occluders = list(spec.props)
-    irradiance = np.zeros(len(points))
     if isinstance(light, PointLight):
         samples = np.asarray(light.position, float) + light.radius * _TETRA
         for q in samples:
