@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from gridnerf import atomic
 from gridnerf import config as cfgmod
 from gridnerf.eval_run import evaluate_run
 from gridnerf.sim import HELDOUT, MIXED, SCENES, simulate_scene
@@ -43,6 +44,13 @@ def run_variant(scene: str, name: str, preset: str, overrides: list[str]) -> dic
     if metrics_path.exists():
         return json.loads(metrics_path.read_text())
     return evaluate_run(run)
+
+
+def write_report(out, markdown: str, record) -> None:
+    """<out>.md (the table) and <out>.json (the numbers behind it), written atomically."""
+    out = Path(out)
+    atomic.write_text(out.with_suffix(".md"), markdown)
+    atomic.write_text(out.with_suffix(".json"), json.dumps(record, indent=2) + "\n")
 
 
 def fmt(x, nd=2) -> str:

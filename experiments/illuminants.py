@@ -23,7 +23,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from common import simulated_folders
+from common import simulated_folders, write_report
 
 from gridnerf import illuminant as il
 from gridnerf import raw
@@ -114,14 +114,12 @@ def main() -> None:
         if vals:
             means.append(f"| **mean** | {source} | " + " | ".join(
                 f"{np.mean([v[k] for v in vals]):.2f}" for k in ORDER) + " |")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".md").write_text(
+    write_report(
+        args.out,
         "Angular error (degrees) of illuminant estimates against the simulator's true "
         "illuminant (camera RGB), `python experiments/illuminants.py"
         f"{' --runs ' + args.runs if args.runs else ''}{' --area' if args.area else ''}`.\n\n"
-        + "\n".join([head, *rows, *means]) + "\n")
-    out.with_suffix(".json").write_text(json.dumps(record, indent=2) + "\n")
+        + "\n".join([head, *rows, *means]) + "\n", record)
     print("\n".join(means))
 
 

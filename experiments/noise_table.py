@@ -18,11 +18,10 @@ Writes reports/noise.md and reports/noise.json.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
-from common import simulated_folders
+from common import simulated_folders, write_report
 
 from gridnerf import noisefit
 from gridnerf.sim import MIXED
@@ -83,15 +82,13 @@ def main() -> None:
     head = ("| scene | mean from | K DN/e- fit / true | read var DN^2 fit / true | "
             "black offsets DN (R G / G B positions) fit / true | max offset error |\n"
             "|---|---|---|---|---|---|")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".md").write_text(
+    write_report(
+        args.out,
         "Sensor noise fitted from the frames (eq. 7: Var = K mu + read variance, E = mu + "
         "per-CFA black offset) against the simulator's values, "
         f"`python experiments/noise_table.py{' --runs ' + args.runs if args.runs else ''}`. "
         "Read variance includes row noise and rounding; offsets in CFA order "
-        "(0,0) (0,1) (1,0) (1,1).\n\n" + "\n".join([head, *rows]) + "\n")
-    out.with_suffix(".json").write_text(json.dumps(record, indent=2) + "\n")
+        "(0,0) (0,1) (1,0) (1,1).\n\n" + "\n".join([head, *rows]) + "\n", record)
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from common import fmt, markdown_table, run_variant
+from common import fmt, markdown_table, run_variant, write_report
 
 from gridnerf.sim import HELDOUT, SCENES
 
@@ -115,10 +115,7 @@ def main() -> None:
             "## Built-in scenes\n", table([r for r in rows if not r["held_out"]]), "",
             "## Held-out scenes (no default tuned on them)\n",
             table([r for r in rows if r["held_out"]]), ""]
-    out = Path("reports")
-    out.mkdir(exist_ok=True)
-    (out / "recon.md").write_text("\n".join(text))
-    (out / "recon.json").write_text(json.dumps({"machine": machine, "rows": rows}, indent=2))
+    write_report(Path("reports") / "recon", "\n".join(text), {"machine": machine, "rows": rows})
     if args.scenes == "all":
         update_readme("\n".join(text[2:]).replace("## ", "### ").rstrip("\n"))
     print("\n".join(text))
