@@ -19,6 +19,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Literal
 
+from gridnerf import atomic
 from gridnerf.errors import ConfigError
 
 MAX_SH_DEGREE = 3  # gridnerf.grid.MAX_SH_DEGREE (not imported: config stays jax-free)
@@ -426,8 +427,6 @@ def from_dict(d: dict, source: Path | None = None) -> Config:
 
 
 def save(cfg: Config, path: Path) -> None:
-    from gridnerf import atomic
-
     atomic.write_text(Path(path), json.dumps(to_dict(cfg), indent=2))
 
 

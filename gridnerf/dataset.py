@@ -201,12 +201,14 @@ def frustum_xy(scene: Scene, frames, bbox_min, bbox_max, near_t: float,
     cams = scene.cameras
     ndc = ndc_intrinsics(scene)
     t_far = 0.5 * (float(bbox_max[2]) + 1.0)
+    h, w = cams.height, cams.width
+    cols, rows = np.arange(0, w, 4, dtype=np.float32), np.arange(0, h, 4, dtype=np.float32)
+    u = np.concatenate([cols, cols, np.zeros_like(rows), np.full_like(rows, w - 1)])
+    v = np.concatenate([np.zeros_like(cols), np.full_like(cols, h - 1), rows, rows])
     lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
     for i in frames:
-        intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]])
-        o, d = image_rays(cams.c2w[i], intr, cams.height, cams.width)
-        o = np.concatenate([o[0, ::4], o[-1, ::4], o[::4, 0], o[::4, -1]])
-        d = np.concatenate([d[0, ::4], d[-1, ::4], d[::4, 0], d[::4, -1]])
+        intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]], np.float32)
+        o, d = pixel_rays(jnp.asarray(cams.c2w[i], jnp.float32), jnp.asarray(intr), u, v)
         o, d = (np.asarray(a) for a in to_grid_space(True, ndc, o, d))
         for t in (near_t, t_far):
             p = o[:, :2] + t * d[:, :2]
