@@ -20,7 +20,8 @@ Layout
   softplus(0) = 0.69 with softplus; ReLU would kill gradients under Adam).
 
 Memory grows with the M occupied vertices, except the int32 index and the bool
-occupancy bitmask. Structure edits (prune, upsample, occupancy) run on the host.
+occupancy bitmask. Structure edits (prune, upsample) run on the host; the occupancy
+refresh (update_occupancy) runs on the device.
 """
 
 from __future__ import annotations
@@ -125,22 +126,25 @@ def _build_structure(kept: np.ndarray, bbox_min, bbox_max, sh_degree: int, occ_f
         color_scale=float(color_scale))
 
 
-def _cells_with_kept_corner(kept: np.ndarray) -> np.ndarray:
-    """(Rx-1, Ry-1, Rz-1) bool: cells with at least one kept corner vertex."""
-    cells = np.zeros(tuple(r - 1 for r in kept.shape), bool)
+def _cells_with_kept_corner(kept, xp=np):
+    """(Rx-1, Ry-1, Rz-1) bool: cells with at least one kept corner vertex.
+
+    kept: (Rx, Ry, Rz) bool; xp: np (host) or jnp (jittable).
+    """
+    cx, cy, cz = (r - 1 for r in kept.shape)
+    cells = xp.zeros((cx, cy, cz), bool)
     for dx in (0, 1):
         for dy in (0, 1):
             for dz in (0, 1):
-                cells |= kept[dx:dx + cells.shape[0], dy:dy + cells.shape[1],
-                              dz:dz + cells.shape[2]]
+                cells = cells | kept[dx:dx + cx, dy:dy + cy, dz:dz + cz]
     return cells
 
 
-def _cells_to_blocks(cells: np.ndarray, f: int) -> np.ndarray:
-    """OR-reduce (Cx, Cy, Cz) cells into ceil(C / f) blocks."""
+def _cells_to_blocks(cells, f: int, xp=np):
+    """OR-reduce (Cx, Cy, Cz) bool cells into (ceil(Cx / f), ceil(Cy / f), ceil(Cz / f))
+    blocks; xp: np (host) or jnp (jittable)."""
     shape = tuple(-(-c // f) for c in cells.shape)
-    padded = np.zeros(tuple(s * f for s in shape), bool)
-    padded[: cells.shape[0], : cells.shape[1], : cells.shape[2]] = cells
+    padded = xp.pad(cells, [(0, s * f - c) for s, c in zip(shape, cells.shape, strict=True)])
     return padded.reshape(shape[0], f, shape[1], f, shape[2], f).any(axis=(1, 3, 5))
 
 
@@ -324,17 +328,47 @@ def update_occupancy(structure: GridStructure, params, threshold: float,
 
     Inside a cell the raw density is a convex combination of its corners' and softplus is
     monotone, so every skipped sample has alpha <= threshold: with threshold 0 skipping is
-    exact (only cells whose corners are all empty are skipped).
+    exact (only cells whose corners are all empty are skipped). Runs on the device (no host
+    sync); the alpha test is _alpha's (float64) exactly, as a floor on the raw density.
     """
-    coords = np.asarray(structure.coords)
-    hot = coords[_alpha(params["density"], step_size) > threshold]
-    cells_shape = np.asarray(structure.resolution) - 1
-    blocks = np.zeros(np.asarray(structure.occupancy).shape, bool)
-    for off in np.ndindex(2, 2, 2):
-        cell = hot - np.asarray(off)
-        ok = np.all((cell >= 0) & (cell < cells_shape), axis=1)
-        blocks[tuple((cell[ok] // structure.occ_factor).T)] = True
-    return dataclasses.replace(structure, occupancy=jnp.asarray(blocks))
+    floor = _density_floor(threshold, step_size)
+    return dataclasses.replace(
+        structure, occupancy=_occupancy_blocks(structure, params["density"], floor))
+
+
+@jax.jit
+def _occupancy_blocks(structure: GridStructure, density: jax.Array, floor) -> jax.Array:
+    """(Bx, By, Bz) bool occupancy from density (M,) raw: a row is hot when density >= floor,
+    a cell when one of its 8 corner vertices is hot, a block when one of its cells is."""
+    hot = jnp.append(density >= floor, False)[structure.index]  # (Rx, Ry, Rz), empty: M
+    return _cells_to_blocks(_cells_with_kept_corner(hot, jnp), structure.occ_factor, jnp)
+
+
+def _density_floor(threshold: float, step_size: float) -> np.float32:
+    """Smallest float32 raw density d with _alpha(d, step_size) > threshold (NaN if none).
+
+    _alpha is monotone in d, so `d >= floor` on float32 densities is `_alpha(d) > threshold`
+    bit for bit; found by bisection over the ordered float32 bit patterns.
+    """
+    def hot(bits: int) -> bool:
+        return bool(_alpha(_ordered_f32(bits), step_size) > threshold)
+
+    lo, hi = -0x7F800000, 0x7F800000  # -inf, +inf; invariant: not hot(lo), hot(hi)
+    if hot(lo):
+        return np.float32(-np.inf)
+    if not hot(hi):
+        return np.float32(np.nan)
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        lo, hi = (lo, mid) if hot(mid) else (mid, hi)
+    return _ordered_f32(hi)
+
+
+def _ordered_f32(k: int) -> np.float32:
+    """The float32 at position k of the ordered non-NaN floats (0: +0.0, -1: the largest
+    negative subnormal, +-0x7F800000: +-inf)."""
+    bits = k if k >= 0 else 0x80000000 | -k
+    return np.array(bits, np.uint32).view(np.float32)[()]
 
 
 def upsample(structure: GridStructure, params, new_resolution):

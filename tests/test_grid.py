@@ -175,6 +175,42 @@ def test_update_occupancy_marks_cells_around_dense_vertices(occ_factor):
     assert not np.asarray(none.occupancy).any()
 
 
+def _occupancy_reference(structure, params, threshold, step_size=0.5) -> np.ndarray:
+    """The host (numpy) occupancy update that grid.update_occupancy replaced: (B, B, B) bool."""
+    coords = np.asarray(structure.coords)
+    sigma = np.logaddexp(0.0, np.asarray(params["density"], np.float64))
+    hot = coords[1.0 - np.exp(-sigma * step_size) > threshold]
+    cells_shape = np.asarray(structure.resolution) - 1
+    blocks = np.zeros(np.asarray(structure.occupancy).shape, bool)
+    for off in np.ndindex(2, 2, 2):
+        cell = hot - np.asarray(off)
+        ok = np.all((cell >= 0) & (cell < cells_shape), axis=1)
+        blocks[tuple((cell[ok] // structure.occ_factor).T)] = True
+    return blocks
+
+
+@pytest.mark.parametrize("occ_factor", [1, 2, 3])
+def test_device_occupancy_matches_the_host_reference(occ_factor):
+    rng = np.random.default_rng(occ_factor)
+    structure, params = make((13, 9, 7), init_density=-20.0, occ_factor=occ_factor)
+    structure, params = grid.prune(structure, params, rng.random(structure.n_rows) < 0.6)
+    m = structure.n_rows
+    for threshold in (0.0, 0.005, 0.3):
+        floor = grid._density_floor(threshold, 0.5)
+        # sparse hot rows, some exactly at the float32 boundary of the alpha test, NaN, +-inf
+        density = np.where(rng.random(m) < 0.05, rng.normal(0.0, 3.0, m), -20.0)
+        edge = rng.choice(m, 12, replace=False)
+        density[edge[:4]] = floor
+        density[edge[4:8]] = np.nextafter(floor, np.float32(-np.inf))
+        density[edge[8:]] = [np.nan, np.inf, -np.inf, -800.0]
+        p = {**params, "density": jnp.asarray(density, jnp.float32)}
+        got = np.asarray(grid.update_occupancy(structure, p, threshold).occupancy)
+        expect = _occupancy_reference(structure, p, threshold)
+        assert got.shape == expect.shape and got.any()
+        np.testing.assert_array_equal(got, expect)
+    assert np.isnan(grid._density_floor(1.0, 0.5))  # alpha never exceeds 1: nothing is hot
+
+
 def test_state_round_trip():
     structure, params = make((5, 4, 3), sh_degree=1, color_scale=0.004, occ_factor=2)
     structure, params = grid.prune(structure, params, np.arange(structure.n_rows) % 3 > 0)
