@@ -6,7 +6,9 @@ finite-only, written every train.checkpoint_every steps or
 train.checkpoint_seconds, resumed automatically) and metrics.jsonl. One
 training per folder (a lock); a failed start leaves nothing behind. A
 non-finite loss stops training with a clear message; the last good
-checkpoint is kept.
+checkpoint is kept. The loss stays on the device between host syncs: only log steps
+(train.log_every), checkpoint steps and a stage's first and last steps wait for the step
+and check the losses since the previous sync, always before a checkpoint is written.
 """
 
 from __future__ import annotations
@@ -271,6 +273,21 @@ def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fi
     return structure, params, info
 
 
+def _checked_loss(pending: list, run: Path, stage: int, step: int) -> float:
+    """The last of the device losses (n,) of steps step - n + 1 .. step, brought to the host;
+    NumericsError naming the first non-finite one (the caller has not checkpointed it)."""
+    values = np.asarray(jax.device_get(pending), np.float64)
+    bad = np.flatnonzero(~np.isfinite(values))
+    if bad.size:
+        raise NumericsError(
+            run / CHECKPOINT,
+            f"loss became {values[bad[0]]} at stage {stage} step "
+            f"{step + 1 - values.size + bad[0]}; nothing was checkpointed",
+            "lower train.lr_* or check the frames; rerun to resume from the last save",
+        )
+    return float(values[-1])
+
+
 def train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool = False) -> dict:
     """Train (or resume) a run; returns the summary written to run/summary.json.
 
@@ -354,27 +371,32 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         t_stage = time.perf_counter()
         last_save = t_stage
         steps_timed = 0
+        pending = []  # (loss of each step since the last host sync) device scalars
         for step in range(start, steps):
             key, sub = jax.random.split(key)
             params, opt_state, total, terms = step_fn(params, opt_state, structure, data, sub)
-            loss = float(total)
+            pending.append(total)
             steps_timed += 1
-            if not np.isfinite(loss):
-                raise NumericsError(
-                    run / CHECKPOINT,
-                    f"loss became {loss} at stage {stage} step {step}; nothing was checkpointed",
-                    "lower train.lr_* or check the frames; rerun to resume from the last save",
-                )
             if (step + 1) % cfg.grid.occupancy_every == 0:
                 structure = grid.update_occupancy(structure, params, cfg.grid.occupancy_threshold)
+            bar.update(1)
+            last = step + 1 == steps
+            logging = (step + 1) % cfg.train.log_every == 0 or last
+            overdue = 0 < cfg.train.checkpoint_seconds <= time.perf_counter() - last_save
+            saving = (step + 1) % cfg.train.checkpoint_every == 0 or last or overdue
+            if not (logging or saving or steps_timed == 1):
+                continue  # the loss stays on the device: no host sync on this step
+            # the first step of a stage includes compilation: the rate counts from its end
+            jax.block_until_ready((params, opt_state, structure, total))
             now = time.perf_counter()
-            if steps_timed == 1:  # the first step of a stage includes compilation
+            loss = _checked_loss(pending, run, stage, step)
+            pending = []
+            if steps_timed == 1:
                 t_rate = now
             else:
                 rate = (steps_timed - 1) * rays_per_step / max(now - t_rate, 1e-9)
-            bar.update(1)
             bar.set_postfix(stage=stage, loss=f"{loss:.4g}", rays_s=f"{rate:,.0f}")
-            if (step + 1) % cfg.train.log_every == 0 or step + 1 == steps:
+            if logging:
                 rec = {
                     "stage": stage,
                     "step": step + 1,
@@ -386,9 +408,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
                 rec.update({k: float(v) for k, v in terms.items()})
                 log.write(json.dumps(rec) + "\n")
                 log.flush()
-            last = step + 1 == steps
-            overdue = 0 < cfg.train.checkpoint_seconds <= now - last_save
-            if (step + 1) % cfg.train.checkpoint_every == 0 or last or overdue:
+            if saving:
                 header = {
                     "stage": stage + 1 if last else stage,
                     "step": 0 if last else step + 1,
