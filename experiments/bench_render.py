@@ -1,11 +1,13 @@
-"""Forward+backward throughput of grid rendering + losses on this CPU.
+"""Throughput of the package's training step (train.make_step) on this CPU.
 
-A synthetic forward-facing scene in NDC-like coordinates: a 128 x 128 x 64 vertex grid on
-[-1, 1]^3 holding a back wall and a few spheres, pruned and with a density occupancy
-bitmask. 4096 rays per step as 64 patches of 8 x 8 adjacent pixels (coherent batches),
-loss = data + 0.1 L_ca + 0.1 L_smooth(patch) + TV(density, 10% of rows).
-Prints one table row per (sh_degree, skipping, candidate count) setting: N candidates per
-ray (fitted to the rays with render.fit_n_candidates, or the box diagonal), K shaded.
+A synthetic forward-facing scene in NDC: a 128 x 128 x 64 vertex grid on [-1, 1]^3 holding
+a back wall and a few spheres, pruned and with a density occupancy bitmask, seen by three
+512 x 512 pinhole cameras (dataset.RayData built from synthetic arrays: constant targets).
+Each step is the training step itself: dataset.batch (64 patches of 8 x 8 adjacent pixels,
+4096 rays) -> train.loss_fn (the default preset's loss terms and weights) -> the default
+optimiser. Prints one table row per (sh_degree, skipping, candidate count) setting: N
+candidates per ray (fitted to the rays with render.fit_n_candidates, or the box diagonal),
+K shaded; the occupied-candidate statistics come from a forward render of one batch.
 
 Run: LD_PRELOAD=/usr/lib/x86_64-linux-gnu/libtcmalloc_minimal.so.4 \
      .venv/bin/python experiments/bench_render.py
@@ -14,16 +16,18 @@ Run: LD_PRELOAD=/usr/lib/x86_64-linux-gnu/libtcmalloc_minimal.so.4 \
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
-from gridnerf import grid, losses, render
-from gridnerf.config import RenderConfig
+from gridnerf import config as cfgmod
+from gridnerf import dataset, grid, render, train
+
+IMAGE = 512  # side of the synthetic views (pixels)
 
 
 def synthetic_scene(resolution, sh_degree: int, seed: int = 0):
@@ -46,69 +50,61 @@ def synthetic_scene(resolution, sh_degree: int, seed: int = 0):
     return structure, params
 
 
-def patch_rays(n_patches: int, patch: int, image: int, seed: int):
-    """NDC-like forward-facing rays: origins on z = -1, directions mostly +z. (n, 3) each."""
-    rng = np.random.default_rng(seed)
-    corner = rng.integers(0, image - patch + 1, (n_patches, 2))
-    ij = corner[:, None, None, :] + np.stack(np.meshgrid(np.arange(patch), np.arange(patch),
-                                                         indexing="ij"), -1)[None]
-    xy = (ij.reshape(-1, 2) + 0.5) / image * 2.0 - 1.0
-    origins = np.concatenate([xy, -np.ones((xy.shape[0], 1))], 1)
-    directions = np.concatenate([-0.15 * xy, 2.0 * np.ones((xy.shape[0], 1))], 1)
-    return origins.astype(np.float32), directions.astype(np.float32)
-
-
-def make_step(structure, cfg, n_patches, patch):
-    def loss_fn(params, origins, directions, target, key):
-        out = render.render_rays(structure, params, origins, directions, 0.0, 1.0, cfg, key=key)
-        shape = (n_patches, patch, patch, 3)
-        return (losses.data_loss(out["rgb_low"], target, jnp.ones_like(target))
-                + 0.1 * losses.ca_loss(out["rgb_low"], out["gain"])
-                + 0.1 * losses.smooth_loss_patch(out["gain"].reshape(shape),
-                                                 out["rgb_low"].reshape(shape))
-                + 1e-4 * losses.tv_loss(structure, params["density"], sample_key=key,
-                                        fraction=0.1)), out["n_occupied"]
-
-    opt = optax.adam(1e-2)
-
-    @jax.jit
-    def step(params, opt_state, origins, directions, target, key):
-        (loss, n_occ), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-            params, origins, directions, target, key)
-        updates, opt_state = opt.update(grads, opt_state, params)
-        return optax.apply_updates(params, updates), opt_state, loss, n_occ
-
-    return step, opt
+def synthetic_views(n_frames: int = 3, level: float = 5e-3) -> dataset.RayData:
+    """Binned RayData of n_frames IMAGE x IMAGE views from cameras at the origin shifted
+    along x (looking down -z, NDC on), with constant targets `level`, all valid."""
+    c2w = np.tile(np.eye(3, 4, dtype=np.float32), (n_frames, 1, 1))
+    c2w[:, 0, 3] = np.linspace(-0.1, 0.1, n_frames)
+    f = float(IMAGE)
+    pixels = np.full((n_frames, IMAGE, IMAGE, 3), level, np.float32)
+    return dataset.RayData(
+        c2w=jnp.asarray(c2w),
+        intrinsics=jnp.asarray(np.tile([f, f, IMAGE / 2, IMAGE / 2], (n_frames, 1)), jnp.float32),
+        ndc_intrinsics=jnp.asarray([f, f, IMAGE, IMAGE], jnp.float32),
+        pixels=jnp.asarray(pixels), valid=jnp.ones(pixels.shape, bool),
+        black=jnp.zeros((n_frames, 2, 2), jnp.float32), white=jnp.ones(n_frames, jnp.float32),
+        inv_exposure=jnp.ones(n_frames, jnp.float32), cfa=jnp.asarray([[0, 1], [1, 2]]),
+        mosaic=False, ndc=True)
 
 
 def bench(sh_degree: int, skip: bool, fitted: bool, k: int, args) -> dict:
     structure, params = synthetic_scene(tuple(args.resolution), sh_degree)
-    origins, directions = patch_rays(args.patches, args.patch, 512, 0)
-    # fitted: N from the longest ray of a full 512 x 512 view; else the box diagonal
-    o_all, d_all = patch_rays(1, 512, 512, 0)
-    n_fit = (render.fit_n_candidates(structure, o_all, d_all, 0.0, 1.0, args.spv)
-             if fitted else 0)
-    cfg = RenderConfig(samples_per_voxel=args.spv, max_samples=k, skip_empty=skip,
-                       n_candidates=n_fit)
-    n_cand = render.n_candidates(structure, cfg)
-    target = np.full((origins.shape[0], 3), 5e-3, np.float32)
-    step, opt = make_step(structure, cfg, args.patches, args.patch)
-    opt_state = opt.init(params)
-    key = jax.random.PRNGKey(0)
-    params, opt_state, loss, n_occ = step(params, opt_state, origins, directions, target, key)
+    data = synthetic_views()
+    near_t, far_t = 0.0, 1.0
+    # fitted: N from the longest ray of the first full view; else the box diagonal
+    o_all, d_all = dataset.image_rays(data.c2w[0], data.intrinsics[0], IMAGE, IMAGE)
+    o_all, d_all = dataset.to_grid_space(True, data.ndc_intrinsics, o_all, d_all)
+    base = cfgmod.preset("default")
+    render_cfg = dataclasses.replace(base.render, samples_per_voxel=args.spv, max_samples=k,
+                                     skip_empty=skip, n_candidates=0)
+    if fitted:
+        render_cfg = dataclasses.replace(render_cfg, n_candidates=render.fit_n_candidates(
+            structure, o_all.reshape(-1, 3), d_all.reshape(-1, 3), near_t, far_t, args.spv))
+    cfg = dataclasses.replace(
+        base, grid=dataclasses.replace(base.grid, sh_degree=sh_degree), render=render_cfg,
+        train=dataclasses.replace(base.train, batch_patches=args.patches,
+                                  patch_size=args.patch))
+    n_cand = render.n_candidates(structure, render_cfg)
+    tx = train.make_optimizer(cfg, args.iters + 1)
+    step = train.make_step(cfg, tx, near_t, far_t)
+    opt_state = tx.init(params)
+    params, opt_state, loss, _ = step(params, opt_state, structure, data, jax.random.PRNGKey(0))
     jax.block_until_ready(loss)
     times = []
     for i in range(args.iters):
-        o, d = patch_rays(args.patches, args.patch, 512, i + 1)
         t0 = time.perf_counter()
-        params, opt_state, loss, n_occ = step(params, opt_state, o, d, target,
-                                              jax.random.PRNGKey(i + 1))
-        jax.block_until_ready(loss)
+        params, opt_state, loss, _ = step(params, opt_state, structure, data,
+                                          jax.random.PRNGKey(i + 1))
+        jax.block_until_ready((params, loss))
         times.append(time.perf_counter() - t0)
     sec = float(np.median(times))
-    n_rays = origins.shape[0]
+    rays = dataset.batch(data, jax.random.PRNGKey(args.iters + 1), args.patches, args.patch)
+    flat = {name: rays[name].reshape(-1, 3) for name in ("origins", "directions")}
+    n_occ = np.asarray(jax.jit(render.render_rays, static_argnames="cfg")(
+        structure, params, flat["origins"], flat["directions"], near_t, far_t, cfg=render_cfg,
+        key=jax.random.PRNGKey(0))["n_occupied"])
+    n_rays = args.patches * args.patch**2
     shaded = min(k, n_cand) if skip else n_cand
-    n_occ = np.asarray(n_occ)
     return {"sh": sh_degree, "skip": skip, "rows": structure.n_rows, "N": n_cand,
             "K": shaded, "ms": sec * 1e3, "rays_s": n_rays / sec,
             "shaded_s": n_rays * shaded / sec, "occ_mean": float(n_occ.mean()),
@@ -136,7 +132,7 @@ def main() -> None:
     print(head)
     for sh in args.sh:
         settings = [(True, True, k) for k in args.k] + [(True, False, args.k[0]),
-                                                        (False, True, 0)]
+                                                        (False, True, args.k[0])]
         for skip, fitted, k in settings:
             r = bench(sh, skip, fitted, k, args)
             print(f"{r['sh']:>2} {str(r['skip']):>5} {r['rows']:>8} {r['N']:>4} {r['K']:>4} "
