@@ -91,6 +91,19 @@ def test_bad_config_is_one_line_and_leaves_no_run_folder(small_scene, tmp_path, 
     assert not run.exists()
 
 
+def test_repeated_set_keeps_every_override(small_scene, tmp_path, capsys):
+    """`--set a --set b` is `--set a b` (argparse's default kept only the last --set)."""
+    from gridnerf.cli import build_parser
+
+    args = build_parser().parse_args(["train", "s", "--set", "a.b=1", "c.d=2", "--set", "e.f=3"])
+    assert args.set == ["a.b=1", "c.d=2", "e.f=3"]
+    run = tmp_path / "run"
+    _fails(capsys, ["train", str(small_scene), "--out", str(run), "--preset", "tiny",
+                    "--set", "train.batch_patches=abc", "--set", "loss.smooth_mode=patch"],
+           "train.batch_patches", "abc")
+    assert not run.exists()
+
+
 def test_stage_counts_are_checked_after_all_overrides():
     from gridnerf import config as cfgmod
 
