@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 from functools import partial
 from pathlib import Path
 
@@ -238,6 +239,9 @@ def _edit_transforms(scene: Path, edit) -> None:
     (lambda m: m.update(frames={"a": 1}), ["frames"]),
     (lambda m: m["frames"].append(7), ["frame 12"]),
     (lambda m: m["frames"][0].update(file_path=None), ["file_path"]),
+    (lambda m: m.update(train_filenames=[m["frames"][1]["file_path"]] * 2), ["more than once"]),
+    (lambda m: m.update(train_filenames=[f["file_path"] for f in m["frames"]],
+                        test_filenames=[m["frames"][0]["file_path"]]), ["both the train"]),
 ])
 def test_bad_transforms_json_is_one_clear_error(scene_copy, tmp_path, capsys, edit, needles):
     _edit_transforms(scene_copy, edit)
@@ -353,3 +357,18 @@ def test_kill_9_loses_at_most_checkpoint_seconds(small_scene, tmp_path):
     assert load_state(run)[3]["stage"] == 1 and (run / "summary.json").exists()
     done = [r["step"] for r in _logged(run)]  # trimmed to the checkpoint, then continued
     assert done == sorted(set(done)) and done[-1] == steps
+
+
+def test_all_black_scene_is_refused(scene_copy, tmp_path, capsys):
+    from gridnerf import dng, raw
+
+    for path in sorted((scene_copy / "raw").glob("*.dng")):
+        f = raw.read_raw(path)
+        dng.write_dng(path, np.full_like(f.raw_bayer, int(f.black_level.mean())), f.cfa,
+                      f.black_level, int(f.white_level), f.xyz_to_cam, f.as_shot_neutral)
+    run = tmp_path / "run"
+    with warnings.catch_warnings():  # the bounds estimate's warning comes first: not ours
+        warnings.simplefilter("ignore", UserWarning)
+        _fails(capsys, ["train", str(scene_copy), "--out", str(run), "--preset", "tiny"],
+               str(scene_copy / "raw"), "every frame is at the black level", "Fix:")
+    assert not run.exists()
