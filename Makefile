@@ -13,7 +13,9 @@ TCMALLOC := /usr/lib/x86_64-linux-gnu/libtcmalloc_minimal.so.4
 RUN     = env $$(test -e $(TCMALLOC) && echo LD_PRELOAD=$(TCMALLOC)) XLA_FLAGS="$(XLA_FLAGS)" $(BIN)/
 # A scene name means the built-in simulated scene data/sim/<name>; anything with a slash is a folder.
 SCENE_DIR := $(if $(findstring /,$(SCENE)),$(SCENE),data/sim/$(SCENE))
-SCENE_NAME := $(notdir $(patsubst %/,%,$(SCENE_DIR)))
+# basename in the shell, not $(notdir): make's functions split words on spaces, so
+# "my scenes/a b" became "my a b" (tests/test_makefile.py)
+SCENE_NAME := $(shell basename -- "$(SCENE_DIR)")
 RUN_DIR := runs/$(SCENE_NAME)/$(PRESET)
 
 .PHONY: venv system-deps data poses train eval render ablate report recon bench test lint clean

@@ -130,9 +130,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", help="run folder (default runs/<scene>/<preset>)")
     s.add_argument("--preset", default="default",
                    help=f"named config: {', '.join(sorted(PRESETS))} (default: default)")
-    s.add_argument("--set", nargs="*", metavar="SECTION.FIELD=VALUE",
-                   help="config overrides, e.g. train.steps_per_stage=[100,200] "
-                   "(fields: see a run's config.json or gridnerf/config.py)")
+    # extend, not store: a repeated --set adds its overrides instead of replacing the
+    # earlier ones (which argparse's default would drop without a word)
+    s.add_argument("--set", nargs="*", action="extend", metavar="SECTION.FIELD=VALUE",
+                   help="config overrides, e.g. train.steps_per_stage=[100,200]; may be "
+                   "repeated (fields: see a run's config.json or gridnerf/config.py)")
     s.add_argument(
         "--overwrite-config", action="store_true",
         help="resume a run with this command's config instead of refusing a config that "

@@ -7,8 +7,11 @@
     <run>/metrics.jsonl   one line per log step, trimmed to the checkpoint on resume
     <run>/summary.json    written when training finishes
     <run>/.lock           flock'ed by the one training process allowed in the folder
+                          (the kernel drops the flock when its process dies, even by
+                          kill -9: a killed training never blocks the next one)
 
-`Session` holds the lock while a training runs and, if the start fails (bad scene,
+`Session` holds the lock while a training runs, removes the `.tmp` files a killed
+training left mid-write (gridnerf.atomic) and, if the start fails (bad scene,
 corrupt checkpoint, refused config, Ctrl-C), removes what the start created, so a
 failed start leaves no run folder (or no new file in an existing one) behind.
 """
@@ -32,6 +35,7 @@ CONFIG = "config.json"
 METRICS = "metrics.jsonl"
 LOCK = ".lock"
 CHECKPOINT = "checkpoint.npz"
+SUMMARY = "summary.json"
 # Fields a checkpoint's arrays depend on: a resumed run can never change them.
 SHAPE_FIELDS = ("grid.resolutions", "grid.sh_degree", "loss.use_gains")
 
@@ -60,6 +64,7 @@ class Session:
         except BaseException:
             self._rollback()
             raise
+        _remove_stale_tmp(self.run)
         return self
 
     def started(self) -> None:
@@ -83,6 +88,14 @@ class Session:
         if self._made_dir:
             with contextlib.suppress(OSError):  # something else appeared in it: keep it
                 self.run.rmdir()
+
+
+def _remove_stale_tmp(run: Path) -> None:
+    """Delete the `<file>.tmp` a killed training (kill -9, power loss) left mid-write of one
+    of the run folder's files (gridnerf.atomic never moves a .tmp into place, so it is
+    never read). Only called with the lock held: no other training is writing them."""
+    for name in (CONFIG, BOUNDS, CHECKPOINT, METRICS, SUMMARY):
+        (run / f"{name}.tmp").unlink(missing_ok=True)
 
 
 def _lock(path: Path) -> int:

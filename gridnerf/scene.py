@@ -283,7 +283,8 @@ def impossible_values(raw_bayer: np.ndarray, black: np.ndarray, white: np.ndarra
 
 def unusable_frames(raw_bayer: np.ndarray, black: np.ndarray, white: np.ndarray,
                     dark_ratio: float = 0.25, bright_ratio: float = 4.0,
-                    clipped_max: float = 0.2, corrupt_max: float = 1e-4) -> dict[int, str]:
+                    clipped_max: float = 0.2, corrupt_max: float = 1e-4,
+                    where: str | pathlib.Path | None = None) -> dict[int, str]:
     """Frames that are readable but wrong, compared with the scene's other frames.
 
     raw_bayer: (N, H, W) uint16; black: (N, 2, 2); white: (N,). Per frame, on every 4th
@@ -292,8 +293,8 @@ def unusable_frames(raw_bayer: np.ndarray, black: np.ndarray, white: np.ndarray,
     corrupt_max of its pixels are impossible (corrupt data), its signal is below dark_ratio
     or above bright_ratio times the median frame's (a black frame, a frame from another
     exposure), or more than clipped_max of it is clipped.
-    Returns {frame index: reason}. Raises SceneError when every frame is at the black level
-    (nothing to learn from).
+    Returns {frame index: reason}. Raises SceneError naming `where` (the frames' folder)
+    when every frame is at the black level (nothing to learn from).
     """
     sub = raw_bayer[:, ::4, ::4].astype(np.float32)
     level = (sub - black[:, :1, :1]) / (white - black[:, 0, 0])[:, None, None]
@@ -302,7 +303,7 @@ def unusable_frames(raw_bayer: np.ndarray, black: np.ndarray, white: np.ndarray,
     # one DN above black on average: below that there is no signal at all
     floor = 1.0 / float(np.max(white - black[:, 0, 0]))
     if np.all(mean < floor):
-        raise SceneError(None, f"every frame is at the black level (mean signal "
+        raise SceneError(where, f"every frame is at the black level (mean signal "
                          f"{float(mean.max()):.2g} of the white level)",
                          "check the exposure, the lens cap and the black level in the RAW files")
     med = float(np.median(mean))
@@ -358,7 +359,8 @@ def load_scene(path, near_far: tuple[float, float] | None = None) -> Scene:
                       stacklevel=2)
     bad = metadata_outliers(meta, float(meta["white"][0] - np.max(meta["black"][0])))
     bad.update({k: why for k, why in unusable_frames(
-        raw_bayer, np.stack(meta["black"]), np.asarray(meta["white"])).items() if k not in bad})
+        raw_bayer, np.stack(meta["black"]), np.asarray(meta["white"]),
+        where=scene / "raw").items() if k not in bad})
     for k, why in bad.items():
         warnings.warn(f"{files[names[k]]}: {why}; the frame is left out", stacklevel=2)
     train = np.array([k for k in train if k not in bad], dtype=int)

@@ -10,7 +10,13 @@ from __future__ import annotations
 import errno
 import fcntl
 import json
+import os
 import shutil
+import signal
+import subprocess
+import sys
+import time
+import warnings
 from functools import partial
 from pathlib import Path
 
@@ -83,6 +89,19 @@ def test_bad_config_is_one_line_and_leaves_no_run_folder(small_scene, tmp_path, 
     run = tmp_path / "run"
     _fails(capsys, ["train", str(small_scene), "--out", str(run), "--preset", "tiny", *args],
            *needles)
+    assert not run.exists()
+
+
+def test_repeated_set_keeps_every_override(small_scene, tmp_path, capsys):
+    """`--set a --set b` is `--set a b` (argparse's default kept only the last --set)."""
+    from gridnerf.cli import build_parser
+
+    args = build_parser().parse_args(["train", "s", "--set", "a.b=1", "c.d=2", "--set", "e.f=3"])
+    assert args.set == ["a.b=1", "c.d=2", "e.f=3"]
+    run = tmp_path / "run"
+    _fails(capsys, ["train", str(small_scene), "--out", str(run), "--preset", "tiny",
+                    "--set", "train.batch_patches=abc", "--set", "loss.smooth_mode=patch"],
+           "train.batch_patches", "abc")
     assert not run.exists()
 
 
@@ -220,6 +239,9 @@ def _edit_transforms(scene: Path, edit) -> None:
     (lambda m: m.update(frames={"a": 1}), ["frames"]),
     (lambda m: m["frames"].append(7), ["frame 12"]),
     (lambda m: m["frames"][0].update(file_path=None), ["file_path"]),
+    (lambda m: m.update(train_filenames=[m["frames"][1]["file_path"]] * 2), ["more than once"]),
+    (lambda m: m.update(train_filenames=[f["file_path"] for f in m["frames"]],
+                        test_filenames=[m["frames"][0]["file_path"]]), ["both the train"]),
 ])
 def test_bad_transforms_json_is_one_clear_error(scene_copy, tmp_path, capsys, edit, needles):
     _edit_transforms(scene_copy, edit)
@@ -243,3 +265,110 @@ def test_eval_of_a_scene_without_test_views(run_copy, scene_copy, capsys):
     _fails(capsys, ["eval", str(run_copy)], str(scene_copy), "test split is empty",
            "test_filenames")
     assert _snapshot(run_copy) == before and not (run_copy / "eval").exists()
+
+
+# --- kill -9 ------------------------------------------------------------------------------------
+
+def _cli(args: list[str], jax_cache: Path, **kwargs) -> subprocess.Popen:
+    """`gridnerf <args>` in a child process, importing this checkout's gridnerf. XLA's
+    compilations go to the persistent cache `jax_cache`: a second process reuses them
+    (a resume starts in ~3 s instead of ~10 s on 2 cores)."""
+    import gridnerf
+
+    root = str(Path(gridnerf.__file__).resolve().parents[1])
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        p for p in (root, os.environ.get("PYTHONPATH")) if p),
+        JAX_COMPILATION_CACHE_DIR=str(jax_cache), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+        JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="-1")
+    return subprocess.Popen([sys.executable, "-m", "gridnerf.cli", *args], env=env, **kwargs)
+
+
+def _logged(run: Path) -> list[dict]:
+    """metrics.jsonl records (a line torn by a kill is skipped)."""
+    recs = []
+    path = run / "metrics.jsonl"
+    for line in (path.read_text().splitlines() if path.exists() else []):
+        try:
+            recs.append(json.loads(line))
+        except ValueError:
+            continue
+    return recs
+
+
+def test_kill_9_loses_at_most_checkpoint_seconds(small_scene, tmp_path):
+    """SIGKILL a training mid-stage, after its first time-based checkpoint and one more
+    interval: the checkpoint loads (finite), is at most checkpoint_seconds (+ one save's
+    slack) behind the progress metrics.jsonl logged, the dead process's lock blocks
+    nothing, no `.tmp` survives, and the same command resumes and finishes."""
+    from gridnerf.runfolder import load_state
+
+    # seconds between checkpoints; one stage of `steps`; a save's own time and one step
+    every, steps, slack = 0.25, 400, 1.0
+    run = tmp_path / "run"
+    argv = ["train", str(small_scene), "--out", str(run), "--preset", "tiny", "--set",
+            "grid.resolutions=[[16,16,8]]", f"train.steps_per_stage=[{steps}]",
+            "train.batch_patches=4", "train.log_every=10", "train.checkpoint_every=100000",
+            f"train.checkpoint_seconds={every}"]
+    with open(tmp_path / "first.log", "w") as log:
+        proc = _cli(argv, tmp_path / "jax-cache", stdout=log, stderr=subprocess.STDOUT)
+    ckpt, first_seen, first_inode = run / "checkpoint.npz", None, None
+    deadline = time.monotonic() + 240
+    try:
+        while True:  # kill once a checkpoint was replaced and 1.5 intervals passed, or mid-run
+            assert proc.poll() is None, (tmp_path / "first.log").read_text()[-2000:]
+            assert time.monotonic() < deadline, "no checkpoint within 240 s"
+            if first_seen is None and ckpt.exists():
+                first_seen, first_inode = time.monotonic(), ckpt.stat().st_ino
+            if first_seen is not None:
+                replaced = ckpt.stat().st_ino != first_inode  # os.replace: a new inode
+                waited = time.monotonic() - first_seen >= 1.5 * every
+                halfway = max((r["step"] for r in _logged(run)), default=0) >= steps // 2
+                if (replaced and waited) or halfway:
+                    break
+            time.sleep(0.01)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+
+    # the kernel dropped the killed process's flock: the lock file names it but is free
+    assert (run / ".lock").read_text().strip() == str(proc.pid)
+    with open(run / ".lock", "a+") as held:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.flock(held, fcntl.LOCK_UN)
+    # a kill inside gridnerf.atomic.write leaves its .tmp (never the file itself)
+    assert {p.name for p in run.glob("*.tmp")} <= {"checkpoint.npz.tmp", "metrics.jsonl.tmp"}
+
+    _, params, opt_leaves, header = load_state(run)
+    assert all(np.all(np.isfinite(np.asarray(v))) for v in params.values())
+    assert opt_leaves and header["stage"] == 0 and 0 < header["step"] < steps
+    logged = _logged(run)  # lines up to the kill, past the checkpoint: trimmed on resume
+    assert max((r["step"] for r in logged), default=0) > header["step"] - 10  # log_every
+    lost = max((r["train_seconds"] for r in logged), default=0) - header["train_seconds"]
+    assert lost <= every + slack, (lost, header, logged[-1])
+
+    (run / "checkpoint.npz.tmp").write_bytes(b"PK\x03\x04 torn")  # as if killed mid-save
+    with open(tmp_path / "second.log", "w") as log:
+        resumed = _cli(argv, tmp_path / "jax-cache", stdout=subprocess.PIPE, stderr=log, text=True)
+        out, _ = resumed.communicate(timeout=300)
+    assert resumed.returncode == 0, (tmp_path / "second.log").read_text()[-2000:]
+    assert f"resuming {run} at stage 0, step {header['step']}" in out
+    assert not list(run.glob("*.tmp"))
+    assert load_state(run)[3]["stage"] == 1 and (run / "summary.json").exists()
+    done = [r["step"] for r in _logged(run)]  # trimmed to the checkpoint, then continued
+    assert done == sorted(set(done)) and done[-1] == steps
+
+
+def test_all_black_scene_is_refused(scene_copy, tmp_path, capsys):
+    from gridnerf import dng, raw
+
+    for path in sorted((scene_copy / "raw").glob("*.dng")):
+        f = raw.read_raw(path)
+        dng.write_dng(path, np.full_like(f.raw_bayer, int(f.black_level.mean())), f.cfa,
+                      f.black_level, int(f.white_level), f.xyz_to_cam, f.as_shot_neutral)
+    run = tmp_path / "run"
+    with warnings.catch_warnings():  # the bounds estimate's warning comes first: not ours
+        warnings.simplefilter("ignore", UserWarning)
+        _fails(capsys, ["train", str(scene_copy), "--out", str(run), "--preset", "tiny"],
+               str(scene_copy / "raw"), "every frame is at the black level", "Fix:")
+    assert not run.exists()

@@ -260,8 +260,9 @@ def test_black_and_clipped_frames_are_named_and_left_out(small_scene, tmp_path):
     assert 3 not in scene.train_idx and 5 not in scene.train_idx
     for name in names:
         _rewrite(root / "raw" / f"{name}.dng", _black)
-    with pytest.raises(SceneError, match="every frame is at the black level"):
+    with pytest.raises(SceneError, match="every frame is at the black level") as info:
         load_scene(root, near_far=sim_near_far(root))
+    assert info.value.path == str(root / "raw")  # the one error line names the folder
 
 
 def test_simulated_frames_are_all_usable(small_scene):

@@ -246,3 +246,36 @@ def load_state_of(run):
     from gridnerf.train import load_state
 
     return load_state(run)[0]
+
+
+def test_stopped_before_the_first_checkpoint_starts_over(small_scene, tmp_path, monkeypatch):
+    """A training stopped before any checkpoint leaves config.json and metrics.jsonl but
+    nothing to resume: the next train starts over with its own config (the stale
+    config.json is replaced, not obeyed) and metrics.jsonl holds only the new run's
+    lines. A scene given as a relative path is saved absolute, so the run loads for
+    eval from any folder."""
+    from gridnerf import train as trainmod
+    from gridnerf.eval_run import load_run
+
+    base = ["grid.resolutions=[[16,16,8]]", "train.steps_per_stage=[8]", "train.log_every=2",
+            "train.checkpoint_every=1000", "train.checkpoint_seconds=0"]
+    first = cfgmod.override(cfgmod.preset("tiny"), [*base, "train.batch_patches=4"])
+    second = cfgmod.override(cfgmod.preset("tiny"), base)
+    run = tmp_path / "run"
+    monkeypatch.chdir(small_scene.parent)
+    relative = small_scene.relative_to(small_scene.parent)
+    real_make_step = trainmod.make_step
+    _crash_after(monkeypatch, 5)  # logged steps 2 and 4, no checkpoint
+    with pytest.raises(KeyboardInterrupt):
+        trainmod.train(relative, run, first)
+    assert not (run / "checkpoint.npz").exists()
+    assert cfgmod.load(run / "config.json") == first
+    assert [r["step"] for r in _losses(run)] == [2, 4]
+    monkeypatch.setattr(trainmod, "make_step", real_make_step)
+    summary = trainmod.train(relative, run, second)
+    assert cfgmod.load(run / "config.json") == second
+    assert [r["step"] for r in _losses(run)] == [2, 4, 6, 8]
+    assert summary["scene"] == str(small_scene.resolve())
+    monkeypatch.chdir(tmp_path)
+    _, scene, _, _, _ = load_run(run)
+    assert len(scene.train_idx) > 0
