@@ -8,6 +8,9 @@ same estimators also run on the trained field's low-light renders of the trainin
 (`runs/<scene>/<run>`, at 1/4 resolution; weighted_grey on the surface colour rgb_low / acc
 weighted by acc, near-black rays left out; with --area also by the surface area each pixel
 sees, depth^2 from the rendered NDC depth).
+Each estimate is also scored after projection onto the camera's Planckian locus
+(`+locus` columns: illuminant.to_locus on illuminant.planckian_locus of sim.json's
+xyz_to_cam, the raw file's ColorMatrix).
 The truth is sim.json's illuminant_neutral_cam (for mixed-light scenes the
 signal-weighted mix of the two lights).
 
@@ -94,26 +97,31 @@ def main() -> None:
     ap.add_argument("--out", default="reports/illuminants")
     args = ap.parse_args()
     rows, record = [], {}
+    columns = [*ORDER, *(k + "+locus" for k in ORDER)]
     for name, folder in simulated_folders(args.scenes):
-        truth = np.array(json.loads((folder / "sim.json").read_text())["illuminant_neutral_cam"])
+        sim = json.loads((folder / "sim.json").read_text())
+        truth = np.array(sim["illuminant_neutral_cam"])
+        locus = il.planckian_locus(sim["xyz_to_cam"])
         sources = {"raw": estimates(*raw_images(folder))}
         run = Path("runs") / name / (args.runs or "")
         if args.runs and (run / "summary.json").exists():
             sources["render"] = render_estimates(run, args.area)
         for source, est in sources.items():
             err = {k: float(il.angular_error_deg(v, truth)) for k, v in est.items()}
+            err.update({k + "+locus": float(il.angular_error_deg(il.to_locus(v, locus), truth))
+                        for k, v in est.items()})
             record.setdefault(name, {})[source] = err
-            rows.append(f"| {name} | {source} | " + " | ".join(f"{err[k]:.2f}" for k in ORDER)
-                        + " |")
+            rows.append(f"| {name} | {source} | "
+                        + " | ".join(f"{err[k]:.2f}" for k in columns) + " |")
             print(rows[-1], flush=True)
-    head = ("| scene | input | " + " | ".join(ORDER) + " |\n|---|---|"
-            + "---|" * len(ORDER))
+    head = ("| scene | input | " + " | ".join(columns) + " |\n|---|---|"
+            + "---|" * len(columns))
     means = []
     for source in ("raw", "render"):
         vals = [r[source] for r in record.values() if source in r]
         if vals:
             means.append(f"| **mean** | {source} | " + " | ".join(
-                f"{np.mean([v[k] for v in vals]):.2f}" for k in ORDER) + " |")
+                f"{np.mean([v[k] for v in vals]):.2f}" for k in columns) + " |")
     write_report(
         args.out,
         "Angular error (degrees) of illuminant estimates against the simulator's true "

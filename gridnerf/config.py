@@ -134,10 +134,10 @@ class GridConfig(_Section):
     init_density: float = -4.0  # raw density at init (softplus: sigma 0.018 per voxel)
     # "visibility": max ray weight over training rays; "density": the vertex's own alpha;
     # "ray_mass": vertices some training ray needs to keep grid.prune_mass of its weight.
-    # ray_mass (default): a weight threshold cut holes into dim, low-texture surfaces
-    # (bucket's sky and table, box's table) that the fine stages could not refill;
-    # bucket 18.39 -> 19.37 dB, box 19.40 -> 19.67, doll 19.19 -> 19.31 (session 3)
-    prune_mode: Literal["visibility", "density", "ray_mass"] = "ray_mass"
+    # ray_mass fills the holes a weight threshold cuts into dim surfaces (bucket +1 dB) but
+    # keeps 92-100 % of the box where the coarse stage is fog (held_arc_table): rays then
+    # cross more occupied samples than render.max_samples and stop short (-3.3 dB there)
+    prune_mode: Literal["visibility", "density", "ray_mass"] = "visibility"
     prune_mass: float = 0.9  # "ray_mass": share of each ray's weight that carving keeps
     # carve vertices whose weight (or alpha) is below this; 0.01 kept 96% of the coarse
     # box (thin fog reaches 1% somewhere), 0.05 keeps ~50% at the same PSNR
@@ -150,7 +150,7 @@ class GridConfig(_Section):
     # refit x/y too (False: depth only; in a forward-facing capture every pixel sees
     # something, so the cameras, not the content, bound x/y: dim sky can fall below the
     # mass quantile and be cut off)
-    fit_xy: bool = False
+    fit_xy: bool = True
     fit_quantile: float = 0.005  # rendered mass left outside the fitted box at each end
     fit_margin: float = 2.0  # margin around the content, in voxels of the first stage
     occupancy_threshold: float = 0.005  # cells whose max alpha is below this are skipped
@@ -221,6 +221,9 @@ class LossConfig(_Section):
     ca_illuminant: Literal["grey_world", "shades_of_grey", "grey_edge",
                            "weighted_grey"] = "grey_edge"
     ca_illuminant_p: float = 6.0  # Minkowski p of shades_of_grey (grey_edge uses p = 1)
+    # project the L_ca illuminant estimate onto the Planckian locus of the camera (from the
+    # raw file's ColorMatrix): removes the green-magenta part of the estimator's error
+    ca_locus: bool = False
 
     def _check(self) -> None:
         for name in ("w_data", "w_ca", "w_smooth", "tv_density", "tv_rgb", "sparsity",

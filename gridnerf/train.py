@@ -81,8 +81,13 @@ def make_optimizer(cfg: Config, steps: int, stage: int = 0) -> optax.GradientTra
     )
 
 
-def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_t: float):
-    """Total loss and its terms for one batch of (P, p, p) ray patches."""
+def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_t: float,
+            locus=None):
+    """Total loss and its terms for one batch of (P, p, p) ray patches.
+
+    locus: (n, 3) camera-RGB Planckian locus (illuminant.planckian_locus) when
+    loss.ca_locus, the L_ca illuminant estimate is projected onto it; else None.
+    """
     shape = rays["target"].shape  # (P, p, p, 3)
     flat = {k: v.reshape(-1, 3) for k, v in rays.items()}
     k0, key = jax.random.split(key)
@@ -103,9 +108,11 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
                                        near_t, far_t, cfg.render, key=k0)
             gain = losses.normalized_gain(g_out["gain"], g_out["acc"])
         c_ill = None  # None: ca_loss's grey world of the batch (the paper's target)
-        if lc.ca_illuminant != "grey_world":
+        if lc.ca_illuminant != "grey_world" or locus is not None:
             c_ill = losses.batch_illuminant(lc.ca_illuminant, out["rgb_low"], out["acc"],
                                             shape, lc.ca_illuminant_p)
+        if locus is not None:
+            c_ill = illuminant.to_locus(c_ill, locus)
         terms["ca"] = losses.ca_loss(out["rgb_low"], gain, stop_grad_mean=lc.ca_stop_grad,
                                      illuminant=c_ill)
         smooth = 0.0
@@ -146,8 +153,10 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
     return total, terms
 
 
-def make_step(cfg: Config, tx, near_t: float, far_t: float):
+def make_step(cfg: Config, tx, near_t: float, far_t: float, locus=None):
     """Jitted step: (params, opt_state, structure, data, key) -> (params, opt_state, loss, aux).
+
+    locus: the camera's Planckian locus (n, 3) for loss.ca_locus (see loss_fn), else None.
 
     The batch's patches are split over all local devices (gridnerf.devices); parameters are
     replicated. train.batch_patches must be a multiple of the device count.
@@ -160,7 +169,7 @@ def make_step(cfg: Config, tx, near_t: float, far_t: float):
         rays = devices.shard_rays(
             dataset.batch(data, kb, cfg.train.batch_patches, cfg.train.patch_size))
         (total, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-            params, structure, rays, kl, cfg, near_t, far_t
+            params, structure, rays, kl, cfg, near_t, far_t, locus
         )
         updates, opt_state = tx.update(grads, opt_state, params)
         params = optax.apply_updates(params, updates)
@@ -311,6 +320,9 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     if scene.forward_facing and cfg.grid.ndc_xy == "frustums":
         bbox_min[:2], bbox_max[:2] = dataset.frustum_xy(scene, scene.train_idx, bbox_min,
                                                         bbox_max, near_t)
+    locus = None
+    if cfg.loss.use_gains and cfg.loss.ca_locus:
+        locus = jnp.asarray(illuminant.planckian_locus(scene.xyz_to_cam), jnp.float32)
     key = jax.random.PRNGKey(cfg.train.seed)
     stages = list(zip(cfg.grid.resolutions, cfg.train.steps_per_stage, strict=True))
 
@@ -366,7 +378,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         if opt_leaves:
             opt_state = checkpoint.unflatten_like(opt_state, opt_leaves)
             opt_leaves = []
-        step_fn = make_step(cfg, tx, near_t, far_t)
+        step_fn = make_step(cfg, tx, near_t, far_t, locus)
         structure = grid.update_occupancy(structure, params, cfg.grid.occupancy_threshold)
         t_stage = time.perf_counter()
         last_save = t_stage

@@ -162,3 +162,27 @@ def test_angular_error():
     np.testing.assert_allclose(errs, [90.0, 0.0], atol=1e-9)
     with pytest.raises(ValueError, match="unknown illuminant estimator"):
         il.estimate("white_patch", np.ones((4, 4, 3)))
+
+
+def test_planckian_locus_projection_keeps_temperature_and_drops_green_magenta():
+    from gridnerf.color import CAMERA_XYZ_TO_CAM, blackbody_xyz_white
+
+    m = CAMERA_XYZ_TO_CAM["Canon EOS 5D Mark IV"]
+    locus = il.planckian_locus(m)
+    assert locus.shape == (1024, 3)
+    np.testing.assert_allclose(np.linalg.norm(locus, axis=1), 1.0, rtol=1e-12)
+    # adjacent entries are close, so the nearest entry is within a fraction of a degree
+    steps = il.angular_error_deg(locus[1:], locus[:-1])
+    assert float(np.max(steps)) < 0.1
+    truth = m @ blackbody_xyz_white(2900.0)
+    # a blackbody lands on itself; a magenta cast (green too low) is removed ...
+    assert float(il.angular_error_deg(il.to_locus(truth, locus), truth)) < 0.1
+    cast = truth * np.array([1.0, 0.9, 1.0])
+    before = float(il.angular_error_deg(cast, truth))
+    assert before > 2.0
+    # what is left is the part of the cast that runs along the locus (a temperature error)
+    assert float(il.angular_error_deg(il.to_locus(cast, locus), truth)) < 0.4 * before
+    # ... scale-free, and the same under jit
+    np.testing.assert_allclose(il.to_locus(1e-4 * cast, locus), il.to_locus(cast, locus))
+    j = jax.jit(il.to_locus)(jnp.asarray(cast, jnp.float32), jnp.asarray(locus, jnp.float32))
+    np.testing.assert_allclose(np.asarray(j), il.to_locus(cast, locus), rtol=1e-5)

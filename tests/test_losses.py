@@ -297,3 +297,28 @@ def test_ca_loss_takes_any_illuminant_estimate():
         est = losses.batch_illuminant(name, rgb, jnp.ones(16), (1, 4, 4, 3))
         assert est.shape == (3,) and finite(est)
         np.testing.assert_allclose(float(jnp.linalg.norm(est)), 1.0, rtol=1e-5)
+
+
+def test_ca_locus_puts_the_target_on_the_locus():
+    """With loss.ca_locus, L_ca's target is the locus entry nearest the batch estimate: a
+    one-entry locus makes that entry the target whatever the batch looks like."""
+    from dataclasses import replace
+
+    from gridnerf import config as cfgmod
+    from gridnerf import train
+    from gridnerf.illuminant import gains_from_illuminant
+
+    c = cfgmod.preset("tiny")
+    c = replace(c, render=replace(c.render, max_samples=16),
+                loss=replace(c.loss, ca_locus=True))
+    structure, params, rays = _foggy_scene()
+    light = jnp.asarray([[0.6, 1.0, 0.3]]) / jnp.linalg.norm(jnp.asarray([0.6, 1.0, 0.3]))
+    target = gains_from_illuminant(light[0])
+    params = {**params, "log_gain": jnp.broadcast_to(jnp.log(target), params["log_gain"].shape)}
+
+    def ca(locus):
+        return float(train.loss_fn(params, structure, rays, jax.random.PRNGKey(0), c, -1.0,
+                                   1.0, locus)[1]["ca"])
+
+    assert ca(light) < 1e-6  # the gains already equal the locus target
+    assert ca(None) > 1e-3  # the batch's own grey-edge estimate is another colour
