@@ -66,8 +66,10 @@ report: $(STAMP)
 recon: $(STAMP)
 	$(RUN)python experiments/recon.py --scenes all --oracle heldout
 
+# speed and scale benchmark (issue 10): bench/results.json + bench/results.md, cached per item
+# in bench/cache (delete it, or BENCH_ARGS=--fresh, to measure again); docs/speed.md
 bench: $(STAMP)
-	$(RUN)python experiments/bench.py
+	$(RUN)python experiments/bench.py --scene "$(SCENE)" $(BENCH_ARGS)
 
 lint: $(STAMP)
 	$(BIN)/ruff check gridnerf experiments tests

@@ -43,10 +43,19 @@ def _poses(args) -> None:
     print(json.dumps(report, indent=2))
 
 
+def _distributed(args) -> None:
+    """jax.distributed for a run over several processes (hosts); see gridnerf.devices."""
+    from gridnerf import devices
+
+    devices.initialize_distributed(devices.distributed_settings(
+        args.coordinator, args.num_processes, args.process_id))
+
+
 def _train(args) -> None:
     from gridnerf import config as cfgmod
     from gridnerf.train import train
 
+    _distributed(args)
     cfg = cfgmod.override(cfgmod.preset(args.preset), args.set or [])
     run = Path(args.out) if args.out else Path("runs") / Path(args.scene).name / args.preset
     summary = train(Path(args.scene), run, cfg, overwrite_config=args.overwrite_config)
@@ -74,6 +83,13 @@ class _UsageError(Exception):
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str):  # argparse would print the usage and exit
         raise _UsageError(f"{self.prog}: {message}. Fix: see `{self.prog} --help`")
+
+
+def _whole(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
 
 
 def _positive_int(text: str) -> int:
@@ -140,6 +156,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="resume a run with this command's config instead of refusing a config that "
         "differs from the run's config.json (model shapes must stay the same)",
     )
+    d = s.add_argument_group(
+        "several hosts (jax.distributed; all three on every process, or the environment "
+        "variables JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, JAX_PROCESS_ID)")
+    d.add_argument("--coordinator", metavar="HOST:PORT",
+                   help="address of process 0 and a free port, e.g. 10.0.0.1:12345")
+    d.add_argument("--num-processes", type=_whole, metavar="N", help="number of processes")
+    d.add_argument("--process-id", type=_whole, metavar="I",
+                   help="this process, 0 .. N-1 (0 runs the coordinator)")
     s.set_defaults(func=_train)
 
     s = sub.add_parser("eval", help="render test views and compute metrics against gt/")
