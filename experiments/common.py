@@ -36,7 +36,8 @@ def run_variant(scene: str, name: str, preset: str, overrides: list[str]) -> dic
     sdir = scene_dir(scene)
     run = Path("runs") / sdir.name / name
     cfg = cfgmod.override(cfgmod.preset(preset), overrides)
-    if (run / "config.json").exists() and cfgmod.load(run / "config.json") != cfg:
+    if (run / "config.json").exists() and (cfgmod.effective(cfgmod.load(run / "config.json"))
+                                           != cfgmod.effective(cfg)):
         raise SystemExit(f"{run} holds a different config; delete it to re-run this variant")
     if not (run / "summary.json").exists():
         train(sdir, run, cfg)

@@ -49,14 +49,10 @@ def raw_images(scene_dir: Path) -> tuple[list[np.ndarray], list[np.ndarray]]:
     return images, masks
 
 
-def estimates(images, masks, per_image_edge: bool = True) -> dict[str, np.ndarray]:
-    """Each estimator on a list of (h, w, 3) images with (h, w) or (h, w, 3) masks."""
-    stack, mstack = np.stack(images), np.stack(masks)
-    out = {name: il.estimate(name, stack, mask=mstack) for name in ORDER if name != "grey_edge"}
-    edges = [il.grey_edge(img, m, p=1.0, sigma=2.0) for img, m in zip(images, masks,
-                                                                     strict=True)]
-    out["grey_edge"] = il.unit(np.mean(edges, axis=0)) if per_image_edge else edges[0]
-    return out
+def estimates(images, masks) -> dict[str, np.ndarray]:
+    """Each estimator on a list of (h, w, 3) images with (h, w) or (h, w, 3) masks, the way
+    `loss.ca_target=scene` estimates a capture's illuminant (illuminant.frames_estimate)."""
+    return {name: il.frames_estimate(name, images, masks) for name in ORDER}
 
 
 def render_estimates(run: Path, area: bool = False) -> dict[str, np.ndarray]:

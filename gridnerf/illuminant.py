@@ -25,8 +25,10 @@ Planckian (blackbody) locus, whose camera-RGB colours follow from the raw file's
 XYZ->camera ColorMatrix (`color.blackbody_xyz_white`, Wyman-Sloan-Shirley CIE fit). An
 estimate projected onto the locus keeps its colour temperature and loses its green-magenta
 error, the part that statistics of a not-grey scene get most wrong. It needs nothing a real
-capture lacks (DNGs carry ColorMatrix); fluorescent and LED light sit slightly off the
-locus (|Duv| up to ~0.01), so it is an option, not the default.
+capture lacks (DNGs carry ColorMatrix). It is on by default (`loss.ca_locus`): on the raw
+frames of the nine built-in scenes it lowers shades of grey's mean angular error from 4.76
+to 3.10 deg (reports/illuminants.md); fluorescent and LED light sit slightly off the locus
+(|Duv| up to ~0.01), so switch it off for such light.
 
 `gains_from_illuminant` turns an estimate into the von Kries gains of L_ca,
 s_k = K_avg / C_k (mean over channels of the estimate over channel k: a grey illuminant
@@ -234,6 +236,27 @@ def estimate(name: str, rgb_cam, mask=None, weights=None, p: float | None = None
         return weighted_grey(rgb_cam, weights, mask)
     raise ValueError(f"unknown illuminant estimator {name!r}; choose one of "
                      f"{', '.join(ESTIMATORS)}")
+
+
+def frames_estimate(name: str, images, masks, p: float | None = None,
+                    edge_sigma: float = 2.0):
+    """One illuminant (3,) unit, numpy, for a whole capture: `name` on all frames pooled.
+
+    images: list of (H, W, 3) linear camera RGB frames (e.g. 2x2-binned raw, black level
+    removed, each divided by its exposure); masks: list of (H, W) or (H, W, 3) validity.
+    grey_edge runs per frame (its gradients must not cross frame borders) on a Gaussian-
+    smoothed image (edge_sigma pixels: raw gradients are mostly noise) and the per-frame
+    estimates are averaged; every other estimator pools the pixels of all frames.
+    """
+    if name == "grey_edge":
+        edges = [grey_edge(x, m, 1.0 if p is None else p, edge_sigma)
+                 for x, m in zip(images, masks, strict=True)]
+        return unit(np.mean(edges, axis=0))
+    pixels = np.concatenate([np.reshape(x, (-1, 3)) for x in images])
+    valid = np.concatenate([np.broadcast_to(np.reshape(m, (*np.shape(m)[:2], -1)),
+                                            (*np.shape(m)[:2], 3)).reshape(-1, 3)
+                            for m in masks])
+    return np.asarray(estimate(name, pixels, mask=valid, p=p))
 
 
 def planckian_locus(xyz_to_cam, kelvin=None) -> np.ndarray:

@@ -82,11 +82,13 @@ def make_optimizer(cfg: Config, steps: int, stage: int = 0) -> optax.GradientTra
 
 
 def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_t: float,
-            locus=None):
+            locus=None, scene_ill=None):
     """Total loss and its terms for one batch of (P, p, p) ray patches.
 
     locus: (n, 3) camera-RGB Planckian locus (illuminant.planckian_locus) when
     loss.ca_locus, the L_ca illuminant estimate is projected onto it; else None.
+    scene_ill: (3,) the capture's illuminant (scene_illuminant) when loss.ca_target is
+    "scene": the L_ca target for every batch, no per-batch estimate; else None.
     """
     shape = rays["target"].shape  # (P, p, p, 3)
     flat = {k: v.reshape(-1, 3) for k, v in rays.items()}
@@ -108,11 +110,13 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
                                        near_t, far_t, cfg.render, key=k0)
             gain = losses.normalized_gain(g_out["gain"], g_out["acc"])
         c_ill = None  # None: ca_loss's grey world of the batch (the paper's target)
-        if lc.ca_illuminant != "grey_world" or locus is not None:
+        if scene_ill is not None:
+            c_ill = scene_ill
+        elif lc.ca_illuminant != "grey_world" or locus is not None:
             c_ill = losses.batch_illuminant(lc.ca_illuminant, out["rgb_low"], out["acc"],
                                             shape, lc.ca_illuminant_p)
-        if locus is not None:
-            c_ill = illuminant.to_locus(c_ill, locus)
+            if locus is not None:
+                c_ill = illuminant.to_locus(c_ill, locus)
         terms["ca"] = losses.ca_loss(out["rgb_low"], gain, stop_grad_mean=lc.ca_stop_grad,
                                      illuminant=c_ill)
         smooth = 0.0
@@ -153,10 +157,11 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
     return total, terms
 
 
-def make_step(cfg: Config, tx, near_t: float, far_t: float, locus=None):
+def make_step(cfg: Config, tx, near_t: float, far_t: float, locus=None, scene_ill=None):
     """Jitted step: (params, opt_state, structure, data, key) -> (params, opt_state, loss, aux).
 
-    locus: the camera's Planckian locus (n, 3) for loss.ca_locus (see loss_fn), else None.
+    locus: the camera's Planckian locus (n, 3) for loss.ca_locus; scene_ill: the capture's
+    illuminant (3,) for loss.ca_target = "scene" (see loss_fn); else None.
 
     The batch's patches are split over all local devices (gridnerf.devices); parameters are
     replicated. train.batch_patches must be a multiple of the device count.
@@ -169,7 +174,7 @@ def make_step(cfg: Config, tx, near_t: float, far_t: float, locus=None):
         rays = devices.shard_rays(
             dataset.batch(data, kb, cfg.train.batch_patches, cfg.train.patch_size))
         (total, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-            params, structure, rays, kl, cfg, near_t, far_t, locus
+            params, structure, rays, kl, cfg, near_t, far_t, locus, scene_ill
         )
         updates, opt_state = tx.update(grads, opt_state, params)
         params = optax.apply_updates(params, updates)
@@ -186,6 +191,31 @@ def data_statistics(data: dataset.RayData, key, n_patches: int = 256) -> tuple[f
     means = (y * m).sum(0) / np.maximum(m.sum(0), 1.0)
     gains = illuminant.gains_from_illuminant(illuminant.grey_world(y, m), floor=1e-6)
     return float(max(means.mean(), 1e-12)), np.log(gains)
+
+
+def scene_illuminant(data: dataset.RayData, scene, cfg: Config) -> np.ndarray:
+    """The capture's illuminant (3,) unit camera RGB, estimated once from all training frames.
+
+    loss.ca_illuminant on the 2x2-binned frames divided by their exposure, saturated blocks
+    left out (illuminant.frames_estimate: pooled pixels; grey edge per frame), then projected
+    onto the camera's Planckian locus when loss.ca_locus. The mosaic mode bins the frames
+    for this estimate only.
+    """
+    if data.mosaic:
+        pairs = [scene.rgb_cam_binned(int(i)) for i in scene.train_idx]
+        images = [p[0] / float(scene.exposure[i]) for p, i in zip(pairs, scene.train_idx,
+                                                                   strict=True)]
+        masks = [p[1] for p in pairs]
+    else:
+        inv = np.asarray(data.inv_exposure, np.float64)
+        images = list(np.asarray(data.pixels, np.float64) * inv[:, None, None, None])
+        masks = list(np.asarray(data.valid))
+    est = illuminant.frames_estimate(cfg.loss.ca_illuminant, images, masks,
+                                     p=cfg.loss.ca_illuminant_p
+                                     if cfg.loss.ca_illuminant == "shades_of_grey" else None)
+    if cfg.loss.ca_locus:
+        est = illuminant.to_locus(est, illuminant.planckian_locus(scene.xyz_to_cam))
+    return np.asarray(est, np.float64)
 
 
 def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage: int,
@@ -320,8 +350,12 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     if scene.forward_facing and cfg.grid.ndc_xy == "frustums":
         bbox_min[:2], bbox_max[:2] = dataset.frustum_xy(scene, scene.train_idx, bbox_min,
                                                         bbox_max, near_t)
-    locus = None
-    if cfg.loss.use_gains and cfg.loss.ca_locus:
+    locus = scene_ill = None
+    if cfg.loss.use_gains and cfg.loss.ca_target == "scene":
+        scene_ill = scene_illuminant(data, scene, cfg)
+        print("L_ca target: the capture's illuminant (camera RGB) "
+              f"{np.round(scene_ill / scene_ill.max(), 3).tolist()}")
+    elif cfg.loss.use_gains and cfg.loss.ca_locus:
         locus = jnp.asarray(illuminant.planckian_locus(scene.xyz_to_cam), jnp.float32)
     key = jax.random.PRNGKey(cfg.train.seed)
     stages = list(zip(cfg.grid.resolutions, cfg.train.steps_per_stage, strict=True))
@@ -338,6 +372,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         print(f"resuming {run} at stage {stage}, step {start}")
     else:
         color_scale, log_gain = data_statistics(data, jax.random.fold_in(key, 1))
+        if scene_ill is not None:  # start the gains at the target
+            log_gain = np.log(illuminant.gains_from_illuminant(scene_ill, floor=1e-6))
         structure, params = grid.init_grid(
             resolve_resolution(cfg.grid.resolutions[0], bbox_min, bbox_max, data.image_hw,
                                scene.forward_facing),
@@ -378,7 +414,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         if opt_leaves:
             opt_state = checkpoint.unflatten_like(opt_state, opt_leaves)
             opt_leaves = []
-        step_fn = make_step(cfg, tx, near_t, far_t, locus)
+        step_fn = make_step(cfg, tx, near_t, far_t, locus,
+                            None if scene_ill is None else jnp.asarray(scene_ill, jnp.float32))
         structure = grid.update_occupancy(structure, params, cfg.grid.occupancy_threshold)
         t_stage = time.perf_counter()
         last_save = t_stage

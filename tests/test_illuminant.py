@@ -186,3 +186,25 @@ def test_planckian_locus_projection_keeps_temperature_and_drops_green_magenta():
     np.testing.assert_allclose(il.to_locus(1e-4 * cast, locus), il.to_locus(cast, locus))
     j = jax.jit(il.to_locus)(jnp.asarray(cast, jnp.float32), jnp.asarray(locus, jnp.float32))
     np.testing.assert_allclose(np.asarray(j), il.to_locus(cast, locus), rtol=1e-5)
+
+
+def test_frames_estimate_recovers_a_light_on_several_frames():
+    """A capture of grey-mean, edge-balanced frames under one light: every estimator finds
+    the light from the frames pooled (pixels with a mask left out, frames of any size)."""
+    rng = np.random.default_rng(7)
+    light = np.array([0.7, 1.0, 0.45])
+    images, masks = [], []
+    for h, w in ((24, 32), (20, 28)):
+        reflect = rng.uniform(0.05, 1.0, (h, w, 1)) * np.ones(3)  # grey surfaces
+        img = reflect * light
+        m = np.ones((h, w), bool)
+        img[:3, :3] = [50.0, 0.0, 0.0]  # clipped red patch, masked out
+        m[:3, :3] = False
+        images.append(img)
+        masks.append(m)
+    for name in il.ESTIMATORS:
+        est = il.frames_estimate(name, images, masks)
+        assert est.shape == (3,)
+        assert float(il.angular_error_deg(est, light)) < 0.5, name
+        scaled = il.frames_estimate(name, [9.0 * x for x in images], masks)
+        np.testing.assert_allclose(scaled, est, rtol=1e-9, atol=1e-12)

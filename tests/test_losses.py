@@ -321,4 +321,29 @@ def test_ca_locus_puts_the_target_on_the_locus():
                                    1.0, locus)[1]["ca"])
 
     assert ca(light) < 1e-6  # the gains already equal the locus target
-    assert ca(None) > 1e-3  # the batch's own grey-edge estimate is another colour
+    assert ca(None) > 1e-3  # the batch's own estimate is another colour
+
+
+def test_scene_target_replaces_the_batch_estimate():
+    """loss.ca_target = "scene": the L_ca target is the capture's illuminant for every
+    batch (no per-batch estimate, no locus projection at step time)."""
+    from dataclasses import replace
+
+    from gridnerf import config as cfgmod
+    from gridnerf import train
+    from gridnerf.illuminant import gains_from_illuminant
+
+    c = cfgmod.preset("tiny")
+    c = replace(c, render=replace(c.render, max_samples=16),
+                loss=replace(c.loss, ca_target="scene", ca_locus=True))
+    structure, params, rays = _foggy_scene()
+    light = jnp.asarray([0.6, 1.0, 0.3])
+    params = {**params, "log_gain": jnp.broadcast_to(jnp.log(gains_from_illuminant(light)),
+                                                     params["log_gain"].shape)}
+
+    def ca(scene_ill):
+        return float(train.loss_fn(params, structure, rays, jax.random.PRNGKey(0), c, -1.0,
+                                   1.0, None, scene_ill)[1]["ca"])
+
+    assert ca(light) < 1e-6 and ca(3.0 * light) < 1e-6  # the gains equal its target
+    assert ca(jnp.asarray([1.0, 1.0, 1.0])) > 1e-3  # another light: another target

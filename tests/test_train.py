@@ -279,3 +279,42 @@ def test_stopped_before_the_first_checkpoint_starts_over(small_scene, tmp_path, 
     monkeypatch.chdir(tmp_path)
     _, scene, _, _, _ = load_run(run)
     assert len(scene.train_idx) > 0
+
+
+def test_scene_illuminant_from_the_training_frames(small_scene):
+    """loss.ca_target = "scene": one estimate from the binned training frames, near the
+    simulator's light for grey world, on the locus when ca_locus (binned and mosaic data
+    give the same estimate)."""
+    from gridnerf import dataset, illuminant, train
+    from gridnerf.scene import load_scene
+
+    sim = json.loads((small_scene / "sim.json").read_text())
+    truth = np.asarray(sim["illuminant_neutral_cam"])
+    scene = load_scene(small_scene, near_far=(1.0, 10.0))
+    cfg = cfgmod.preset("tiny")
+    cfg = replace(cfg, loss=replace(cfg.loss, ca_target="scene", ca_illuminant="grey_world",
+                                    ca_locus=False))
+    binned = dataset.build(scene, scene.train_idx, True)
+    est = train.scene_illuminant(binned, scene, cfg)
+    assert np.isfinite(est).all() and abs(np.linalg.norm(est) - 1) < 1e-9
+    assert float(illuminant.angular_error_deg(est, truth)) < 15.0
+    mosaic = dataset.build(scene, scene.train_idx, False)
+    np.testing.assert_allclose(train.scene_illuminant(mosaic, scene, cfg), est, atol=1e-6)
+    on = replace(cfg, loss=replace(cfg.loss, ca_locus=True))
+    locus = illuminant.planckian_locus(scene.xyz_to_cam)
+    assert np.min(illuminant.angular_error_deg(train.scene_illuminant(binned, scene, on),
+                                               locus)) < 1e-6
+
+
+def test_effective_config_ignores_gain_fields_without_gains():
+    """Configs that train alike compare equal: the colour-prior fields of a run without
+    gains (the oracle) do not matter; with gains they do."""
+    o = cfgmod.preset("oracle")
+    other = replace(o, loss=replace(o.loss, ca_illuminant="grey_world", ca_locus=True,
+                                    ca_target="scene", w_ca=0.5))
+    assert o != other and cfgmod.effective(o) == cfgmod.effective(other)
+    d = cfgmod.preset("default")
+    assert cfgmod.effective(d) != cfgmod.effective(
+        replace(d, loss=replace(d.loss, ca_locus=not d.loss.ca_locus)))
+    tweaked = replace(o, loss=replace(o.loss, tv_density=0.5))  # not a gain field
+    assert cfgmod.effective(o) != cfgmod.effective(tweaked)
