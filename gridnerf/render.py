@@ -215,12 +215,24 @@ def vertex_visibility(structure: GridStructure, params, origins, directions, nea
             zeros.at[rows].max(e8)[:-1])
 
 
-_render_jit = jax.jit(render_rays, static_argnames=("cfg",))
+# per-sample outputs of render_rays, (n, K) each: needed by losses, not by images (at
+# 1920x1080 and K = 64 they are 1.6 GB per view; docs/speed.md)
+PER_SAMPLE = ("weights", "s_vox", "step_vox")
+
+
+def _render_pixels(structure, params, origins, directions, near_t, far_t, cfg):
+    out = render_rays(structure, params, origins, directions, near_t, far_t, cfg)
+    return {k: v for k, v in out.items() if k not in PER_SAMPLE}
+
+
+_render_jit = jax.jit(_render_pixels, static_argnames=("cfg",))
 
 
 def render_image(structure: GridStructure, params, origins, directions, near_t, far_t, cfg,
                  chunk: int | None = None) -> dict:
-    """Chunked render of (H, W, 3) rays -> dict of (H, W, ...) numpy arrays.
+    """Chunked render of (H, W, 3) rays -> dict of (H, W, ...) numpy arrays: the per-ray
+    outputs of render_rays (rgb_low, gain, rgb_restored, acc, depth, n_occupied), not the
+    per-sample ones (PER_SAMPLE), which never leave the device.
 
     near_t, far_t: scalars or (H, W). One jit per chunk shape: the last chunk is padded.
     Each chunk is split over all local devices (gridnerf.devices).
