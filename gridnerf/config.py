@@ -141,10 +141,10 @@ class GridConfig(_Section):
     prune_mass: float = 0.9  # "ray_mass": share of each ray's weight that carving keeps
     # carve vertices whose weight (or alpha) is below this; 0.01 kept 96% of the coarse
     # box (thin fog reaches 1% somewhere), 0.05 keeps ~50% at the same PSNR but cuts holes
-    # into dim surfaces (bucket's table, box's wooden floor render black there); 0.02,
-    # with the scene-level L_ca target: bucket 21.27 dB (0.05 and the old target: 18.31),
-    # box 19.73 (0.05: 19.13; 0.01: 19.51 with 38% of the box kept instead of 23%)
-    prune_threshold: float = 0.02
+    # into dim surfaces (bucket's table, box's wooden floor render black there). 0.02 was
+    # tried as the default: bucket and box gained, but deer kept 90% of the coarse box and
+    # its fog turned into floaters (19.45 -> 18.43 dB, SSIM 0.655 -> 0.563)
+    prune_threshold: float = 0.05
     prune_dilate: int = 1  # keep this many vertices around survivors when pruning
     # NDC box across x/y: "reference" +-1.25 (the mean camera's frustum and a margin) or
     # "frustums" (every training camera's frustum: arcs and slides see far beyond the mean)
@@ -217,17 +217,18 @@ class LossConfig(_Section):
     # gain map of L_ca and the patch smoothness: "normalized" = S / acc composited with
     # stop-gradient weights (the colour prior never moves density); "raw" = S as rendered
     gain_map: Literal["normalized", "raw"] = "normalized"
-    # The L_ca target K_avg / C_k comes from an illuminant estimate C. Default: shades of
-    # grey (p = 6) over every training frame's binned raw, once ("scene"), projected onto the
-    # camera's Planckian locus. Chosen on the nine built-in scenes only: raw-frame angular
-    # error, mean / worst of the nine (reports/illuminants.md): grey world 5.46 / 9.32 deg,
-    # grey edge 4.98 / 14.99, shades of grey 4.76 / 8.23, shades of grey + locus 3.10 / 6.67.
-    # Trained (this preset with the old colour defaults -> these): dora 19.52 -> 22.47 dB
-    # (CIEDE2000 14.78 -> 8.27; grey edge's estimate is 15 deg off there), doll 21.96 ->
-    # 21.95 (13.06 -> 12.02). Grey world tints scenes whose mean colour is not grey (doll
-    # with it: 19.19 dB).
-    ca_illuminant: Literal["grey_world", "shades_of_grey", "grey_edge",
-                           "weighted_grey"] = "shades_of_grey"
+    # The L_ca target K_avg / C_k comes from an illuminant estimate C. Default: once per
+    # capture ("scene") from every training frame's binned raw, the per-channel median of
+    # grey world, shades of grey (p = 6) and grey edge, each projected onto the camera's
+    # Planckian locus ("consensus", illuminant.consensus; scene target only). Chosen on the
+    # nine built-in scenes: raw-frame angular error mean / worst of the nine (all + locus):
+    # grey world 5.27 / 9.32 deg, grey edge 3.48 / 8.97 (dora), shades of grey 3.10 / 6.67
+    # (scoreboard), consensus 3.26 / 5.98. Trained: shades of grey alone took dora from
+    # 19.52 to 22.90 dB but scoreboard from 18.77 to 14.52 (a blue cast, CIEDE2000 18.55:
+    # its bright orange digits lead the p = 6 mean); grey world tints scenes whose mean is
+    # not grey (doll 19.19 dB against 21.97 with grey edge).
+    ca_illuminant: Literal["grey_world", "shades_of_grey", "grey_edge", "weighted_grey",
+                           "consensus"] = "consensus"
     ca_illuminant_p: float = 6.0  # Minkowski p of shades_of_grey (grey_edge uses p = 1)
     # project the L_ca illuminant estimate onto the Planckian locus of the camera (from the
     # raw file's ColorMatrix): removes the green-magenta part of the estimator's error
@@ -246,6 +247,10 @@ class LossConfig(_Section):
             self._range(name, 0.0)
         self._range("tv_fraction", 0.0, 1.0, lo_open=True)
         self._range("ca_illuminant_p", 1.0)
+        self._require("ca_illuminant", self.ca_illuminant != "consensus"
+                      or self.ca_target == "scene", "one of 'grey_world', 'shades_of_grey', "
+                      "'grey_edge', 'weighted_grey' with loss.ca_target=batch ('consensus' "
+                      "needs loss.ca_target=scene)")
 
 
 @dataclass(frozen=True)

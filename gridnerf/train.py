@@ -198,8 +198,9 @@ def scene_illuminant(data: dataset.RayData, scene, cfg: Config) -> np.ndarray:
 
     loss.ca_illuminant on the 2x2-binned frames divided by their exposure, saturated blocks
     left out (illuminant.frames_estimate: pooled pixels; grey edge per frame), then projected
-    onto the camera's Planckian locus when loss.ca_locus. The mosaic mode bins the frames
-    for this estimate only.
+    onto the camera's Planckian locus when loss.ca_locus; "consensus" is the per-channel
+    median of illuminant.CONSENSUS's estimates (illuminant.consensus). The mosaic mode bins
+    the frames for this estimate only.
     """
     if data.mosaic:
         pairs = [scene.rgb_cam_binned(int(i)) for i in scene.train_idx]
@@ -210,12 +211,15 @@ def scene_illuminant(data: dataset.RayData, scene, cfg: Config) -> np.ndarray:
         inv = np.asarray(data.inv_exposure, np.float64)
         images = list(np.asarray(data.pixels, np.float64) * inv[:, None, None, None])
         masks = list(np.asarray(data.valid))
-    est = illuminant.frames_estimate(cfg.loss.ca_illuminant, images, masks,
-                                     p=cfg.loss.ca_illuminant_p
-                                     if cfg.loss.ca_illuminant == "shades_of_grey" else None)
-    if cfg.loss.ca_locus:
-        est = illuminant.to_locus(est, illuminant.planckian_locus(scene.xyz_to_cam))
-    return np.asarray(est, np.float64)
+    name, lc = cfg.loss.ca_illuminant, cfg.loss
+    locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
+    names = illuminant.CONSENSUS if name == "consensus" else (name,)
+    est = [illuminant.frames_estimate(n, images, masks, p=lc.ca_illuminant_p
+                                      if n == "shades_of_grey" else None) for n in names]
+    if name == "consensus":
+        return illuminant.consensus(est, locus)
+    return np.asarray(est[0] if locus is None else illuminant.to_locus(est[0], locus),
+                      np.float64)
 
 
 def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage: int,

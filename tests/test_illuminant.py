@@ -208,3 +208,16 @@ def test_frames_estimate_recovers_a_light_on_several_frames():
         assert float(il.angular_error_deg(est, light)) < 0.5, name
         scaled = il.frames_estimate(name, [9.0 * x for x in images], masks)
         np.testing.assert_allclose(scaled, est, rtol=1e-9, atol=1e-12)
+
+
+def test_consensus_outvotes_one_estimator():
+    """The per-channel median of three estimates: two that agree decide, one far off is
+    outvoted; with a locus the result lies on it."""
+    truth = il.unit(np.array([0.7, 1.0, 0.45]))
+    off = il.unit(np.array([0.4, 1.0, 0.9]))
+    near = [il.unit(truth + d) for d in (np.array([0.01, 0, 0]), np.array([0, 0, 0.01]))]
+    assert float(il.angular_error_deg(il.consensus([near[0], off, near[1]]), truth)) < 1.0
+    locus = il.planckian_locus(np.array([[0.6446, -0.0366, -0.0864], [-0.4436, 1.2204, 0.2513],
+                                         [-0.0952, 0.2496, 0.6348]]))
+    on = il.consensus([near[0], off, near[1]], locus)
+    assert np.min(il.angular_error_deg(on, locus)) < 1e-9

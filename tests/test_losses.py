@@ -310,7 +310,8 @@ def test_ca_locus_puts_the_target_on_the_locus():
 
     c = cfgmod.preset("tiny")
     c = replace(c, render=replace(c.render, max_samples=16),
-                loss=replace(c.loss, ca_locus=True))
+                loss=replace(c.loss, ca_locus=True, ca_target="batch",
+                             ca_illuminant="grey_edge"))
     structure, params, rays = _foggy_scene()
     light = jnp.asarray([[0.6, 1.0, 0.3]]) / jnp.linalg.norm(jnp.asarray([0.6, 1.0, 0.3]))
     target = gains_from_illuminant(light[0])

@@ -318,3 +318,12 @@ def test_effective_config_ignores_gain_fields_without_gains():
         replace(d, loss=replace(d.loss, ca_locus=not d.loss.ca_locus)))
     tweaked = replace(o, loss=replace(o.loss, tv_density=0.5))  # not a gain field
     assert cfgmod.effective(o) != cfgmod.effective(tweaked)
+
+
+def test_consensus_needs_the_scene_target():
+    from gridnerf.errors import ConfigError
+
+    cfg = cfgmod.preset("default")
+    assert cfg.loss.ca_illuminant == "consensus" and cfg.loss.ca_target == "scene"
+    with pytest.raises(ConfigError, match="loss.ca_illuminant"):
+        cfgmod.override(cfg, ["loss.ca_target=batch"])
