@@ -176,21 +176,16 @@ def _training_setup(run: str, scale: float, dense: bool, sets: list[str]):
     opt_state, step function, data, near_t, far_t). scale != 1 resamples the grid
     (grid.resample) to round(scale * resolution) vertices per axis; dense replaces it by a
     full grid of that resolution and box (grid.init_grid) and turns off empty skipping."""
-    import jax.numpy as jnp
 
     from gridnerf import config as cfgmod
-    from gridnerf import dataset, eval_run, grid, illuminant, train
+    from gridnerf import dataset, eval_run, grid, train
 
     cfg, scene, structure, params, _ = eval_run.load_run(Path(run))
     cfg = cfgmod.override(cfg, sets)
     data = dataset.build(scene, scene.train_idx, cfg.data.binning, cfg.data.downscale,
                          cfg.data.target)
     near_t, far_t = dataset.grid_box(scene)[2:]
-    extra = {}  # the L_ca illuminant inputs, as train._train chooses them
-    if cfg.loss.use_gains and getattr(cfg.loss, "ca_target", "batch") == "scene":
-        extra["scene_ill"] = jnp.asarray(train.scene_illuminant(data, scene, cfg), jnp.float32)
-    elif cfg.loss.use_gains and cfg.loss.ca_locus:
-        extra["locus"] = jnp.asarray(illuminant.planckian_locus(scene.xyz_to_cam), jnp.float32)
+    extra = train.colour_inputs(data, scene, cfg)  # the L_ca inputs, as training has them
     res = tuple(max(2, int(round(r * scale))) for r in structure.resolution)
     if dense:
         structure, params = grid.init_grid(

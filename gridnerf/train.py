@@ -167,6 +167,9 @@ def make_step(cfg: Config, tx, near_t: float, far_t: float, locus=None, scene_il
     replicated. train.batch_patches must be a multiple of the device count.
     """
     devices.check_divisible(cfg.train.batch_patches, "train.batch_patches")
+    if cfg.loss.use_gains and cfg.loss.ca_target == "scene" and scene_ill is None:
+        raise ValueError("loss.ca_target = 'scene' needs the capture's illuminant: pass "
+                         "make_step(..., **colour_inputs(data, scene, cfg))")
 
     @jax.jit
     def step(params, opt_state, structure, data, key):
@@ -220,6 +223,21 @@ def scene_illuminant(data: dataset.RayData, scene, cfg: Config) -> np.ndarray:
         return illuminant.consensus(est, locus)
     return np.asarray(est[0] if locus is None else illuminant.to_locus(est[0], locus),
                       np.float64)
+
+
+def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> dict:
+    """make_step's L_ca keyword arguments, as the config chooses them.
+
+    {"scene_ill": (3,)} for loss.ca_target = "scene"; {"locus": (n, 3)} for the batch target
+    with loss.ca_locus; {} otherwise (no gains, or the batch's own estimate).
+    """
+    if not cfg.loss.use_gains:
+        return {}
+    if cfg.loss.ca_target == "scene":
+        return {"scene_ill": jnp.asarray(scene_illuminant(data, scene, cfg), jnp.float32)}
+    if cfg.loss.ca_locus:
+        return {"locus": jnp.asarray(illuminant.planckian_locus(scene.xyz_to_cam), jnp.float32)}
+    return {}
 
 
 def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage: int,
@@ -354,13 +372,11 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     if scene.forward_facing and cfg.grid.ndc_xy == "frustums":
         bbox_min[:2], bbox_max[:2] = dataset.frustum_xy(scene, scene.train_idx, bbox_min,
                                                         bbox_max, near_t)
-    locus = scene_ill = None
-    if cfg.loss.use_gains and cfg.loss.ca_target == "scene":
-        scene_ill = scene_illuminant(data, scene, cfg)
+    colour = colour_inputs(data, scene, cfg)
+    scene_ill = None if "scene_ill" not in colour else np.asarray(colour["scene_ill"])
+    if scene_ill is not None:
         print("L_ca target: the capture's illuminant (camera RGB) "
               f"{np.round(scene_ill / scene_ill.max(), 3).tolist()}")
-    elif cfg.loss.use_gains and cfg.loss.ca_locus:
-        locus = jnp.asarray(illuminant.planckian_locus(scene.xyz_to_cam), jnp.float32)
     key = jax.random.PRNGKey(cfg.train.seed)
     stages = list(zip(cfg.grid.resolutions, cfg.train.steps_per_stage, strict=True))
 
@@ -418,8 +434,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         if opt_leaves:
             opt_state = checkpoint.unflatten_like(opt_state, opt_leaves)
             opt_leaves = []
-        step_fn = make_step(cfg, tx, near_t, far_t, locus,
-                            None if scene_ill is None else jnp.asarray(scene_ill, jnp.float32))
+        step_fn = make_step(cfg, tx, near_t, far_t, **colour)
         structure = grid.update_occupancy(structure, params, cfg.grid.occupancy_threshold)
         t_stage = time.perf_counter()
         last_save = t_stage
