@@ -185,7 +185,7 @@ def _training_setup(run: str, scale: float, dense: bool, sets: list[str]):
     data = dataset.build(scene, scene.train_idx, cfg.data.binning, cfg.data.downscale,
                          cfg.data.target)
     near_t, far_t = dataset.grid_box(scene)[2:]
-    extra = train.colour_inputs(data, scene, cfg)  # the L_ca inputs, as training has them
+    data, extra = train.colour_inputs(data, scene, cfg)  # the L_ca inputs, as training has
     res = tuple(max(2, int(round(r * scale))) for r in structure.resolution)
     if dense:
         structure, params = grid.init_grid(

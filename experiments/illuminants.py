@@ -8,6 +8,8 @@ same estimators also run on the trained field's low-light renders of the trainin
 (`runs/<scene>/<run>`, at 1/4 resolution; weighted_grey on the surface colour rgb_low / acc
 weighted by acc, near-black rays left out; with --area also by the surface area each pixel
 sees, depth^2 from the rendered NDC depth).
+`consensus` is the per-channel median of grey world, shades of grey and grey edge
+(illuminant.consensus; `+locus`: each projected first), the default L_ca target.
 Each estimate is also scored after projection onto the camera's Planckian locus
 (`+locus` columns: illuminant.to_locus on illuminant.planckian_locus of sim.json's
 xyz_to_cam, the raw file's ColorMatrix).
@@ -31,6 +33,7 @@ from common import simulated_folders, write_report
 from gridnerf import illuminant as il
 from gridnerf import raw
 from gridnerf.scene import raw_files
+from gridnerf.sim import HELDOUT, MIXED, SCENES
 
 ORDER = ("grey_world", "shades_of_grey", "grey_edge", "weighted_grey")
 
@@ -93,7 +96,7 @@ def main() -> None:
     ap.add_argument("--out", default="reports/illuminants")
     args = ap.parse_args()
     rows, record = [], {}
-    columns = [*ORDER, *(k + "+locus" for k in ORDER)]
+    columns = [*ORDER, "consensus", *(k + "+locus" for k in (*ORDER, "consensus"))]
     for name, folder in simulated_folders(args.scenes):
         sim = json.loads((folder / "sim.json").read_text())
         truth = np.array(sim["illuminant_neutral_cam"])
@@ -106,6 +109,10 @@ def main() -> None:
             err = {k: float(il.angular_error_deg(v, truth)) for k, v in est.items()}
             err.update({k + "+locus": float(il.angular_error_deg(il.to_locus(v, locus), truth))
                         for k, v in est.items()})
+            three = [est[k] for k in il.CONSENSUS]  # the default L_ca target (+locus)
+            err["consensus"] = float(il.angular_error_deg(il.consensus(three), truth))
+            err["consensus+locus"] = float(il.angular_error_deg(il.consensus(three, locus),
+                                                                truth))
             record.setdefault(name, {})[source] = err
             rows.append(f"| {name} | {source} | "
                         + " | ".join(f"{err[k]:.2f}" for k in columns) + " |")
@@ -113,11 +120,16 @@ def main() -> None:
     head = ("| scene | input | " + " | ".join(columns) + " |\n|---|---|"
             + "---|" * len(columns))
     means = []
+    groups = {"nine built-in": SCENES, "held-out": HELDOUT, "mixed light": MIXED,
+              "all": tuple(record)}
     for source in ("raw", "render"):
-        vals = [r[source] for r in record.values() if source in r]
-        if vals:
-            means.append(f"| **mean** | {source} | " + " | ".join(
-                f"{np.mean([v[k] for v in vals]):.2f}" for k in columns) + " |")
+        for group, names in groups.items():
+            vals = [record[n][source] for n in names if source in record.get(n, {})]
+            if vals:
+                for stat, f in (("mean", np.mean), ("worst", np.max)):
+                    means.append(f"| **{stat}, {group}** ({len(vals)}) | {source} | "
+                                 + " | ".join(f"{f([v[k] for v in vals]):.2f}"
+                                              for k in columns) + " |")
     write_report(
         args.out,
         "Angular error (degrees) of illuminant estimates against the simulator's true "

@@ -28,20 +28,16 @@ from gridnerf.sim import MIXED
 
 
 def render_mean(run: Path):
-    """name -> (H, W) normalised-raw mean of that frame from the trained field."""
-    from gridnerf.eval_run import load_run, render_view
-    from gridnerf.sim.sensor import mosaic
+    """name -> (H, W) normalised-raw mean of that frame from the trained field
+    (sensorfit.field_mosaic, as `data.black_offset=fit` training fits against)."""
+    from gridnerf.eval_run import load_run
+    from gridnerf.sensorfit import field_mosaic
 
     cfg, scene, structure, params, _ = load_run(run)
-    cams = scene.cameras
     index = {n: i for i, n in enumerate(scene.names)}
 
     def mean(name: str) -> np.ndarray:
-        i = index[name]
-        intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]], np.float32)
-        out = render_view(structure, params, scene, cfg, cams.c2w[i], intr,
-                          int(cams.height), int(cams.width))
-        return mosaic(np.asarray(out["rgb_low"]), scene.cfa) * float(scene.exposure[i])
+        return field_mosaic(structure, params, scene, cfg, index[name])
 
     return mean, list(scene.names)
 

@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.ndimage import convolve
+from skimage.restoration import denoise_nl_means
 from skimage.transform import resize
 
-from gridnerf.color import luminance, srgb_from_cam
+from gridnerf.color import luminance, srgb_decode, srgb_encode, srgb_from_cam
 from gridnerf.errors import RawError
 from gridnerf.exposure import alpha_for_luminance
 from gridnerf.illuminant import gains_from_illuminant, grey_world
@@ -135,3 +136,43 @@ def process_binned_frame(raw_bayer, cfa, xyz_to_cam, gt_linear) -> np.ndarray:
     target = float(np.mean(luminance(np.asarray(gt_linear, np.float64))))
     rgb = rgb * alpha_for_luminance(rgb, target)
     return np.maximum(rgb, 0.0).astype(np.float32)
+
+
+_IMMERKAER = np.array([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]])
+
+
+def _immerkaer(x) -> float:
+    h, w = x.shape
+    if h < 3 or w < 3:
+        return 0.0
+    total = np.abs(convolve(x, _IMMERKAER, mode="nearest")[1:-1, 1:-1]).sum()
+    return float(total * np.sqrt(np.pi / 2.0) / (6.0 * (w - 2) * (h - 2)))
+
+
+def noise_sigma(rgb, demosaicked: bool = False) -> float:
+    """Gaussian noise sigma of an (H, W, 3) image, averaged over channels: Immerkaer's
+    estimator (1996, "Fast noise variance estimation"): sqrt(pi / 2) / (6 (W-2)(H-2)) times
+    the sum of |image * M|, M the 3x3 difference of two Laplacians (zero on planes).
+    demosaicked: interpolation smooths the noise of a demosaicked image, so each channel is
+    measured on its four 2x2-phase sub-images and the largest (its measured samples) kept.
+    """
+    x = np.asarray(rgb, np.float64)
+    if not demosaicked:
+        return float(np.mean([_immerkaer(x[..., c]) for c in range(x.shape[-1])]))
+    return float(np.mean([max(_immerkaer(x[dy::2, dx::2, c]) for dy in (0, 1) for dx in (0, 1))
+                          for c in range(x.shape[-1])]))
+
+
+def process_denoised_frame(raw_bayer, cfa, xyz_to_cam) -> np.ndarray:
+    """The paper's 2D per-image row: process_dark_frame (demosaic, grey world, colour
+    matrix, auto exposure), then the sRGB gamma and a classical denoiser, non-local means
+    (Buades et al. 2005; scikit-image, 5x5 patches searched within 6 pixels, fast mode, h =
+    0.8 x the noise sigma of the gamma-encoded image, noise_sigma), decoded
+    back to linear for scoring. Returns rgb_linear (H, W, 3) float32, >= 0."""
+    rgb_srgb = srgb_encode(np.clip(process_dark_frame(raw_bayer, cfa, xyz_to_cam), 0.0, 1.0)
+                           .astype(np.float64))
+    sigma = noise_sigma(rgb_srgb, demosaicked=True)
+    if sigma > 0:
+        rgb_srgb = denoise_nl_means(rgb_srgb, patch_size=5, patch_distance=6, h=0.8 * sigma,
+                                    sigma=sigma, fast_mode=True, channel_axis=-1)
+    return np.maximum(srgb_decode(np.clip(rgb_srgb, 0.0, 1.0)), 0.0).astype(np.float32)

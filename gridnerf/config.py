@@ -115,6 +115,10 @@ class DataConfig(_Section):
     eval_downscale: int = 1  # downscale of eval renders relative to the full frame / gt
     # "raw" (the method) or "reference": the oracle, trained on gt/ (clean)
     target: Literal["raw", "reference"] = "raw"
+    # black level of the data term: "file" (the frames' BlackLevel tags) or "fit": per-CFA
+    # offsets fitted from the noise against the field before the last stage (gridnerf
+    # .sensorfit), taken off the targets of the last stage
+    black_offset: Literal["file", "fit"] = "file"
 
     def _check(self) -> None:
         self._require("downscale", self.downscale >= 1, "a whole number >= 1")
@@ -238,8 +242,12 @@ class LossConfig(_Section):
     # training frame's binned raw: all pixels instead of one batch's 4096 rays, so the
     # target does not wander from step to step, and its angular error is the one
     # reports/illuminants.md measures on the raw frames) or "batch" (the paper: from each
-    # batch's rendered low-light colour)
-    ca_target: Literal["batch", "scene"] = "scene"
+    # batch's rendered low-light colour); "map": the scene's illuminant, varied over each
+    # training frame where smooth chromaticity gradients show lights of different colour
+    # mixing (gridnerf.illum_map: Retinex; one light gives a flat map, i.e. "scene")
+    ca_target: Literal["batch", "scene", "map"] = "scene"
+    ca_map_block: int = 16  # "map": block side in training pixels (noise averages down)
+    ca_map_tau: float = 0.1  # "map": log-chromaticity step above which blocks differ in paint
 
     def _check(self) -> None:
         for name in ("w_data", "w_ca", "w_smooth", "tv_density", "tv_rgb", "sparsity",
@@ -248,9 +256,11 @@ class LossConfig(_Section):
         self._range("tv_fraction", 0.0, 1.0, lo_open=True)
         self._range("ca_illuminant_p", 1.0)
         self._require("ca_illuminant", self.ca_illuminant != "consensus"
-                      or self.ca_target == "scene", "one of 'grey_world', 'shades_of_grey', "
+                      or self.ca_target != "batch", "one of 'grey_world', 'shades_of_grey', "
                       "'grey_edge', 'weighted_grey' with loss.ca_target=batch ('consensus' "
-                      "needs loss.ca_target=scene)")
+                      "needs loss.ca_target=scene or map)")
+        self._require("ca_map_block", self.ca_map_block >= 2, "a whole number >= 2")
+        self._range("ca_map_tau", 0.0, lo_open=True)
 
 
 @dataclass(frozen=True)
@@ -315,6 +325,10 @@ class Config:
                 None, f"train.steps_per_stage = {list(self.train.steps_per_stage)} has "
                 f"{n_steps} stage(s) but grid.resolutions has {n_res}",
                 "give one step count per resolution stage (set both together)")
+        if self.data.black_offset == "fit" and (n_res < 2 or self.data.target != "raw"):
+            raise ConfigError(None, "data.black_offset = 'fit' needs a field to fit against "
+                              "(two or more stages) and the raw frames (data.target = raw)",
+                              "use data.black_offset=file, or add a coarse stage")
 
 
 _SECTIONS = {"data": DataConfig, "grid": GridConfig, "render": RenderConfig,
@@ -430,7 +444,7 @@ def diff(a: Config, b: Config) -> list[str]:
 
 # loss fields that only act through the gains: inert when loss.use_gains is false
 GAIN_FIELDS = ("w_ca", "w_smooth", "smooth_mode", "ca_stop_grad", "gain_map", "ca_illuminant",
-               "ca_illuminant_p", "ca_locus", "ca_target")
+               "ca_illuminant_p", "ca_locus", "ca_target", "ca_map_block", "ca_map_tau")
 
 
 def effective(cfg: Config) -> Config:

@@ -37,6 +37,11 @@ class RayData:
     white: jax.Array  # (N,) white level (mosaic)
     inv_exposure: jax.Array  # (N,) 1 / relative exposure of each frame
     cfa: jax.Array  # (2, 2) int32 colour index per CFA position
+    # (N, hb, wb, 3) per-frame L_ca illuminant map (loss.ca_target = "map", with_map) or None
+    illuminant_map: jax.Array | None = None
+    # (2, 2) black offset per CFA position in normalised raw, taken off the targets
+    # (data.black_offset = "fit", gridnerf.sensorfit), or None
+    black_offset: jax.Array | None = None
     mosaic: bool = field(default=False, metadata={"static": True})
     ndc: bool = field(default=True, metadata={"static": True})
 
@@ -125,13 +130,21 @@ def to_grid_space(ndc: bool, ndc_intrinsics, origins, directions):
 
 
 def targets(data: RayData, frame, v, u):
-    """Targets and masks at integer pixels: (..., 3) float32 each (mask 0/1)."""
+    """Targets and masks at integer pixels: (..., 3) float32 each (mask 0/1); normalised raw
+    less the fitted black offsets when the data carry them, divided by the exposure."""
     if not data.mosaic:
-        y = data.pixels[frame, v, u] * data.inv_exposure[frame][..., None]
+        y = data.pixels[frame, v, u]
+        if data.black_offset is not None:  # binned: R, mean of the greens, B
+            onehot = jax.nn.one_hot(data.cfa, 3)  # (2, 2, 3)
+            y = y - (onehot * data.black_offset[..., None]).sum((0, 1)) / onehot.sum((0, 1))
+        y = y * data.inv_exposure[frame][..., None]
         return y, data.valid[frame, v, u].astype(jnp.float32)
     raw = data.pixels[frame, v, u].astype(jnp.float32)
     black = data.black[frame, v % 2, u % 2]
-    y = (raw - black) / (data.white[frame] - black) * data.inv_exposure[frame]
+    y = (raw - black) / (data.white[frame] - black)
+    if data.black_offset is not None:
+        y = y - data.black_offset[v % 2, u % 2]
+    y = y * data.inv_exposure[frame]
     ok = (raw < data.white[frame]).astype(jnp.float32)
     mask = jax.nn.one_hot(data.cfa[v % 2, u % 2], 3) * ok[..., None]
     return y[..., None] * mask, mask
@@ -150,14 +163,20 @@ def sample_patches(data: RayData, key, n_patches: int, patch: int):
 
 
 def batch(data: RayData, key, n_patches: int, patch: int) -> dict:
-    """One training batch of (P, patch, patch) rays: origins, directions, target, mask."""
+    """One training batch of (P, patch, patch) rays: origins, directions, target, mask (each
+    (P, patch, patch, 3)), and "illuminant" when the data carry an illuminant map."""
     frame, v, u = sample_patches(data, key, n_patches, patch)
     fr = jnp.broadcast_to(frame[:, None, None], v.shape)
     uf, vf = u.astype(jnp.float32), v.astype(jnp.float32)
     o, d = pixel_rays(data.c2w[fr], data.intrinsics[fr], uf, vf)
     o, d = to_grid_space(data.ndc, data.ndc_intrinsics, o, d)
     y, m = targets(data, fr, v, u)
-    return {"origins": o, "directions": d, "target": y, "mask": m}
+    out = {"origins": o, "directions": d, "target": y, "mask": m}
+    if data.illuminant_map is not None:  # the block of the map each pixel falls in
+        hb, wb = data.illuminant_map.shape[1:3]
+        h, w = data.image_hw
+        out["illuminant"] = data.illuminant_map[fr, v * hb // h, u * wb // w]
+    return out
 
 
 def image_rays(data_c2w: np.ndarray, intrinsics: np.ndarray, height: int, width: int):

@@ -5,7 +5,13 @@ raw and after a per-channel affine alignment in linear space, for
 - `gridnerf`: our bright render with the colour matrix (or without, if the
   run's config says so),
 - `gridnerf_matrix_free`: the same radiance field shown the paper's way,
+- `global_grey_world`: the field's low-light colour times one grey-world gain for the
+  whole scene (global_gains), shown like `gridnerf`: what a single white balance gives,
+  the reference a gain field must beat (for a run without gains: RawNeRF + a generic ISP),
 - `baseline_dark_frame`: the plain demosaic + grey-world + gamma of the dark test frame,
+- `baseline_denoised`: the same with non-local-means denoising (the paper's 2D row),
+- `baseline_binned_matched`: 2x2 binning, grey world, exposure matched to the reference
+  (the generous per-frame pipeline of the reconstruction table),
 plus train_seconds, rays_per_second and peak memory.
 """
 
@@ -27,6 +33,7 @@ from gridnerf import (
     dataset,
     evaluate,
     exposure,
+    illuminant,
     image_io,
     raw,
     rays,
@@ -59,22 +66,42 @@ def render_view(structure, params, scene, cfg, c2w, intrinsics, height, width) -
     return render.render_image(structure, params, o, d, near_t, far_t, cfg.render)
 
 
-def exposures(structure, params, scene, cfg) -> dict[str, float]:
-    """Auto exposure alpha for the colour-matrix and the matrix-free outputs (training renders)."""
+def training_render(structure, params, scene, cfg) -> dict:
+    """The field rendered on a fixed sample of 128 8x8 training-ray patches: (8192, ...)."""
     data = dataset.build(scene, scene.train_idx, cfg.data.binning, cfg.data.downscale,
                          cfg.data.target)
     rays = dataset.batch(data, jax.random.PRNGKey(cfg.train.seed + 7), 128, 8)
     near_t, far_t = dataset.grid_box(scene)[2:]
-    out = render.render_image(
+    return render.render_image(
         structure, params, rays["origins"], rays["directions"], near_t, far_t, cfg.render
     )
+
+
+def global_gains(out: dict) -> np.ndarray:
+    """(3,) one grey-world von Kries gain for the whole scene: the gains of the grey world of
+    the field's low-light colour on the training rays (training_render), no gain field.
+
+    The "global white balance" reference of the colour issue: a field that only learned
+    one white balance scores the same as rgb_low times these gains.
+    """
+    rgb_cam = np.asarray(out["rgb_low"], np.float64)
+    return np.asarray(illuminant.gains_from_illuminant(illuminant.grey_world(rgb_cam)))
+
+
+def exposures(structure, params, scene, cfg, out: dict | None = None) -> dict[str, float]:
+    """Auto exposure alpha on the training render (training_render, or `out` if given) for
+    the colour-matrix and the matrix-free outputs, and for the global grey-world output
+    (global_gains, shown like the main output)."""
+    out = training_render(structure, params, scene, cfg) if out is None else out
     rgb_cam = out["rgb_restored"] if cfg.loss.use_gains else out["rgb_low"]
     target = cfg.output.target_luminance
+    matrix = exposure.display_matrix(scene.xyz_to_cam, cfg.data.target == "raw")
+    main = matrix if cfg.output.use_color_matrix else np.eye(3)
+    rgb_global = np.asarray(out["rgb_low"]) * global_gains(out)
     return {
-        "matrix": exposure.alpha_for_luminance(
-            rgb_cam @ exposure.display_matrix(scene.xyz_to_cam, cfg.data.target == "raw").T,
-            target),
+        "matrix": exposure.alpha_for_luminance(rgb_cam @ matrix.T, target),
         "matrix_free": exposure.alpha_for_luminance(rgb_cam, target),
+        "global_grey_world": exposure.alpha_for_luminance(rgb_global @ main.T, target),
     }
 
 
@@ -88,15 +115,20 @@ def evaluate_run(run: Path) -> dict:
                          "remove the split lists: every 8th frame is then a test frame)")
     out_dir = run / "eval"
     out_dir.mkdir(parents=True, exist_ok=True)
-    alphas = exposures(structure, params, scene, cfg)
+    train_out = training_render(structure, params, scene, cfg)
+    alphas = exposures(structure, params, scene, cfg, train_out)
+    gains_global = global_gains(train_out)
     main_key = "matrix" if cfg.output.use_color_matrix else "matrix_free"
     mats = {
         "matrix": exposure.display_matrix(scene.xyz_to_cam, cfg.data.target == "raw"),
         "matrix_free": np.eye(3),
     }
-    methods = {"gridnerf": main_key, "gridnerf_matrix_free": "matrix_free"}
+    mats["global_grey_world"] = mats[main_key]
+    methods = {"gridnerf": main_key, "gridnerf_matrix_free": "matrix_free",
+               "global_grey_world": "global_grey_world"}
     per_view: dict[str, dict[str, dict]] = {
-        m: {} for m in [*methods, "baseline_dark_frame", "baseline_binned_matched"]}
+        m: {} for m in [*methods, "baseline_dark_frame", "baseline_denoised",
+                        "baseline_binned_matched"]}
     cams = scene.cameras
     ds = cfg.data.eval_downscale
     h, w = cams.height // ds, cams.width // ds
@@ -107,7 +139,8 @@ def evaluate_run(run: Path) -> dict:
         rgb_cam = out["rgb_restored"] if cfg.loss.use_gains else out["rgb_low"]
         gt_linear = _gt(scene, name, h, w)
         for method, which in methods.items():
-            pred_linear, pred_srgb = exposure.to_display(rgb_cam, alphas[which], mats[which])
+            shown = out["rgb_low"] * gains_global if method == "global_grey_world" else rgb_cam
+            pred_linear, pred_srgb = exposure.to_display(shown, alphas[which], mats[which])
             if method == "gridnerf":
                 image_io.write_png(out_dir / f"{name}_pred.png", pred_srgb)
                 image_io.write_exr(out_dir / f"{name}_pred.exr", pred_linear)
@@ -130,6 +163,11 @@ def evaluate_run(run: Path) -> dict:
             dark_linear = raw.downscale(dark_linear, ds) if ds > 1 else dark_linear
             image_io.write_png(out_dir / f"{name}_baseline.png", color.srgb_encode(dark_linear))
             per_view["baseline_dark_frame"][name] = evaluate.image_metrics(dark_linear, gt_linear)
+            denoised_linear = baseline.process_denoised_frame(
+                scene.raw_normalized(i), scene.cfa, scene.xyz_to_cam)
+            denoised_linear = raw.downscale(denoised_linear, ds) if ds > 1 else denoised_linear
+            per_view["baseline_denoised"][name] = evaluate.image_metrics(denoised_linear,
+                                                                         gt_linear)
             binned_linear = baseline.process_binned_frame(
                 scene.raw_normalized(i), scene.cfa, scene.xyz_to_cam,
                 gt_linear if ds == 1 else _gt(scene, name, cams.height, cams.width))

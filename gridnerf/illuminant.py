@@ -288,13 +288,14 @@ def planckian_locus(xyz_to_cam, kelvin=None) -> np.ndarray:
 
 
 def to_locus(illuminant, locus):
-    """The locus entry nearest in angle to an estimate: (3,) any scale, (n, 3) unit -> (3,).
+    """The locus entry nearest in angle to each estimate: (..., 3) any scale, (n, 3) unit
+    -> (..., 3).
 
     numpy or jax (jittable; the choice is an argmax, so no gradient flows through it).
     """
     xp = _namespace(illuminant, locus)
     loc = xp.asarray(locus)
-    return loc[xp.argmax(loc @ unit(illuminant))]
+    return loc[xp.argmax(unit(illuminant) @ loc.T, axis=-1)]
 
 
 def gains_from_illuminant(illuminant, floor: float = 1e-3):

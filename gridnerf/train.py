@@ -13,6 +13,7 @@ and check the losses since the previous sync, always before a checkpoint is writ
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import resource
 import time
@@ -31,10 +32,12 @@ from gridnerf import (
     dataset,
     devices,
     grid,
+    illum_map,
     illuminant,
     losses,
     render,
     runfolder,
+    sensorfit,
 )
 from gridnerf import config as cfgmod
 from gridnerf.config import Config
@@ -110,7 +113,12 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
                                        near_t, far_t, cfg.render, key=k0)
             gain = losses.normalized_gain(g_out["gain"], g_out["acc"])
         c_ill = None  # None: ca_loss's grey world of the batch (the paper's target)
-        if scene_ill is not None:
+        if lc.ca_target == "map":
+            if "illuminant" not in flat:
+                raise ValueError("loss.ca_target = 'map' needs the data's illuminant map "
+                                 "(train.with_illuminant_map)")
+            c_ill = flat["illuminant"]  # (n, 3): each ray's block of its frame's map
+        elif scene_ill is not None:
             c_ill = scene_ill
         elif lc.ca_illuminant != "grey_world" or locus is not None:
             c_ill = losses.batch_illuminant(lc.ca_illuminant, out["rgb_low"], out["acc"],
@@ -167,9 +175,9 @@ def make_step(cfg: Config, tx, near_t: float, far_t: float, locus=None, scene_il
     replicated. train.batch_patches must be a multiple of the device count.
     """
     devices.check_divisible(cfg.train.batch_patches, "train.batch_patches")
-    if cfg.loss.use_gains and cfg.loss.ca_target == "scene" and scene_ill is None:
+    if cfg.loss.use_gains and cfg.loss.ca_target != "batch" and scene_ill is None:
         raise ValueError("loss.ca_target = 'scene' needs the capture's illuminant: pass "
-                         "make_step(..., **colour_inputs(data, scene, cfg))")
+                         "make_step(..., **colour_inputs(data, scene, cfg)[1])")
 
     @jax.jit
     def step(params, opt_state, structure, data, key):
@@ -196,6 +204,19 @@ def data_statistics(data: dataset.RayData, key, n_patches: int = 256) -> tuple[f
     return float(max(means.mean(), 1e-12)), np.log(gains)
 
 
+def _estimate_frames(data: dataset.RayData, scene) -> tuple[list, list]:
+    """The training frames as the capture-level estimators see them: (h, w, 3) camera RGB
+    divided by the frame's exposure and (h, w[, 3]) validity, 2x2-binned in mosaic mode."""
+    if data.mosaic:
+        pairs = [scene.rgb_cam_binned(int(i)) for i in scene.train_idx]
+        images = [p[0] / float(scene.exposure[i]) for p, i in zip(pairs, scene.train_idx,
+                                                                   strict=True)]
+        return images, [p[1] for p in pairs]
+    inv = np.asarray(data.inv_exposure, np.float64)
+    return (list(np.asarray(data.pixels, np.float64) * inv[:, None, None, None]),
+            list(np.asarray(data.valid)))
+
+
 def scene_illuminant(data: dataset.RayData, scene, cfg: Config) -> np.ndarray:
     """The capture's illuminant (3,) unit camera RGB, estimated once from all training frames.
 
@@ -205,15 +226,7 @@ def scene_illuminant(data: dataset.RayData, scene, cfg: Config) -> np.ndarray:
     median of illuminant.CONSENSUS's estimates (illuminant.consensus). The mosaic mode bins
     the frames for this estimate only.
     """
-    if data.mosaic:
-        pairs = [scene.rgb_cam_binned(int(i)) for i in scene.train_idx]
-        images = [p[0] / float(scene.exposure[i]) for p, i in zip(pairs, scene.train_idx,
-                                                                   strict=True)]
-        masks = [p[1] for p in pairs]
-    else:
-        inv = np.asarray(data.inv_exposure, np.float64)
-        images = list(np.asarray(data.pixels, np.float64) * inv[:, None, None, None])
-        masks = list(np.asarray(data.valid))
+    images, masks = _estimate_frames(data, scene)
     name, lc = cfg.loss.ca_illuminant, cfg.loss
     locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
     names = illuminant.CONSENSUS if name == "consensus" else (name,)
@@ -225,19 +238,52 @@ def scene_illuminant(data: dataset.RayData, scene, cfg: Config) -> np.ndarray:
                       np.float64)
 
 
-def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> dict:
-    """make_step's L_ca keyword arguments, as the config chooses them.
+def with_illuminant_map(data: dataset.RayData, scene, cfg: Config,
+                        anchor: np.ndarray) -> dataset.RayData:
+    """data with its per-frame L_ca illuminant map (loss.ca_target = "map"): each training
+    frame's Retinex map (gridnerf.illum_map, blocks of loss.ca_map_block binned pixels)
+    anchored to the capture's illuminant `anchor` (3,), on the locus when loss.ca_locus."""
+    images, masks = _estimate_frames(data, scene)
+    lc = cfg.loss
+    locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
+    maps = illum_map.frame_maps(images, masks, anchor, locus, lc.ca_map_block, lc.ca_map_tau)
+    return dataclasses.replace(data, illuminant_map=jnp.asarray(maps, jnp.float32))
 
-    {"scene_ill": (3,)} for loss.ca_target = "scene"; {"locus": (n, 3)} for the batch target
-    with loss.ca_locus; {} otherwise (no gains, or the batch's own estimate).
+
+def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> tuple[dataset.RayData, dict]:
+    """The L_ca inputs, as the config chooses them: (data, make_step keyword arguments).
+
+    data gains its illuminant map for loss.ca_target = "map" (with_illuminant_map);
+    kwargs: {"scene_ill": (3,)} for the "scene" and "map" targets (the map's anchor, and
+    where the gains start), {"locus": (n, 3)} for the batch target with loss.ca_locus, {}
+    otherwise (no gains, or the batch's own estimate).
     """
     if not cfg.loss.use_gains:
-        return {}
-    if cfg.loss.ca_target == "scene":
-        return {"scene_ill": jnp.asarray(scene_illuminant(data, scene, cfg), jnp.float32)}
+        return data, {}
+    if cfg.loss.ca_target in ("scene", "map"):
+        anchor = scene_illuminant(data, scene, cfg)
+        if cfg.loss.ca_target == "map":
+            data = with_illuminant_map(data, scene, cfg, anchor)
+        return data, {"scene_ill": jnp.asarray(anchor, jnp.float32)}
     if cfg.loss.ca_locus:
-        return {"locus": jnp.asarray(illuminant.planckian_locus(scene.xyz_to_cam), jnp.float32)}
-    return {}
+        return data, {"locus": jnp.asarray(illuminant.planckian_locus(scene.xyz_to_cam),
+                                           jnp.float32)}
+    return data, {}
+
+
+def with_fitted_offsets(run: Path, data: dataset.RayData, structure, params, scene,
+                        cfg: Config) -> dataset.RayData:
+    """data with the per-CFA black offsets fitted against the field (sensorfit.fit_field),
+    fitted once and kept in <run>/sensor_fit.json (a resumed run reads them back)."""
+    b = sensorfit.load_offsets(run)
+    if b is None:
+        fit = sensorfit.fit_field(structure, params, scene, cfg)
+        scale = float(np.mean(scene.white_level - scene.black_level.mean(axis=(1, 2))))
+        sensorfit.save(run, fit, scale)
+        b = np.asarray(fit.black_offset, np.float64)
+        print("black offsets fitted from the noise (DN, CFA order): "
+              f"{np.round(b.ravel() * scale, 2).tolist()}")
+    return dataclasses.replace(data, black_offset=jnp.asarray(b, jnp.float32))
 
 
 def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage: int,
@@ -372,11 +418,15 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     if scene.forward_facing and cfg.grid.ndc_xy == "frustums":
         bbox_min[:2], bbox_max[:2] = dataset.frustum_xy(scene, scene.train_idx, bbox_min,
                                                         bbox_max, near_t)
-    colour = colour_inputs(data, scene, cfg)
+    data, colour = colour_inputs(data, scene, cfg)
     scene_ill = None if "scene_ill" not in colour else np.asarray(colour["scene_ill"])
     if scene_ill is not None:
         print("L_ca target: the capture's illuminant (camera RGB) "
               f"{np.round(scene_ill / scene_ill.max(), 3).tolist()}")
+    if data.illuminant_map is not None:
+        spread = illuminant.angular_error_deg(np.asarray(data.illuminant_map), scene_ill)
+        print(f"L_ca illuminant map: {spread.shape[1]}x{spread.shape[2]} blocks per frame, "
+              f"{np.percentile(spread, 90):.2f} deg from the capture's at the 90th percentile")
     key = jax.random.PRNGKey(cfg.train.seed)
     stages = list(zip(cfg.grid.resolutions, cfg.train.steps_per_stage, strict=True))
 
@@ -421,6 +471,9 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     rate = 0.0
     while stage < len(stages):
         res, steps = stages[stage]
+        if (cfg.data.black_offset == "fit" and stage == len(stages) - 1
+                and data.black_offset is None):  # against the previous stage's field
+            data = with_fitted_offsets(run, data, structure, params, scene, cfg)
         if stage > 0 and start == 0 and not opt_leaves:
             structure, params, info = next_stage_grid(
                 structure, params, res, data, cfg, near_t, far_t,
@@ -499,5 +552,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         "voxels": int(structure.n_rows),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
+    if (run / sensorfit.SENSOR_FIT).exists():
+        summary["sensor_fit_dn"] = json.loads((run / sensorfit.SENSOR_FIT).read_text())["dn"]
     atomic.write_text(run / "summary.json", json.dumps(summary, indent=2))
     return summary

@@ -98,3 +98,31 @@ def test_frustum_box_covers_every_camera(small_scene):
     both_lo, both_hi = dataset.frustum_xy(scene, [0, 1], lo, hi, near_t, margin=0.0)
     assert both_lo[0] < -1.5 and both_hi[0] >= ref_hi[0] - 1e-6  # turned left: sees -x
     assert both_lo[1] <= ref_lo[1] + 1e-6 and both_hi[1] >= ref_hi[1] - 1e-6
+
+
+def test_fitted_black_offsets_come_off_the_targets(small_scene):
+    """data.black_offset = "fit": the mosaic target loses its photosite's offset, the binned
+    one R's, the mean of the greens' and B's (the offsets are in normalised raw)."""
+    import dataclasses
+
+    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
+    b = jnp.asarray([[0.01, 0.02], [0.04, 0.08]], jnp.float32)
+    v, u = jnp.asarray([[0, 0], [1, 1]]), jnp.asarray([[0, 1], [0, 1]])
+    frame = jnp.zeros_like(v)
+    inv_e = 1.0 / scene.exposure[scene.train_idx[0]]
+    for binning in (False, True):
+        data = dataset.build(scene, scene.train_idx[:1], binning=binning)
+        y0, m0 = dataset.targets(data, frame, v, u)
+        y1, m1 = dataset.targets(dataclasses.replace(data, black_offset=b), frame, v, u)
+        np.testing.assert_array_equal(np.asarray(m0), np.asarray(m1))
+        if binning:
+            off = np.zeros(3)
+            for dy in range(2):
+                for dx in range(2):
+                    off[scene.cfa[dy, dx]] += float(b[dy, dx]) / (2 if scene.cfa[dy, dx] == 1
+                                                                  else 1)
+            np.testing.assert_allclose(np.asarray(y0 - y1), np.broadcast_to(off * inv_e,
+                                                                            y0.shape), rtol=1e-4)
+        else:
+            expected = np.asarray(b)[np.asarray(v) % 2, np.asarray(u) % 2] * inv_e
+            np.testing.assert_allclose(np.asarray((y0 - y1).sum(-1)), expected, rtol=1e-4)

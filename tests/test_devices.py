@@ -25,7 +25,8 @@ _SCRIPT = textwrap.dedent("""
                                        color_scale=color_scale)
     tx = train.make_optimizer(cfg, 5)
     opt_state = tx.init(params)
-    step = train.make_step(cfg, tx, near_t, far_t, **train.colour_inputs(data, scene, cfg))
+    data, colour = train.colour_inputs(data, scene, cfg)
+    step = train.make_step(cfg, tx, near_t, far_t, **colour)
     losses = []
     for k in range(3):
         params, opt_state, total, _ = step(params, opt_state, structure, data,

@@ -116,7 +116,8 @@ def test_eval_writes_metrics_and_images(tiny_run):
     result = evaluate_run(run)
     metrics = json.loads((run / "eval" / "metrics.json").read_text())
     assert metrics["summary"] == json.loads(json.dumps(result["summary"]))
-    for method in ("gridnerf", "gridnerf_matrix_free", "baseline_dark_frame"):
+    for method in ("gridnerf", "gridnerf_matrix_free", "global_grey_world",
+                   "baseline_dark_frame", "baseline_denoised"):
         s = metrics["summary"][method]
         for key in ("psnr", "ssim", "delta_e", "psnr_aligned", "ssim_aligned", "delta_e_aligned"):
             assert np.isfinite(s[key]), (method, key)
@@ -124,6 +125,17 @@ def test_eval_writes_metrics_and_images(tiny_run):
     for name in metrics["test_views"]:
         for suffix in ("pred.png", "pred.exr", "gt.png", "error.png"):
             assert (run / "eval" / f"{name}_{suffix}").exists()
+
+
+def test_global_gains_equalise_the_render_means():
+    from gridnerf.eval_run import global_gains
+
+    rgb_low = np.random.default_rng(0).uniform(size=(500, 3)) * [0.02, 0.04, 0.01]
+    gains = global_gains({"rgb_low": rgb_low})
+    means = (rgb_low * gains).mean(0)
+    np.testing.assert_allclose(means, means.mean(), rtol=1e-9)
+    np.testing.assert_allclose(global_gains({"rgb_low": 7.0 * rgb_low}), gains, rtol=1e-9)
+    assert gains.mean() == pytest.approx(np.mean(rgb_low.mean(0)) * np.mean(1 / rgb_low.mean(0)))
 
 
 def test_config_overrides_and_round_trip(tmp_path):
@@ -327,3 +339,66 @@ def test_consensus_needs_the_scene_target():
     assert cfg.loss.ca_illuminant == "consensus" and cfg.loss.ca_target == "scene"
     with pytest.raises(ConfigError, match="loss.ca_illuminant"):
         cfgmod.override(cfg, ["loss.ca_target=batch"])
+
+
+def test_illuminant_map_target_trains(small_scene, tmp_path):
+    """loss.ca_target = "map": the per-frame map rides in the data, every batch carries each
+    ray's block of it, training runs and stays finite; the step refuses data without it."""
+    import jax
+
+    from gridnerf import dataset, train
+    from gridnerf.scene import load_scene
+
+    cfg = cfgmod.override(cfgmod.preset("tiny"), ["loss.ca_target=map", "loss.ca_map_block=4"])
+    scene = load_scene(small_scene, near_far=(1.0, 10.0))
+    data = dataset.build(scene, scene.train_idx, True)
+    anchor = train.scene_illuminant(data, scene, cfg)
+    mapped = train.with_illuminant_map(data, scene, cfg, anchor)
+    h, w = data.image_hw
+    assert mapped.illuminant_map.shape == (len(scene.train_idx), h // 4, w // 4, 3)
+    rays = dataset.batch(mapped, jax.random.PRNGKey(0), 4, 8)
+    assert rays["illuminant"].shape == (4, 8, 8, 3)
+    summary = train.train(small_scene, tmp_path / "run", cfg)
+    assert np.isfinite(summary["train_seconds"])
+    recs = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert all(np.isfinite(r["ca"]) for r in recs)
+    with pytest.raises(ValueError, match="illuminant map"):
+        train.loss_fn(*_loss_args(cfg, data, scene))
+
+
+def _loss_args(cfg, data, scene):
+    import jax
+
+    from gridnerf import dataset, grid
+
+    lo, hi, near_t, far_t = dataset.grid_box(scene)
+    structure, params = grid.init_grid((8, 8, 8), lo, hi)
+    rays = dataset.batch(data, jax.random.PRNGKey(0), 2, 4)
+    return params, structure, rays, jax.random.PRNGKey(1), cfg, near_t, far_t, None, np.ones(3)
+
+
+def test_fitted_black_offsets_train_and_resume(small_scene, tmp_path, monkeypatch):
+    """data.black_offset = "fit": the offsets are fitted once before the last stage, kept in
+    sensor_fit.json (finite, in DN in the summary), read back by a run resumed inside the
+    last stage; a one-stage config is refused."""
+    from gridnerf import sensorfit
+    from gridnerf import train as trainmod
+    from gridnerf.errors import ConfigError
+
+    cfg = cfgmod.override(cfgmod.preset("tiny"), [
+        "data.black_offset=fit", "train.steps_per_stage=[20,20]", "train.checkpoint_every=10",
+        "train.checkpoint_seconds=0"])
+    run = tmp_path / "run"
+    real_make_step = trainmod.make_step
+    _crash_after(monkeypatch, 33)  # dies in the last stage, after its step-10 checkpoint
+    with pytest.raises(KeyboardInterrupt):
+        trainmod.train(small_scene, run, cfg)
+    b = sensorfit.load_offsets(run)
+    assert b is not None and b.shape == (2, 2) and np.isfinite(b).all()
+    monkeypatch.setattr(trainmod, "make_step", real_make_step)
+    monkeypatch.setattr(sensorfit, "fit_field", lambda *a, **k: pytest.fail("fitted twice"))
+    summary = trainmod.train(small_scene, run, cfg)
+    np.testing.assert_array_equal(sensorfit.load_offsets(run), b)
+    assert np.isfinite(np.asarray(summary["sensor_fit_dn"]["black_offset_dn"])).all()
+    with pytest.raises(ConfigError, match="data.black_offset"):
+        cfgmod.override(cfg, ["grid.resolutions=[[24,24,16]]", "train.steps_per_stage=[40]"])

@@ -1,0 +1,87 @@
+"""Illuminant maps (gridnerf.illum_map): one light gives a flat map, two lights a gradient."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gridnerf import illum_map, illuminant
+
+H, W = 128, 384
+PATCH = 64  # paint patches span several blocks, as objects do in a frame
+
+
+def _paint(seed: int = 0) -> np.ndarray:
+    """(H, W, 3) reflectance: PATCH x PATCH squares of random paint (sharp edges only)."""
+    rng = np.random.default_rng(seed)
+    patches = rng.uniform(0.15, 0.9, size=(H // PATCH, W // PATCH, 3))
+    return np.repeat(np.repeat(patches, PATCH, 0), PATCH, 1)
+
+
+def _light(warm, cool) -> np.ndarray:
+    """(H, W, 3) illuminant blending smoothly from `warm` (left) to `cool` (right)."""
+    t = np.linspace(0.0, 1.0, W)[None, :, None]
+    return np.broadcast_to((1 - t) * np.asarray(warm) + t * np.asarray(cool), (H, W, 3))
+
+
+WARM, COOL = np.array([0.60, 1.0, 0.35]), np.array([0.37, 1.0, 0.72])
+
+
+def _noisy(rgb, electrons: float, seed: int = 1) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.poisson(rgb * electrons) / electrons
+
+
+@pytest.mark.parametrize(("electrons", "p90_deg"), [(np.inf, 0.5), (20.0, 2.5)])
+def test_one_light_gives_a_flat_map(electrons, p90_deg):
+    """Paint under one light: the map stays at the anchor, up to the noise that slips under
+    tau (two lights of 2700 K and 6500 K lie ~20 deg apart)."""
+    rgb_cam = _paint() * WARM
+    if np.isfinite(electrons):
+        rgb_cam = _noisy(rgb_cam, electrons)
+    maps = illum_map.frame_maps([rgb_cam], [None], WARM, block=8, tau=0.1)
+    assert maps.shape == (1, H // 8, W // 8, 3)
+    err = illuminant.angular_error_deg(maps, WARM)
+    assert float(np.percentile(err, 90)) < p90_deg, np.percentile(err, [50, 90, 100])
+
+
+def test_two_lights_give_the_gradient_between_them():
+    rgb_cam = _noisy(_paint() * _light(WARM, COOL), 20.0)
+    anchor = illuminant.grey_world(_light(WARM, COOL))  # the mean light, as a capture sees it
+    maps = illum_map.frame_maps([rgb_cam], [None], anchor, block=8, tau=0.1)[0]
+    truth = illuminant.unit(raw_blocks(_light(WARM, COOL), 8))
+    err_map = illuminant.angular_error_deg(maps, truth)
+    err_flat = illuminant.angular_error_deg(np.broadcast_to(anchor, truth.shape), truth)
+    assert err_map.mean() < 0.7 * err_flat.mean(), (err_map.mean(), err_flat.mean())
+    # warm on the left, cool on the right
+    assert maps[:, :4, 0].mean() > maps[:, -4:, 0].mean()
+    assert maps[:, :4, 2].mean() < maps[:, -4:, 2].mean()
+
+
+def raw_blocks(x, b):
+    from gridnerf import raw
+
+    return raw.downscale(x, b)
+
+
+def test_map_is_scale_free_and_finite_on_black_and_masked_input():
+    rgb_cam = _noisy(_paint() * _light(WARM, COOL), 20.0)
+    a = illum_map.log_chroma_map(rgb_cam, block=8)
+    np.testing.assert_allclose(illum_map.log_chroma_map(1e-4 * rgb_cam, block=8), a,
+                               atol=1e-6)
+    mask = np.ones((H, W), bool)
+    mask[:, : W // 2] = False  # half the frame saturated
+    for img, m in ((np.zeros((H, W, 3)), None), (rgb_cam, mask), (-rgb_cam, None)):
+        out = illum_map.frame_maps([img], [m], WARM, block=8)
+        assert np.isfinite(out).all()
+        np.testing.assert_allclose(np.linalg.norm(out, axis=-1), 1.0, atol=1e-9)
+
+
+def test_to_locus_projects_every_entry_of_a_map():
+    locus = illuminant.planckian_locus(np.eye(3))
+    e = np.random.default_rng(0).uniform(0.2, 1.0, size=(4, 5, 3))
+    out = illuminant.to_locus(e, locus)
+    assert out.shape == (4, 5, 3)
+    for i in range(4):
+        for j in range(5):
+            np.testing.assert_array_equal(out[i, j], illuminant.to_locus(e[i, j], locus))
