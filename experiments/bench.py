@@ -13,7 +13,7 @@ Every figure is measured on the package's own code, in its own process, and cach
 - time to reach within 0.5 dB of the preset's final test PSNR: one `gridnerf train` process
   checkpointing every `snapshot_every` steps (train.checkpoint_every; training is otherwise
   identical), each checkpoint hard-linked as it appears and scored afterwards on the test
-  views exactly as `gridnerf eval` scores a run (eval_run.exposures, eval_run.render_view,
+  views exactly as `gridnerf eval` scores a run (eval_run.outputs, eval_run.render_view,
   exposure.to_display, evaluate.image_metrics PSNR); the time is the checkpoint file's
   mtime since the process started (imports, bounds estimation, compiles, carving and the
   extra checkpoint writes included);
@@ -291,25 +291,21 @@ def worker_psnr(a: dict) -> dict:
     """Test-view PSNR of each checkpoint snapshot, scored as gridnerf eval scores a run."""
     import numpy as np
 
-    from gridnerf import eval_run, evaluate, exposure, runfolder
+    from gridnerf import eval_run, evaluate, runfolder
 
     cfg, scene, *_ = eval_run.load_run(Path(a["run"]))
     cams, ds = scene.cameras, cfg.data.eval_downscale
     h, w = cams.height // ds, cams.width // ds
-    which = "matrix" if cfg.output.use_color_matrix else "matrix_free"
-    matrix = (exposure.display_matrix(scene.xyz_to_cam, cfg.data.target == "raw")
-              if which == "matrix" else np.eye(3))
     gts = {i: eval_run._gt(scene, scene.names[i], h, w) for i in scene.test_idx}
     scores = []
     for snap in a["snapshots"]:
         structure, params, _, header = runfolder.load_state(Path(snap))
-        alpha = eval_run.exposures(structure, params, scene, cfg)[which]
+        main = eval_run.outputs(structure, params, scene, cfg)["gridnerf"]
         psnr = []
         for i, gt in gts.items():
             intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]]) / ds
             out = eval_run.render_view(structure, params, scene, cfg, cams.c2w[i], intr, h, w)
-            rgb_cam = out["rgb_restored"] if cfg.loss.use_gains else out["rgb_low"]
-            pred_linear, _ = exposure.to_display(rgb_cam, alpha, matrix)
+            pred_linear, _ = main.show(out)
             psnr.append(evaluate.image_metrics(pred_linear, gt)["psnr"])
         scores.append({"snapshot": snap, "stage": header["stage"], "step": header["step"],
                        "train_seconds": header["train_seconds"],

@@ -16,9 +16,9 @@ from scipy.ndimage import convolve
 from skimage.restoration import denoise_nl_means
 from skimage.transform import resize
 
-from gridnerf.color import luminance, srgb_decode, srgb_encode, srgb_from_cam
+from gridnerf.color import luminance, srgb_decode, srgb_encode
 from gridnerf.errors import RawError
-from gridnerf.exposure import alpha_for_luminance
+from gridnerf.exposure import alpha_for_luminance, display_matrix
 from gridnerf.illuminant import gains_from_illuminant, grey_world
 from gridnerf.raw import bin2x2, cfa_masks, check_cfa
 
@@ -89,8 +89,9 @@ def grey_world_gains(rgb_cam, mask=None) -> np.ndarray:
 def process_dark_frame(raw_bayer, cfa, xyz_to_cam, use_matrix: bool = True) -> np.ndarray:
     """Brighten one dark RAW frame: the 2D baseline.
 
-    demosaic_bilinear -> grey_world_gains -> (srgb_from_cam(xyz_to_cam) when
-    use_matrix) -> exposure.alpha_for_luminance (mean luminance 0.18) -> clip negatives to 0.
+    demosaic_bilinear -> grey_world_gains -> (exposure.display_matrix for the grey world's
+    white when use_matrix) -> exposure.alpha_for_luminance (mean luminance 0.18) -> clip
+    negatives to 0.
 
     Args:
       raw_bayer: (H, W) float, normalised mosaic (negatives kept).
@@ -106,6 +107,7 @@ def process_dark_frame(raw_bayer, cfa, xyz_to_cam, use_matrix: bool = True) -> n
     if not np.all(np.isfinite(raw_bayer)):
         raise RawError(None, "raw frame contains NaN/Inf", "re-read the RAW file; it is corrupt")
     rgb = demosaic_bilinear(raw_bayer, cfa).astype(np.float64)
+    neutral = grey_world(rgb)
     rgb = rgb * grey_world_gains(rgb).astype(np.float64)
     if use_matrix:
         matrix = np.asarray(xyz_to_cam, np.float64) if xyz_to_cam is not None else None
@@ -115,14 +117,15 @@ def process_dark_frame(raw_bayer, cfa, xyz_to_cam, use_matrix: bool = True) -> n
                 "a finite (3, 3) XYZ->camera colour matrix is needed",
                 "pass the DNG ColorMatrix, or use_matrix=False",
             )
-        rgb = rgb @ srgb_from_cam(matrix).T
+        rgb = rgb @ display_matrix(matrix, True, neutral).T
     rgb = rgb * alpha_for_luminance(rgb)
     return np.maximum(rgb, 0.0).astype(np.float32)
 
 
 def process_binned_frame(raw_bayer, cfa, xyz_to_cam, gt_linear) -> np.ndarray:
     """The per-frame pipeline the 3D model must beat, made generous: 2x2 binning (4 raw
-    samples per output pixel, a denoiser for free), grey world, colour matrix, an exposure
+    samples per output pixel, a denoiser for free), grey world, the colour matrix for the
+    grey world's white (exposure.display_matrix), an exposure
     matched to the reference (mean luminance equal to gt's, which a real pipeline cannot
     know), bilinear upsampling back to the frame size, negatives clipped.
 
@@ -130,8 +133,9 @@ def process_binned_frame(raw_bayer, cfa, xyz_to_cam, gt_linear) -> np.ndarray:
     Returns rgb_linear (H, W, 3) float32.
     """
     rgb = bin2x2(np.asarray(raw_bayer, np.float32), check_cfa(cfa)).astype(np.float64)
+    neutral = grey_world(rgb)
     rgb = rgb * grey_world_gains(rgb).astype(np.float64)
-    rgb = rgb @ srgb_from_cam(np.asarray(xyz_to_cam, np.float64)).T
+    rgb = rgb @ display_matrix(np.asarray(xyz_to_cam, np.float64), True, neutral).T
     rgb = resize(rgb, np.asarray(gt_linear).shape[:2], order=1, anti_aliasing=False)
     target = float(np.mean(luminance(np.asarray(gt_linear, np.float64))))
     rgb = rgb * alpha_for_luminance(rgb, target)

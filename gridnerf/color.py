@@ -107,3 +107,14 @@ def chromatic_adaptation(src_white_xyz: np.ndarray, dst_white_xyz: np.ndarray) -
     s = BRADFORD @ src_white_xyz
     d = BRADFORD @ dst_white_xyz
     return np.linalg.inv(BRADFORD) @ np.diag(d / s) @ BRADFORD
+
+
+def srgb_from_cam_under(xyz_to_cam: np.ndarray, white_xyz: np.ndarray) -> np.ndarray:
+    """Linear-sRGB-from-camera-RGB matrix (3, 3) for a scene lit by `white_xyz` (unbalanced
+    camera RGB in, D65 linear sRGB out): the inverse of the camera matrix, then Bradford
+    adaptation of the scene's white to D65, the DNG pipeline's order (Adobe DNG
+    specification 1.6, "Mapping Camera Color Space to CIE XYZ Space": camera -> XYZ with
+    the ColorMatrix, then chromatic adaptation of the camera neutral's white to the output
+    white). The camera's own neutral under that light maps to sRGB white."""
+    return (SRGB_FROM_XYZ @ chromatic_adaptation(np.asarray(white_xyz, np.float64), D65_XYZ)
+            @ np.linalg.inv(np.asarray(xyz_to_cam, np.float64)))

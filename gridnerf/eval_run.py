@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import resource
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import jax
@@ -88,21 +89,53 @@ def global_gains(out: dict) -> np.ndarray:
     return np.asarray(illuminant.gains_from_illuminant(illuminant.grey_world(rgb_cam)))
 
 
-def exposures(structure, params, scene, cfg, out: dict | None = None) -> dict[str, float]:
-    """Auto exposure alpha on the training render (training_render, or `out` if given) for
-    the colour-matrix and the matrix-free outputs, and for the global grey-world output
-    (global_gains, shown like the main output)."""
+def field_neutral(out: dict) -> np.ndarray:
+    """(3,) the camera-RGB white the field's gains balance: 1 / their mean per unit opacity
+    over the training render (the composited gain divided by the opacity, pooled)."""
+    gain = np.asarray(out["gain"], np.float64).reshape(-1, 3).sum(0)
+    acc = float(np.asarray(out["acc"], np.float64).sum())
+    return np.asarray(illuminant.unit(acc / np.maximum(gain, 1e-12)))
+
+
+@dataclass(frozen=True)
+class Output:
+    """How one output shows a render: rgb_linear = alpha * matrix @ (out[source] * gains)."""
+
+    source: str  # "rgb_restored" (the field's own gains) or "rgb_low"
+    gains: np.ndarray  # (3,) von Kries gains applied on top (ones: none)
+    matrix: np.ndarray  # (3, 3) display matrix (exposure.display_matrix)
+    alpha: float = 1.0
+
+    def show(self, out: dict) -> tuple[np.ndarray, np.ndarray]:
+        """(rgb_linear, rgb_srgb) of a render (render_view / training_render output)."""
+        return exposure.to_display(np.asarray(out[self.source]) * self.gains, self.alpha,
+                                   self.matrix)
+
+
+def outputs(structure, params, scene, cfg, out: dict | None = None) -> dict[str, Output]:
+    """The shown outputs of a run, each exposed on the training render (training_render,
+    or `out`): "gridnerf" (colour matrix for the field's balanced white, field_neutral, or
+    matrix-free when output.use_color_matrix is off), "gridnerf_matrix_free", and
+    "global_grey_world" (the field's low-light colour times one grey-world gain for the
+    scene, global_gains, with the matrix for that grey world's white)."""
     out = training_render(structure, params, scene, cfg) if out is None else out
-    rgb_cam = out["rgb_restored"] if cfg.loss.use_gains else out["rgb_low"]
-    target = cfg.output.target_luminance
-    matrix = exposure.display_matrix(scene.xyz_to_cam, cfg.data.target == "raw")
-    main = matrix if cfg.output.use_color_matrix else np.eye(3)
-    rgb_global = np.asarray(out["rgb_low"]) * global_gains(out)
-    return {
-        "matrix": exposure.alpha_for_luminance(rgb_cam @ matrix.T, target),
-        "matrix_free": exposure.alpha_for_luminance(rgb_cam, target),
-        "global_grey_world": exposure.alpha_for_luminance(rgb_global @ main.T, target),
+    raw_target = cfg.data.target == "raw"
+    ones = np.ones(3)
+    source = "rgb_restored" if cfg.loss.use_gains else "rgb_low"
+    neutral = field_neutral(out) if cfg.loss.use_gains else None
+    grey = np.asarray(illuminant.grey_world(np.asarray(out["rgb_low"], np.float64)))
+    free = Output(source, ones, np.eye(3))
+    shown = {
+        "gridnerf": (Output(source, ones, exposure.display_matrix(scene.xyz_to_cam, raw_target,
+                                                                  neutral))
+                     if cfg.output.use_color_matrix else free),
+        "gridnerf_matrix_free": free,
+        "global_grey_world": Output("rgb_low", global_gains(out), exposure.display_matrix(
+            scene.xyz_to_cam, raw_target and cfg.output.use_color_matrix, grey)),
     }
+    target = cfg.output.target_luminance
+    return {k: replace(o, alpha=exposure.alpha_for_luminance(o.show(out)[0], target))
+            for k, o in shown.items()}
 
 
 def evaluate_run(run: Path) -> dict:
@@ -115,19 +148,9 @@ def evaluate_run(run: Path) -> dict:
                          "remove the split lists: every 8th frame is then a test frame)")
     out_dir = run / "eval"
     out_dir.mkdir(parents=True, exist_ok=True)
-    train_out = training_render(structure, params, scene, cfg)
-    alphas = exposures(structure, params, scene, cfg, train_out)
-    gains_global = global_gains(train_out)
-    main_key = "matrix" if cfg.output.use_color_matrix else "matrix_free"
-    mats = {
-        "matrix": exposure.display_matrix(scene.xyz_to_cam, cfg.data.target == "raw"),
-        "matrix_free": np.eye(3),
-    }
-    mats["global_grey_world"] = mats[main_key]
-    methods = {"gridnerf": main_key, "gridnerf_matrix_free": "matrix_free",
-               "global_grey_world": "global_grey_world"}
+    shown = outputs(structure, params, scene, cfg)
     per_view: dict[str, dict[str, dict]] = {
-        m: {} for m in [*methods, "baseline_dark_frame", "baseline_denoised",
+        m: {} for m in [*shown, "baseline_dark_frame", "baseline_denoised",
                         "baseline_binned_matched"]}
     cams = scene.cameras
     ds = cfg.data.eval_downscale
@@ -136,11 +159,9 @@ def evaluate_run(run: Path) -> dict:
         name = scene.names[i]
         intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]]) / ds
         out = render_view(structure, params, scene, cfg, cams.c2w[i], intr, h, w)
-        rgb_cam = out["rgb_restored"] if cfg.loss.use_gains else out["rgb_low"]
         gt_linear = _gt(scene, name, h, w)
-        for method, which in methods.items():
-            shown = out["rgb_low"] * gains_global if method == "global_grey_world" else rgb_cam
-            pred_linear, pred_srgb = exposure.to_display(shown, alphas[which], mats[which])
+        for method, output in shown.items():
+            pred_linear, pred_srgb = output.show(out)
             if method == "gridnerf":
                 image_io.write_png(out_dir / f"{name}_pred.png", pred_srgb)
                 image_io.write_exr(out_dir / f"{name}_pred.exr", pred_linear)
@@ -178,7 +199,7 @@ def evaluate_run(run: Path) -> dict:
         "scene": str(scene.path),
         "run": str(run),
         "test_views": [scene.names[i] for i in scene.test_idx],
-        "alpha": alphas,
+        "alpha": {k: o.alpha for k, o in shown.items()},
         "train_seconds": summary["train_seconds"],
         "rays_per_second": summary["rays_per_second"],
         "train_peak_rss_mb": summary.get("peak_rss_mb"),
@@ -239,9 +260,7 @@ def camera_path(scene, kind: str, n_frames: int) -> np.ndarray:
 def render_run(run: Path, path: str = "spiral", n_frames: int = 60) -> Path:
     """Render test views (`path='test'`) or a camera path to run/render/: PNG, EXR, mp4."""
     cfg, scene, structure, params, _ = load_run(run)
-    alphas = exposures(structure, params, scene, cfg)
-    which = "matrix" if cfg.output.use_color_matrix else "matrix_free"
-    matrix = exposure.display_matrix(scene.xyz_to_cam, cfg.output.use_color_matrix)
+    main = outputs(structure, params, scene, cfg)["gridnerf"]
     cams = scene.cameras
     ds = cfg.data.eval_downscale
     h, w = cams.height // ds, cams.width // ds
@@ -255,8 +274,7 @@ def render_run(run: Path, path: str = "spiral", n_frames: int = 60) -> Path:
     frames = []
     for name, c2w in views:
         out = render_view(structure, params, scene, cfg, c2w, intr0, h, w)
-        rgb_cam = out["rgb_restored"] if cfg.loss.use_gains else out["rgb_low"]
-        rgb_linear, rgb_srgb = exposure.to_display(rgb_cam, alphas[which], matrix)
+        rgb_linear, rgb_srgb = main.show(out)
         image_io.write_png(out_dir / f"{name}.png", rgb_srgb)
         image_io.write_exr(out_dir / f"{name}.exr", rgb_linear)
         frames.append(rgb_srgb)

@@ -282,9 +282,18 @@ def planckian_locus(xyz_to_cam, kelvin=None) -> np.ndarray:
     xyz_to_cam: (3, 3) XYZ -> camera matrix (DNG ColorMatrix); kelvin: (n,) temperatures,
     default 1024 steps from 1500 K to 20000 K, geometric (adjacent entries < 0.1 deg apart).
     """
-    temps = np.geomspace(1500.0, 20000.0, 1024) if kelvin is None else np.asarray(kelvin)
+    temps = LOCUS_KELVIN if kelvin is None else np.asarray(kelvin)
     m = np.asarray(xyz_to_cam, np.float64)
     return unit(np.stack([m @ blackbody_xyz_white(float(t)) for t in temps]))
+
+
+LOCUS_KELVIN = np.geomspace(1500.0, 20000.0, 1024)  # planckian_locus's default temperatures
+
+
+def locus_kelvin(illuminant, xyz_to_cam) -> float:
+    """The temperature (K) of the Planckian-locus entry nearest in angle to an estimate (3,)."""
+    locus = planckian_locus(xyz_to_cam)
+    return float(LOCUS_KELVIN[int(np.argmax(locus @ unit(np.asarray(illuminant, np.float64))))])
 
 
 def to_locus(illuminant, locus):

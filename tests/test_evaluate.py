@@ -12,7 +12,7 @@ from gridnerf.baseline import (
     grey_world_gains,
     process_dark_frame,
 )
-from gridnerf.color import CAMERA_XYZ_TO_CAM, cam_from_srgb, luminance, srgb_encode
+from gridnerf.color import CAMERA_XYZ_TO_CAM, luminance, srgb_encode
 from gridnerf.errors import NumericsError, RawError, SceneError
 from gridnerf.evaluate import (
     METRIC_KEYS,
@@ -253,13 +253,19 @@ def test_auto_exposure_hits_target():
         assert alpha_for_luminance(np.zeros((3, 3, 3))) == 1.0
 
 
+def _cam_from_linear_under(kelvin: float) -> np.ndarray:
+    from gridnerf.color import D65_XYZ, XYZ_FROM_SRGB, blackbody_xyz_white, chromatic_adaptation
+
+    return SONY @ chromatic_adaptation(D65_XYZ, blackbody_xyz_white(kelvin)) @ XYZ_FROM_SRGB
+
+
 def test_process_dark_frame_restores_colour_and_exposure():
     cfa = np.array(PATTERNS["RGGB"])
     rgb_linear = _textured(32, 40)
-    # Scene in camera space under a warm light, very dark: grey world restores it.
-    rgb_cam = rgb_linear @ cam_from_srgb(SONY).T
-    illum = np.array([1.0, 0.8, 0.35])
-    raw_bayer = _mosaic(rgb_cam * illum * 0.01, cfa)
+    # The scene under a 2900 K blackbody, very dark (the DNG colour model: Bradford
+    # adaptation from D65, then the ColorMatrix): grey world restores it.
+    rgb_cam = rgb_linear @ _cam_from_linear_under(2900.0).T
+    raw_bayer = _mosaic(rgb_cam / rgb_cam.max() * 0.01, cfa)
     out = process_dark_frame(raw_bayer, cfa, SONY)
     assert out.shape == (32, 40, 3) and out.dtype == np.float32
     assert np.all(out >= 0) and np.all(np.isfinite(out))
@@ -287,7 +293,10 @@ def test_denoised_baseline_lowers_the_noise():
     assert denoised.shape == plain.shape and np.isfinite(denoised).all() and denoised.min() >= 0
     assert (noise_sigma(srgb_encode(denoised), demosaicked=True)
             < 0.5 * noise_sigma(srgb_encode(plain), demosaicked=True))
-    np.testing.assert_allclose(denoised.mean((0, 1)), plain.mean((0, 1)), rtol=0.1)
+    # no noise, nothing to remove: the plain processed frame comes back
+    clean = _mosaic(rgb_cam, cfa)
+    np.testing.assert_allclose(process_denoised_frame(clean, cfa, SONY),
+                               process_dark_frame(clean, cfa, SONY), atol=2e-3)
 
 
 def test_process_dark_frame_guards_negative_and_zero_blue():
@@ -331,3 +340,27 @@ def test_noise_sigma_of_white_noise_and_of_a_plane():
     plane = np.add.outer(np.linspace(0, 1, 64), np.linspace(0, 0.5, 80))[..., None] * [1, 1, 1]
     assert noise_sigma(plane) < 1e-9
     assert noise_sigma(plane + rng.normal(0, 0.05, plane.shape)) == pytest.approx(0.05, rel=0.1)
+
+
+def test_display_matrix_for_the_balanced_white_inverts_the_camera():
+    """Camera RGB of linear-sRGB colours under a 2900 K blackbody (the simulator's model:
+    ColorMatrix after Bradford adaptation from D65), balanced by the camera neutral's von
+    Kries gains: the matrix for that neutral returns the colours (up to one scale), the D65
+    row-normalised matrix does not for saturated ones; a neutral stays neutral."""
+    from gridnerf import exposure, illuminant
+    from gridnerf.color import D65_XYZ, XYZ_FROM_SRGB, blackbody_xyz_white, chromatic_adaptation
+
+    xyz_to_cam = SONY
+    kelvin = float(illuminant.LOCUS_KELVIN[400])
+    cam_from_linear = (xyz_to_cam @ chromatic_adaptation(D65_XYZ, blackbody_xyz_white(kelvin))
+                       @ XYZ_FROM_SRGB)
+    rgb_linear = np.array([[0.9, 0.1, 0.1], [0.1, 0.8, 0.2], [0.1, 0.2, 0.9], [0.5, 0.5, 0.5]])
+    rgb_cam = rgb_linear @ cam_from_linear.T
+    neutral = cam_from_linear @ np.ones(3)
+    balanced = rgb_cam * illuminant.gains_from_illuminant(neutral)
+    new = balanced @ exposure.display_matrix(xyz_to_cam, True, neutral).T
+    scale = new[3, 1] / 0.5
+    np.testing.assert_allclose(new / scale, rgb_linear, atol=1e-6)
+    old = balanced @ exposure.display_matrix(xyz_to_cam, True).T
+    assert np.abs(old / (old[3, 1] / 0.5) - rgb_linear).max() > 0.02
+    np.testing.assert_array_equal(exposure.display_matrix(xyz_to_cam, False, neutral), np.eye(3))
