@@ -113,8 +113,9 @@ class DataConfig(_Section):
     binning: bool = True  # train on 2x2-binned camera RGB (True) or on the Bayer mosaic (False)
     downscale: int = 1  # extra box downscale of training images (1 = binned/raw resolution)
     eval_downscale: int = 1  # downscale of eval renders relative to the full frame / gt
-    # "raw" (the method) or "reference": the oracle, trained on gt/ (clean)
-    target: Literal["raw", "reference"] = "raw"
+    # "raw" (the method), "reference" (the oracle, trained on gt/, clean) or "processed"
+    # (2D + NeRF: trained on each frame processed by the 2D pipeline with a denoiser)
+    target: Literal["raw", "reference", "processed"] = "raw"
     # black level of the data term: "file" (the frames' BlackLevel tags) or "fit": per-CFA
     # offsets fitted from the noise against the field before the last stage (gridnerf
     # .sensorfit), taken off the targets of the last stage
@@ -359,8 +360,17 @@ def _preset_oracle() -> Config:
                    output=replace(c.output, use_color_matrix=False))
 
 
+def _preset_processed() -> Config:
+    """2D + NeRF (the paper's baseline family): the default grid trained, supervised, on
+    the training frames each processed by the 2D pipeline (demosaic, grey world, colour
+    matrix, auto exposure, non-local means), no gains, shown as it is."""
+    o = _preset_oracle()
+    return replace(o, data=replace(o.data, target="processed"))
+
+
 PRESETS: dict[str, Any] = {
     "oracle": _preset_oracle,
+    "processed": _preset_processed,
     "default": Config,
     "tiny": _preset_tiny,
     "nogain": lambda: replace(Config(), loss=replace(Config().loss, use_gains=False)),
@@ -369,7 +379,7 @@ PRESETS: dict[str, Any] = {
 
 
 def preset(name: str) -> Config:
-    """The named preset (`default`, `tiny`, `nogain`, `patch`, `oracle`)."""
+    """The named preset (`default`, `tiny`, `nogain`, `patch`, `oracle`, `processed`)."""
     if name not in PRESETS:
         raise ConfigError(None, f"unknown preset {name!r}",
                           f"use --preset with one of {', '.join(sorted(PRESETS))}")

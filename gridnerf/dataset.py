@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gridnerf import image_io, raw, rays
+from gridnerf import baseline, image_io, raw, rays
 from gridnerf.errors import SceneError
 from gridnerf.scene import Scene
 
@@ -55,7 +55,10 @@ def build(scene: Scene, frames: np.ndarray, binning: bool, downscale: int = 1,
     """Device arrays for `frames` (indices into scene.names).
 
     target "reference": the oracle's data, the clean normal-light references gt/<name>.exr
-    (rgb_linear) box-downscaled to the binned size, exposure 1, all valid.
+    (rgb_linear) box-downscaled to the binned size, exposure 1, all valid; "processed":
+    the "2D + NeRF" data, each training frame processed on its own by the 2D pipeline
+    (baseline.process_denoised_frame: demosaic, grey world, colour matrix, auto exposure,
+    non-local means; rgb_linear), box-downscaled the same way.
     """
     cams = scene.cameras
     full = ndc_intrinsics(scene)
@@ -63,7 +66,17 @@ def build(scene: Scene, frames: np.ndarray, binning: bool, downscale: int = 1,
     black = scene.black_level[frames].astype(np.float32)
     white = scene.white_level[frames].astype(np.float32)
     inv_exposure = (1.0 / scene.exposure[frames]).astype(np.float32)
-    if target == "reference":
+    if target == "processed":  # the "2D + NeRF" row: each dark frame processed on its own
+        if not binning:
+            raise SceneError(scene.path, "data.target=processed trains on processed frames: "
+                             "it needs data.binning=true", "set data.binning=true")
+        factor = 1.0 / (2 * downscale)
+        pixels = np.stack([raw.downscale(baseline.process_denoised_frame(
+            scene.raw_normalized(int(i)), scene.cfa, scene.xyz_to_cam), 2 * downscale)
+            for i in frames]).astype(np.float32)
+        valid = np.ones(pixels.shape, bool)
+        inv_exposure = np.ones(len(frames), np.float32)
+    elif target == "reference":
         missing = [scene.names[i] for i in frames if scene.names[i] not in scene.gt_linear_paths]
         if missing or not binning:
             raise SceneError(scene.path / "gt", f"the oracle needs gt/<name>.exr for every "

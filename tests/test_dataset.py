@@ -126,3 +126,19 @@ def test_fitted_black_offsets_come_off_the_targets(small_scene):
         else:
             expected = np.asarray(b)[np.asarray(v) % 2, np.asarray(u) % 2] * inv_e
             np.testing.assert_allclose(np.asarray((y0 - y1).sum(-1)), expected, rtol=1e-4)
+
+
+def test_processed_target_is_the_2d_pipeline_binned(small_scene):
+    """data.target = "processed" (2D + NeRF): each training frame through
+    baseline.process_denoised_frame, box-downscaled to the binned size, exposure 1."""
+    from gridnerf import baseline, config, raw
+
+    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
+    i = int(scene.train_idx[0])
+    data = dataset.build(scene, np.array([i]), binning=True, target="processed")
+    expected = raw.downscale(baseline.process_denoised_frame(
+        scene.raw_normalized(i), scene.cfa, scene.xyz_to_cam), 2)
+    np.testing.assert_allclose(np.asarray(data.pixels[0]), expected, rtol=1e-6)
+    assert float(data.inv_exposure[0]) == 1.0 and bool(np.asarray(data.valid).all())
+    cfg = config.preset("processed")
+    assert cfg.data.target == "processed" and not cfg.loss.use_gains
