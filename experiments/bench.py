@@ -182,8 +182,7 @@ def _training_setup(run: str, scale: float, dense: bool, sets: list[str]):
 
     cfg, scene, structure, params, _ = eval_run.load_run(Path(run))
     cfg = cfgmod.override(cfg, sets)
-    data = dataset.build(scene, scene.train_idx, cfg.data.binning, cfg.data.downscale,
-                         cfg.data.target)
+    data = dataset.training_data(scene, cfg.data)
     near_t, far_t = dataset.grid_box(scene)[2:]
     data, extra = train.colour_inputs(data, scene, cfg)  # the L_ca inputs, as training has
     res = tuple(max(2, int(round(r * scale))) for r in structure.resolution)

@@ -120,8 +120,11 @@ class DataConfig(_Section):
     # offsets fitted from the noise against the field before the last stage (gridnerf
     # .sensorfit), taken off the targets of the last stage
     black_offset: Literal["file", "fit"] = "file"
+    # the paper's darkness sweep: raw targets times this ratio after black-level removal
+    exposure_ratio: float = 1.0
 
     def _check(self) -> None:
+        self._range("exposure_ratio", 0.0, lo_open=True)
         self._require("downscale", self.downscale >= 1, "a whole number >= 1")
         self._require("eval_downscale", self.eval_downscale >= 1, "a whole number >= 1")
 

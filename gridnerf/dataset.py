@@ -50,22 +50,32 @@ class RayData:
         return int(self.pixels.shape[1]), int(self.pixels.shape[2])
 
 
+def training_data(scene: Scene, data_cfg) -> RayData:
+    """The training frames as a config's `data` section (config.DataConfig) asks for them:
+    binning, downscale, target and exposure_ratio (the one place that reads them)."""
+    return build(scene, scene.train_idx, data_cfg.binning, data_cfg.downscale,
+                 data_cfg.target, data_cfg.exposure_ratio)
+
+
 def build(scene: Scene, frames: np.ndarray, binning: bool, downscale: int = 1,
-          target: str = "raw") -> RayData:
+          target: str = "raw", exposure_ratio: float = 1.0) -> RayData:
     """Device arrays for `frames` (indices into scene.names).
 
     target "reference": the oracle's data, the clean normal-light references gt/<name>.exr
     (rgb_linear) box-downscaled to the binned size, exposure 1, all valid; "processed":
     the "2D + NeRF" data, each training frame processed on its own by the 2D pipeline
     (baseline.process_denoised_frame: demosaic, grey world, colour matrix, auto exposure,
-    non-local means; rgb_linear), box-downscaled the same way.
+    non-local means; rgb_linear), box-downscaled the same way. exposure_ratio gamma scales
+    the raw targets (I_gamma = I_raw gamma after black-level removal, the paper's darkness
+    sweep: noise and signal alike, so only the magnitude changes).
     """
     cams = scene.cameras
     full = ndc_intrinsics(scene)
     c2w = cams.c2w[frames].astype(np.float32)
     black = scene.black_level[frames].astype(np.float32)
     white = scene.white_level[frames].astype(np.float32)
-    inv_exposure = (1.0 / scene.exposure[frames]).astype(np.float32)
+    # exposure_ratio: Bright-NeRF's darkness sweep, the raw scaled after black-level removal
+    inv_exposure = (float(exposure_ratio) / scene.exposure[frames]).astype(np.float32)
     if target == "processed":  # the "2D + NeRF" row: each dark frame processed on its own
         if not binning:
             raise SceneError(scene.path, "data.target=processed trains on processed frames: "

@@ -69,8 +69,7 @@ def render_view(structure, params, scene, cfg, c2w, intrinsics, height, width) -
 
 def training_render(structure, params, scene, cfg) -> dict:
     """The field rendered on a fixed sample of 128 8x8 training-ray patches: (8192, ...)."""
-    data = dataset.build(scene, scene.train_idx, cfg.data.binning, cfg.data.downscale,
-                         cfg.data.target)
+    data = dataset.training_data(scene, cfg.data)
     rays = dataset.batch(data, jax.random.PRNGKey(cfg.train.seed + 7), 128, 8)
     near_t, far_t = dataset.grid_box(scene)[2:]
     return render.render_image(

@@ -412,8 +412,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
            session: runfolder.Session) -> dict:
     cfg = runfolder.resolve_config(run, cfg, overwrite_config)
     scene = runfolder.open_scene(scene_dir, run)
-    data = dataset.build(scene, scene.train_idx, cfg.data.binning, cfg.data.downscale,
-                         cfg.data.target)
+    data = dataset.training_data(scene, cfg.data)
     bbox_min, bbox_max, near_t, far_t = dataset.grid_box(scene)
     if scene.forward_facing and cfg.grid.ndc_xy == "frustums":
         bbox_min[:2], bbox_max[:2] = dataset.frustum_xy(scene, scene.train_idx, bbox_min,

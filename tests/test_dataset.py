@@ -142,3 +142,22 @@ def test_processed_target_is_the_2d_pipeline_binned(small_scene):
     assert float(data.inv_exposure[0]) == 1.0 and bool(np.asarray(data.valid).all())
     cfg = config.preset("processed")
     assert cfg.data.target == "processed" and not cfg.loss.use_gains
+
+
+def test_exposure_ratio_scales_the_targets(small_scene):
+    """data.exposure_ratio (the paper's darkness sweep, I_gamma = I_raw gamma after the
+    black level): every target scales by gamma, masks do not change; config reads it."""
+    from gridnerf import config
+
+    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
+    v, u = jnp.asarray([[0, 3], [5, 7]]), jnp.asarray([[1, 2], [4, 6]])
+    frame = jnp.zeros_like(v)
+    for binning in (True, False):
+        cfg = config.override(config.preset("tiny"), [f"data.binning={str(binning).lower()}"])
+        one = dataset.training_data(scene, cfg.data)
+        dark = dataset.training_data(scene, config.override(
+            cfg, ["data.exposure_ratio=0.3"]).data)
+        y1, m1 = dataset.targets(one, frame, v, u)
+        y3, m3 = dataset.targets(dark, frame, v, u)
+        np.testing.assert_allclose(np.asarray(y3), 0.3 * np.asarray(y1), rtol=1e-5, atol=1e-9)
+        np.testing.assert_array_equal(np.asarray(m1), np.asarray(m3))
