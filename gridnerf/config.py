@@ -302,6 +302,12 @@ class TrainConfig(_Section):
 class OutputConfig(_Section):
     _SECTION = "output"
     use_color_matrix: bool = True  # camera->sRGB via the file's ColorMatrix (False: paper's)
+    # which matrix: "d65" (the ColorMatrix for D65, row-normalised so that balanced white
+    # stays white; RawNeRF's convention) or "adapted" (the DNG pipeline for the white the
+    # gains balanced: ColorMatrix inverse, Bradford adaptation to D65). "adapted" is exact
+    # on clean simulated data but scored lower on the trained runs (nine built-in scenes:
+    # 20.40 against 20.74 dB, CIEDE2000 10.94 against 10.87; docs/colour.md)
+    color_matrix: Literal["d65", "adapted"] = "d65"
     target_luminance: float = 0.18  # auto exposure: mean luminance of the bright training renders
 
     def _check(self) -> None:

@@ -113,16 +113,19 @@ class Output:
 
 def outputs(structure, params, scene, cfg, out: dict | None = None) -> dict[str, Output]:
     """The shown outputs of a run, each exposed on the training render (training_render,
-    or `out`): "gridnerf" (colour matrix for the field's balanced white, field_neutral, or
-    matrix-free when output.use_color_matrix is off), "gridnerf_matrix_free", and
-    "global_grey_world" (the field's low-light colour times one grey-world gain for the
-    scene, global_gains, with the matrix for that grey world's white)."""
+    or `out`): "gridnerf" (the colour matrix, or matrix-free when output.use_color_matrix
+    is off), "gridnerf_matrix_free", and "global_grey_world" (the field's low-light colour
+    times one grey-world gain for the scene, global_gains). output.color_matrix =
+    "adapted" takes the matrix for the white the gains balanced (field_neutral; the grey
+    world's for the global row), exposure.display_matrix."""
     out = training_render(structure, params, scene, cfg) if out is None else out
     raw_target = cfg.data.target == "raw"
     ones = np.ones(3)
     source = "rgb_restored" if cfg.loss.use_gains else "rgb_low"
-    neutral = field_neutral(out) if cfg.loss.use_gains else None
-    grey = np.asarray(illuminant.grey_world(np.asarray(out["rgb_low"], np.float64)))
+    adapted = cfg.output.color_matrix == "adapted"
+    neutral = field_neutral(out) if cfg.loss.use_gains and adapted else None
+    grey = (np.asarray(illuminant.grey_world(np.asarray(out["rgb_low"], np.float64)))
+            if adapted else None)
     free = Output(source, ones, np.eye(3))
     shown = {
         "gridnerf": (Output(source, ones, exposure.display_matrix(scene.xyz_to_cam, raw_target,
@@ -148,6 +151,7 @@ def evaluate_run(run: Path) -> dict:
     out_dir = run / "eval"
     out_dir.mkdir(parents=True, exist_ok=True)
     shown = outputs(structure, params, scene, cfg)
+    adapted = cfg.output.color_matrix == "adapted"  # the baselines take the same matrix
     per_view: dict[str, dict[str, dict]] = {
         m: {} for m in [*shown, "baseline_dark_frame", "baseline_denoised",
                         "baseline_binned_matched"]}
@@ -178,19 +182,19 @@ def evaluate_run(run: Path) -> dict:
                     )
         if gt_linear is not None:
             dark_linear = baseline.process_dark_frame(
-                scene.raw_normalized(i), scene.cfa, scene.xyz_to_cam
-            )
+                scene.raw_normalized(i), scene.cfa, scene.xyz_to_cam, adapted=adapted)
             dark_linear = raw.downscale(dark_linear, ds) if ds > 1 else dark_linear
             image_io.write_png(out_dir / f"{name}_baseline.png", color.srgb_encode(dark_linear))
             per_view["baseline_dark_frame"][name] = evaluate.image_metrics(dark_linear, gt_linear)
             denoised_linear = baseline.process_denoised_frame(
-                scene.raw_normalized(i), scene.cfa, scene.xyz_to_cam)
+                scene.raw_normalized(i), scene.cfa, scene.xyz_to_cam, adapted=adapted)
             denoised_linear = raw.downscale(denoised_linear, ds) if ds > 1 else denoised_linear
             per_view["baseline_denoised"][name] = evaluate.image_metrics(denoised_linear,
                                                                          gt_linear)
             binned_linear = baseline.process_binned_frame(
                 scene.raw_normalized(i), scene.cfa, scene.xyz_to_cam,
-                gt_linear if ds == 1 else _gt(scene, name, cams.height, cams.width))
+                gt_linear if ds == 1 else _gt(scene, name, cams.height, cams.width),
+                adapted=adapted)
             binned_linear = raw.downscale(binned_linear, ds) if ds > 1 else binned_linear
             per_view["baseline_binned_matched"][name] = evaluate.image_metrics(
                 binned_linear, gt_linear)
