@@ -51,7 +51,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from common import fmt, markdown_table, write_report
+from common import fmt, markdown_table, update_readme, write_report
 
 HERE = Path(__file__).resolve()
 REPO = HERE.parent.parent
@@ -702,6 +702,10 @@ def main(argv=None) -> None:
     }
     record["markdown"] = markdown(record)
     write_report(out / "results", record["markdown"], record)
+    if not args.quick and out == REPO / "bench":  # the README shows the full run's tables
+        md = record["markdown"]
+        update_readme("bench", md[md.index("## Targets"):md.index("## Time to within")]
+                      .replace("## ", "### ").rstrip("\n"), REPO / "README.md")
     print(record["markdown"])
     bad = [k for k, v in record["summary"].items() if not (math.isfinite(v) and v > 0)]
     if bad:

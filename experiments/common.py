@@ -54,6 +54,20 @@ def write_report(out, markdown: str, record) -> None:
     atomic.write_text(out.with_suffix(".json"), json.dumps(record, indent=2) + "\n")
 
 
+def update_readme(name: str, text: str, path: Path = Path("README.md")) -> None:
+    """Replace the README section between `<!-- NAME:begin ... -->` and `<!-- NAME:end -->`
+    (the tables an experiment writes; kept as it is when the markers are absent)."""
+    if not path.is_file():
+        return
+    readme = path.read_text()
+    begin, end = f"<!-- {name}:begin", f"<!-- {name}:end -->"
+    if begin not in readme or end not in readme:
+        return
+    head, rest = readme.split(begin, 1)
+    marker, rest = rest.split("-->", 1)
+    atomic.write_text(path, f"{head}{begin}{marker}-->\n{text}\n{end}{rest.split(end, 1)[1]}")
+
+
 def fmt(x, nd=2) -> str:
     return "n/a" if x is None or isinstance(x, str) else f"{x:.{nd}f}"
 

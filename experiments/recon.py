@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from common import fmt, markdown_table, run_variant, write_report
+from common import fmt, markdown_table, run_variant, update_readme, write_report
 
 from gridnerf.sim import HELDOUT, SCENES
 
@@ -105,19 +105,6 @@ def colour_table(rows: list[dict]) -> str:
                            "2D: one frame + non-local means"], body)
 
 
-BEGIN, END = "<!-- recon:begin (written by experiments/recon.py) -->", "<!-- recon:end -->"
-
-
-def update_readme(tables: str, path: Path = Path("README.md")) -> None:
-    """Replace the README's table section between the recon markers (kept when absent)."""
-    if not path.is_file():
-        return
-    text = path.read_text()
-    if BEGIN in text and END in text:
-        head, rest = text.split(BEGIN, 1)
-        path.write_text(f"{head}{BEGIN}\n{tables}\n{END}{rest.split(END, 1)[1]}")
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="all")
@@ -140,7 +127,7 @@ def main() -> None:
     write_report(Path("reports") / "recon", "\n".join(text + colour),
                  {"machine": machine, "rows": rows})
     if args.scenes == "all":
-        update_readme("\n".join(text[2:]).replace("## ", "### ").rstrip("\n"))
+        update_readme("recon", "\n".join(text[2:]).replace("## ", "### ").rstrip("\n"))
     print("\n".join(text + colour))
 
 

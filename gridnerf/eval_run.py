@@ -84,8 +84,12 @@ def global_gains(out: dict) -> np.ndarray:
     The "global white balance" reference of the colour issue: a field that only learned
     one white balance scores the same as rgb_low times these gains.
     """
-    rgb_cam = np.asarray(out["rgb_low"], np.float64)
-    return np.asarray(illuminant.gains_from_illuminant(illuminant.grey_world(rgb_cam)))
+    return np.asarray(illuminant.gains_from_illuminant(_grey_world(out)))
+
+
+def _grey_world(out: dict) -> np.ndarray:
+    """(3,) grey world of the field's low-light colour on the training render."""
+    return np.asarray(illuminant.grey_world(np.asarray(out["rgb_low"], np.float64)))
 
 
 def field_neutral(out: dict) -> np.ndarray:
@@ -124,8 +128,7 @@ def outputs(structure, params, scene, cfg, out: dict | None = None) -> dict[str,
     source = "rgb_restored" if cfg.loss.use_gains else "rgb_low"
     adapted = cfg.output.color_matrix == "adapted"
     neutral = field_neutral(out) if cfg.loss.use_gains and adapted else None
-    grey = (np.asarray(illuminant.grey_world(np.asarray(out["rgb_low"], np.float64)))
-            if adapted else None)
+    grey = _grey_world(out) if adapted else None
     free = Output(source, ones, np.eye(3))
     shown = {
         "gridnerf": (Output(source, ones, exposure.display_matrix(scene.xyz_to_cam, raw_target,

@@ -217,16 +217,17 @@ def _estimate_frames(data: dataset.RayData, scene) -> tuple[list, list]:
             list(np.asarray(data.valid)))
 
 
-def scene_illuminant(data: dataset.RayData, scene, cfg: Config) -> np.ndarray:
+def scene_illuminant(data: dataset.RayData, scene, cfg: Config, frames=None) -> np.ndarray:
     """The capture's illuminant (3,) unit camera RGB, estimated once from all training frames.
 
     loss.ca_illuminant on the 2x2-binned frames divided by their exposure, saturated blocks
     left out (illuminant.frames_estimate: pooled pixels; grey edge per frame), then projected
     onto the camera's Planckian locus when loss.ca_locus; "consensus" is the per-channel
     median of illuminant.CONSENSUS's estimates (illuminant.consensus). The mosaic mode bins
-    the frames for this estimate only.
+    the frames for this estimate only. frames: (images, masks) of _estimate_frames when the
+    caller has them already.
     """
-    images, masks = _estimate_frames(data, scene)
+    images, masks = _estimate_frames(data, scene) if frames is None else frames
     name, lc = cfg.loss.ca_illuminant, cfg.loss
     locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
     names = illuminant.CONSENSUS if name == "consensus" else (name,)
@@ -238,12 +239,13 @@ def scene_illuminant(data: dataset.RayData, scene, cfg: Config) -> np.ndarray:
                       np.float64)
 
 
-def with_illuminant_map(data: dataset.RayData, scene, cfg: Config,
-                        anchor: np.ndarray) -> dataset.RayData:
+def with_illuminant_map(data: dataset.RayData, scene, cfg: Config, anchor: np.ndarray,
+                        frames=None) -> dataset.RayData:
     """data with its per-frame L_ca illuminant map (loss.ca_target = "map"): each training
     frame's Retinex map (gridnerf.illum_map, blocks of loss.ca_map_block binned pixels)
-    anchored to the capture's illuminant `anchor` (3,), on the locus when loss.ca_locus."""
-    images, masks = _estimate_frames(data, scene)
+    anchored to the capture's illuminant `anchor` (3,), on the locus when loss.ca_locus;
+    frames as in scene_illuminant."""
+    images, masks = _estimate_frames(data, scene) if frames is None else frames
     lc = cfg.loss
     locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
     maps = illum_map.frame_maps(images, masks, anchor, locus, lc.ca_map_block, lc.ca_map_tau)
@@ -261,9 +263,10 @@ def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> tuple[dataset.Ra
     if not cfg.loss.use_gains:
         return data, {}
     if cfg.loss.ca_target in ("scene", "map"):
-        anchor = scene_illuminant(data, scene, cfg)
+        frames = _estimate_frames(data, scene)  # binned once for both estimates
+        anchor = scene_illuminant(data, scene, cfg, frames)
         if cfg.loss.ca_target == "map":
-            data = with_illuminant_map(data, scene, cfg, anchor)
+            data = with_illuminant_map(data, scene, cfg, anchor, frames)
         return data, {"scene_ill": jnp.asarray(anchor, jnp.float32)}
     if cfg.loss.ca_locus:
         return data, {"locus": jnp.asarray(illuminant.planckian_locus(scene.xyz_to_cam),
