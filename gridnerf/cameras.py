@@ -415,18 +415,24 @@ def validate(cams: Cameras, source_path) -> None:
                             "fix fl_x/fl_y")
 
 
-def project(cams: Cameras, i: int, points_world: np.ndarray) -> np.ndarray:
-    """points_world: (P, 3) -> (P, 2) continuous pixel coords (u right, v down).
+def project_points(c2w, intrinsics, points_world) -> np.ndarray:
+    """points_world: (..., 3) -> (..., 2) continuous pixel coords (u right, v down) in the
+    camera c2w (3, 4), intrinsics (fx, fy, cx, cy).
 
     Pixel (u, v) has its centre at (u + 0.5, v + 0.5). Points behind the camera give NaN.
     """
-    c2w = cams.c2w[i]
+    c2w = np.asarray(c2w, np.float64)
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
     p_cam = (np.asarray(points_world, dtype=np.float64) - c2w[:, 3]) @ c2w[:, :3]
-    depth = -p_cam[:, 2]
+    depth = -p_cam[..., 2]
     safe = np.where(depth > 0, depth, np.nan)
-    u = cams.cx[i] + cams.fx[i] * p_cam[:, 0] / safe
-    v = cams.cy[i] - cams.fy[i] * p_cam[:, 1] / safe
-    return np.stack([u, v], axis=-1)
+    return np.stack([cx + fx * p_cam[..., 0] / safe, cy - fy * p_cam[..., 1] / safe], axis=-1)
+
+
+def project(cams: Cameras, i: int, points_world: np.ndarray) -> np.ndarray:
+    """points_world: (P, 3) -> (P, 2) pixel coords in camera i (project_points)."""
+    return project_points(cams.c2w[i], (cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]),
+                          points_world)
 
 
 def bounds_from_points(cams: Cameras, points_world: np.ndarray, margin: float = 0.1

@@ -31,6 +31,7 @@ from gridnerf import (
     atomic,
     baseline,
     color,
+    consistency,
     dataset,
     evaluate,
     exposure,
@@ -58,13 +59,20 @@ def load_run(run: Path):
     return cfg, scene, structure, params, summary
 
 
-def render_view(structure, params, scene, cfg, c2w, intrinsics, height, width) -> dict:
-    """Render one camera: dict of (H, W, ...) host arrays (rgb_low, gain, rgb_restored, ...)."""
+def render_view(structure, params, scene, cfg, c2w, intrinsics, height, width,
+                points: bool = False) -> dict:
+    """Render one camera: dict of (H, W, ...) host arrays (rgb_low, gain, rgb_restored, ...);
+    with `points`, also the rendered surface's world points (H, W, 3) and their validity
+    (H, W) (consistency.world_points)."""
     near_t, far_t = dataset.grid_box(scene)[2:]
     o, d = dataset.image_rays(c2w, intrinsics, height, width)
-    o, d = dataset.to_grid_space(scene.forward_facing,
-                                 jnp.asarray(dataset.ndc_intrinsics(scene)), o, d)
-    return render.render_image(structure, params, o, d, near_t, far_t, cfg.render)
+    ndc = jnp.asarray(dataset.ndc_intrinsics(scene))
+    o, d = dataset.to_grid_space(scene.forward_facing, ndc, o, d)
+    out = render.render_image(structure, params, o, d, near_t, far_t, cfg.render)
+    if points:
+        out["points"], out["points_valid"] = consistency.world_points(
+            out["depth"], out["acc"], o, d, scene.forward_facing, ndc)
+    return out
 
 
 def training_render(structure, params, scene, cfg) -> dict:

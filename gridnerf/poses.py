@@ -70,10 +70,15 @@ def run_colmap(images_dir: Path, image_names: list[str], work: Path, camera_mode
         reader.camera_params = ",".join(f"{x:.6f}" for x in known)
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.peak_threshold = 0.002  # dark, denoised previews have low contrast
+    # one thread everywhere: with COLMAP's threads the features, matches and mapping order
+    # change from run to run, and with them the estimated bounds (near 0.37-1.52 m on one
+    # scene in four runs); seeds alone do not fix that
+    extraction.num_threads = 1
     pycolmap.extract_features(db, images_dir, image_names=image_names,
                               camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
                               extraction_options=extraction, device=pycolmap.Device.cpu)
     matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = 1
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = 0
     verification.ransac.max_error = max_error
@@ -81,6 +86,7 @@ def run_colmap(images_dir: Path, image_names: list[str], work: Path, camera_mode
                               device=pycolmap.Device.cpu)
     options = pycolmap.IncrementalPipelineOptions()
     options.min_model_size = 2
+    options.num_threads = 1
     options.random_seed = 0
     options.mapper.random_seed = 0
     options.triangulation.random_seed = 0

@@ -191,6 +191,32 @@ def essential_samples(w: jax.Array, mass: float) -> jax.Array:
     return (rank < n_ess[:, None]) & (w > 0.0)
 
 
+def _sample_weights(structure: GridStructure, params, origins, directions, near_t, far_t,
+                    cfg, keep=None):
+    """Weights w (n, K) of the samples, their cells' corner rows (n, K, 8) and, when `keep`
+    (M,) bool is given, the weights (n, K) the same samples get once the rows outside
+    `keep` are empty (grid.prune): a carving's effect on each ray without building it."""
+    u, _, step, _ = march(structure, origins, directions, near_t, far_t, cfg)
+    table = gridlib.feature_table(structure, params, pad_to=8)
+    feats = gridlib.trilinear_index_space(structure, table, u)[..., : structure.n_channels]
+    w, _ = composite(jax.nn.softplus(feats[..., 0]), step, {})
+    w = jnp.where(step > 0, w, 0.0)
+    rows = gridlib.corner_rows(structure, u)[0]  # (n, K, 8)
+    if keep is None:
+        return w, rows, None
+    carved = table.at[:-1, 0].set(jnp.where(keep, table[:-1, 0], gridlib.EMPTY_DENSITY_RAW))
+    dens = gridlib.trilinear_index_space(structure, carved, u)[..., 0]
+    w_kept, _ = composite(jax.nn.softplus(dens), step, {})
+    return w, rows, jnp.where(step > 0, w_kept, 0.0)
+
+
+def _scatter_max(structure: GridStructure, rows, per_sample) -> jax.Array:
+    """(n, K) per-sample values -> (M,) per vertex: the largest over the samples whose cell
+    the vertex is a corner of."""
+    v8 = jnp.broadcast_to(per_sample[..., None], rows.shape).reshape(-1)
+    return jnp.zeros((structure.n_rows + 1,), jnp.float32).at[rows.reshape(-1)].max(v8)[:-1]
+
+
 def vertex_visibility(structure: GridStructure, params, origins, directions, near_t, far_t,
                       cfg, mass: float = 0.9) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Per vertex (M,): the largest rendering weight w_i = T_i alpha_i any of these rays
@@ -199,20 +225,32 @@ def vertex_visibility(structure: GridStructure, params, origins, directions, nea
     (where the rendered mass is; a floater that serves one view holds little of it); and
     1 where some ray needs the vertex to keep `mass` of its weight (essential_samples),
     else 0: carving by it never takes more than 1 - mass of any training ray's opacity."""
-    u, _, step, _ = march(structure, origins, directions, near_t, far_t, cfg)
-    table = gridlib.feature_table(structure, params, pad_to=8)
-    feats = gridlib.trilinear_index_space(structure, table, u)[..., : structure.n_channels]
-    sigma = jax.nn.softplus(feats[..., 0])
-    w, _ = composite(sigma, step, {})
-    w = jnp.where(step > 0, w, 0.0)
+    w, rows, _ = _sample_weights(structure, params, origins, directions, near_t, far_t, cfg)
     ess = essential_samples(w, mass).astype(jnp.float32)
-    rows = gridlib.corner_rows(structure, u)[0]  # (n, K, 8)
     w8 = jnp.broadcast_to(w[..., None], rows.shape).reshape(-1)
-    e8 = jnp.broadcast_to(ess[..., None], rows.shape).reshape(-1)
-    rows = rows.reshape(-1)
     zeros = jnp.zeros((structure.n_rows + 1,), jnp.float32)
-    return (zeros.at[rows].max(w8)[:-1], zeros.at[rows].add(w8 / 8.0)[:-1],
-            zeros.at[rows].max(e8)[:-1])
+    return (_scatter_max(structure, rows, w), zeros.at[rows.reshape(-1)].add(w8 / 8.0)[:-1],
+            _scatter_max(structure, rows, ess))
+
+
+def carving_rescue(structure: GridStructure, params, keep, origins, directions, near_t, far_t,
+                   cfg, mass: float = 0.9, ratio: float = 0.2,
+                   min_acc: float = 0.1) -> tuple[jax.Array, jax.Array]:
+    """What a carving would empty, and what puts it back.
+
+    keep: (M,) bool, the rows a carving keeps. A ray is emptied when it renders at least
+    `min_acc` opacity now and less than `ratio` of that once the other rows are gone: a
+    dim wall whose weight spreads over many samples, each below the weight threshold, is
+    cut out whole, and nothing can grow back where no vertex is left. Returns (M,) 1 for
+    the vertices an emptied ray needs to keep `mass` of its weight (essential_samples),
+    else 0; and (n,) 1 for emptied rays, else 0. Fog in front of a surface is not
+    rescued: the surface keeps its ray's opacity."""
+    w, rows, w_kept = _sample_weights(structure, params, origins, directions, near_t, far_t,
+                                      cfg, keep)
+    acc, acc_kept = jnp.sum(w, axis=-1), jnp.sum(w_kept, axis=-1)
+    emptied = (acc >= min_acc) & (acc_kept < ratio * acc)
+    ess = essential_samples(w, mass) & emptied[:, None]
+    return _scatter_max(structure, rows, ess.astype(jnp.float32)), emptied.astype(jnp.float32)
 
 
 # per-sample outputs of render_rays, (n, K) each: needed by losses, not by images (at

@@ -317,17 +317,11 @@ def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage:
                               f"{CHECKPOINT} to train again from the start")
 
 
-def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, near_t: float,
-                      far_t: float, stride: int = 2) -> np.ndarray:
-    """Per vertex (M,) over the training rays (every `stride`-th pixel per axis): max and
-    sum of the rendering weights and whether some ray needs it to keep grid.prune_mass of
-    its weight (render.vertex_visibility): the carving criteria and where the mass is."""
+def _training_rays(data: dataset.RayData, chunk: int, stride: int = 2):
+    """Every `stride`-th pixel per axis of each training frame as grid-space rays, in padded
+    chunks (origins, directions), each (chunk, 3): padding rays start far outside the box,
+    so they miss it and weigh nothing."""
     h, w = data.image_hw
-    fn = jax.jit(render.vertex_visibility, static_argnames=("cfg", "mass"))
-    vis = np.zeros(structure.n_rows, np.float32)
-    essential = np.zeros(structure.n_rows, bool)
-    mass = np.zeros(structure.n_rows, np.float64)
-    chunk = int(cfg.render.chunk)
     for f in range(int(data.c2w.shape[0])):
         o, d = dataset.image_rays(data.c2w[f], data.intrinsics[f], h, w)
         o, d = dataset.to_grid_space(data.ndc, data.ndc_intrinsics, o[::stride, ::stride],
@@ -336,15 +330,46 @@ def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, nea
         for s in range(0, o.shape[0], chunk):
             sl = slice(s, s + chunk)
             pad = chunk - o[sl].shape[0]
-            # padding rays start far outside the box, so they miss it and weigh nothing
-            oc = np.pad(o[sl], ((0, pad), (0, 0)), constant_values=1e6)
-            dc = np.pad(d[sl], ((0, pad), (0, 0)), mode="edge")
-            v_max, v_sum, v_ess = fn(structure, params, oc, dc, near_t, far_t, cfg.render,
-                                     mass=cfg.grid.prune_mass)
-            vis = np.maximum(vis, np.asarray(v_max))
-            mass += np.asarray(v_sum, np.float64)
-            essential |= np.asarray(v_ess) > 0
+            yield (np.pad(o[sl], ((0, pad), (0, 0)), constant_values=1e6),
+                   np.pad(d[sl], ((0, pad), (0, 0)), mode="edge"))
+
+
+def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, near_t: float,
+                      far_t: float, stride: int = 2) -> tuple[np.ndarray, ...]:
+    """Per vertex (M,) over the training rays (every `stride`-th pixel per axis): max and
+    sum of the rendering weights and whether some ray needs it to keep grid.prune_mass of
+    its weight (render.vertex_visibility): the carving criteria and where the mass is."""
+    fn = jax.jit(render.vertex_visibility, static_argnames=("cfg", "mass"))
+    vis = np.zeros(structure.n_rows, np.float32)
+    essential = np.zeros(structure.n_rows, bool)
+    mass = np.zeros(structure.n_rows, np.float64)
+    for oc, dc in _training_rays(data, int(cfg.render.chunk), stride):
+        v_max, v_sum, v_ess = fn(structure, params, oc, dc, near_t, far_t, cfg.render,
+                                 mass=cfg.grid.prune_mass)
+        vis = np.maximum(vis, np.asarray(v_max))
+        mass += np.asarray(v_sum, np.float64)
+        essential |= np.asarray(v_ess) > 0
     return vis, mass, essential
+
+
+def carving_rescue(structure, params, keep: np.ndarray, data: dataset.RayData, cfg: Config,
+                   near_t: float, far_t: float, stride: int = 2) -> tuple[np.ndarray, float]:
+    """(M,) bool: vertices that training rays emptied by carving to `keep` need back
+    (render.carving_rescue with grid.prune_mass, prune_guard and prune_guard_acc), and the share of
+    the training rays (every `stride`-th pixel per axis) that were emptied."""
+    fn = jax.jit(render.carving_rescue, static_argnames=("cfg", "mass", "ratio", "min_acc"))
+    rescue = np.zeros(structure.n_rows, bool)
+    emptied, n = 0.0, 0
+    keep = jnp.asarray(keep)
+    for oc, dc in _training_rays(data, int(cfg.render.chunk), stride):
+        v_res, r_empty = fn(structure, params, keep, oc, dc, near_t, far_t, cfg.render,
+                            mass=cfg.grid.prune_mass, ratio=cfg.grid.prune_guard,
+                            min_acc=cfg.grid.prune_guard_acc)
+        rescue |= np.asarray(v_res) > 0
+        real = oc[:, 0] < 1e5  # not padding
+        emptied += float(np.asarray(r_empty)[real].sum())
+        n += int(real.sum())
+    return rescue, emptied / max(n, 1)
 
 
 def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fit: bool,
@@ -353,13 +378,20 @@ def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fi
     (a y of 0 is resolved on the new box, see resolve_resolution).
 
     Carving keeps vertices some training ray weights by more than grid.prune_threshold
-    (visibility) or whose own alpha exceeds it (density), dilated by grid.prune_dilate.
-    Returns (structure, params, info) with info = box and occupancy figures.
+    (visibility), or whose own alpha exceeds it (density), dilated by grid.prune_dilate;
+    "guarded" carves by visibility, then gives back what the training rays it would empty
+    need (carving_rescue). Returns (structure, params, info) with info = box and occupancy
+    figures (and the share of emptied training rays for "guarded").
     """
     gc = cfg.grid
     vis, mass, essential = vertex_visibility(structure, params, data, cfg, near_t, far_t)
-    if gc.prune_mode == "visibility":
+    info = {}
+    if gc.prune_mode in ("visibility", "guarded"):
         keep = grid.dilate_rows(structure, vis > gc.prune_threshold, gc.prune_dilate)
+        if gc.prune_mode == "guarded":
+            rescue, info["emptied_ray_fraction"] = carving_rescue(
+                structure, params, keep, data, cfg, near_t, far_t)
+            keep |= grid.dilate_rows(structure, rescue, gc.prune_dilate)
     elif gc.prune_mode == "ray_mass":
         keep = grid.dilate_rows(structure, essential, gc.prune_dilate)
     else:
@@ -377,9 +409,10 @@ def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fi
     structure, params = grid.prune(structure, params, keep)
     res = resolve_resolution(res, lo, hi, data.image_hw, forward_facing)
     structure, params = grid.resample(structure, params, res, lo, hi)
-    info = {"bbox_min": np.asarray(lo).tolist(), "bbox_max": np.asarray(hi).tolist(),
-            "box_fraction_of_previous": float(np.prod(hi - lo) / old_box),
-            "occupied_fraction": structure.n_rows / float(np.prod(res)), "resolution": res}
+    info.update({"bbox_min": np.asarray(lo).tolist(), "bbox_max": np.asarray(hi).tolist(),
+                 "box_fraction_of_previous": float(np.prod(hi - lo) / old_box),
+                 "occupied_fraction": structure.n_rows / float(np.prod(res)),
+                 "resolution": res})
     return structure, params, info
 
 
@@ -483,7 +516,9 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
             print(f"stage {stage}: {info['resolution']} grid, box "
                   f"{np.round(info['bbox_min'], 3).tolist()}.."
                   f"{np.round(info['bbox_max'], 3).tolist()}, "
-                  f"{100 * info['occupied_fraction']:.1f}% of the box occupied")
+                  f"{100 * info['occupied_fraction']:.1f}% of the box occupied"
+                  + (f", {100 * info['emptied_ray_fraction']:.2f}% of the training rays "
+                     "rescued from carving" if "emptied_ray_fraction" in info else ""))
         tx = make_optimizer(cfg, steps, stage)
         opt_state = tx.init(params)
         if opt_leaves:

@@ -262,3 +262,38 @@ def test_essential_samples_keep_the_mass_of_each_ray():
     assert ess[0, 10:].tolist() == [True, True, False, False] and ess[0, :10].sum() == 1
     kept = (np.asarray(w) * ess).sum(-1) / np.asarray(w).sum(-1)
     assert np.all(kept >= 0.8) and ess[1].sum() >= 11  # fog: almost every sample is needed
+
+
+def test_carving_rescue_gives_back_a_spread_wall_but_not_fog_before_a_surface():
+    """Left half: a dim wall spread over z = 3..8, every sample's weight below the carving
+    threshold; right half: thin fog at z = 1..3 in front of an opaque slab at z >= 6.
+    Carving everything but the slab empties the wall's rays (rescued, their vertices given
+    back) and leaves the fog's rays their slab (not rescued)."""
+    res = (6, 6, 11)
+    structure, params = grid.init_grid(res, LO, HI)
+    x, z = (np.asarray(structure.coords)[:, a] for a in (0, 2))
+    left = x <= 2
+    wall = left & (z >= 3) & (z <= 8)
+    fog = ~left & (z >= 1) & (z <= 3)
+    slab = ~left & (z >= 6)
+    dens = np.full(structure.n_rows, -30.0)
+    dens[wall], dens[fog], dens[slab] = -1.5, -3.0, 8.0
+    params["density"] = jnp.asarray(dens, jnp.float32)
+    g = np.linspace(-0.3, 0.3, 4)
+    o = np.concatenate([np.stack([*np.meshgrid(g + xs, g, indexing="ij"),
+                                  np.full((4, 4), -1.5)], -1).reshape(-1, 3)
+                        for xs in (-0.6, 0.6)]).astype(np.float32)
+    d = np.tile(np.float32([0.0, 0.0, 1.0]), (32, 1))
+    cfg = RenderConfig(samples_per_voxel=2.0, max_samples=64)
+    vis = np.asarray(render.vertex_visibility(structure, params, o, d, 0.0, 5.0, cfg)[0])
+    keep = vis > 0.2
+    assert not keep[wall].any() and keep[slab].any() and not keep[fog].any()
+    rescue, emptied = (np.asarray(a) for a in render.carving_rescue(
+        structure, params, jnp.asarray(keep), o, d, 0.0, 5.0, cfg, mass=0.9, ratio=0.2))
+    assert emptied[:16].all() and not emptied[16:].any()
+    assert rescue[wall].mean() > 0.5 and not rescue[fog | slab].any()
+    # with the rescued rows back, the wall's rays keep most of their opacity
+    _, _, w_kept = render._sample_weights(structure, params, o, d, 0.0, 5.0, cfg,
+                                          jnp.asarray(keep | (rescue > 0)))
+    w_all = render._sample_weights(structure, params, o, d, 0.0, 5.0, cfg)[0]
+    assert np.all(np.asarray(w_kept.sum(-1))[:16] > 0.8 * np.asarray(w_all.sum(-1))[:16])

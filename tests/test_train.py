@@ -402,3 +402,30 @@ def test_fitted_black_offsets_train_and_resume(small_scene, tmp_path, monkeypatc
     assert np.isfinite(np.asarray(summary["sensor_fit_dn"]["black_offset_dn"])).all()
     with pytest.raises(ConfigError, match="data.black_offset"):
         cfgmod.override(cfg, ["grid.resolutions=[[24,24,16]]", "train.steps_per_stage=[40]"])
+
+
+def test_guarded_carving_gives_back_what_a_weight_threshold_empties(small_scene, tmp_path):
+    """With a harsh weight threshold (the 90th percentile of the vertices' weights) some
+    training rays lose most of their opacity; the guarded carving keeps every vertex the
+    plain one keeps, plus what those rays need."""
+    from gridnerf import dataset
+    from gridnerf import train as trainmod
+    from gridnerf.eval_run import load_run
+
+    cfg = cfgmod.override(cfgmod.preset("tiny"), [
+        "grid.resolutions=[[24,0,12]]", "train.steps_per_stage=[40]"])
+    trainmod.train(small_scene, tmp_path / "run", cfg)
+    _, scene, structure, params, _ = load_run(tmp_path / "run")
+    data = dataset.training_data(scene, cfg.data)
+    _, _, near_t, far_t = dataset.grid_box(scene)
+    vis = trainmod.vertex_visibility(structure, params, data, cfg, near_t, far_t)[0]
+    harsh = float(np.percentile(vis, 90))
+    kept = {}
+    for mode in ("visibility", "guarded"):
+        c = cfgmod.override(cfg, [f"grid.prune_mode={mode}", f"grid.prune_threshold={harsh}"])
+        st, _, info = trainmod.next_stage_grid(structure, params, (24, 0, 12), data, c, near_t,
+                                               far_t, fit=False)
+        kept[mode] = np.asarray(st.index) < st.n_rows
+    assert 0.0 < info["emptied_ray_fraction"] <= 1.0
+    assert not (kept["visibility"] & ~kept["guarded"]).any()
+    assert kept["guarded"].sum() > kept["visibility"].sum()
