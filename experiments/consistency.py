@@ -29,14 +29,14 @@ from gridnerf.sim import HELDOUT, SCENES
 ROWS = ("gridnerf", "baseline_denoised", "baseline_dark_frame", "reference")
 
 
-def _views(scene, cfg, structure, params, i: int) -> dict:
-    """The shown images (sRGB) of frame i per row, and the grid's render with points."""
+def _views(scene, cfg, structure, params, shown, i: int) -> dict:
+    """The shown images (sRGB) of frame i per row (ours through `shown`, the run's
+    eval_run.Output), and the grid's render with points."""
     cams = scene.cameras
     ds = cfg.data.eval_downscale
     h, w = cams.height // ds, cams.width // ds
     intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]]) / ds
     out = render_view(structure, params, scene, cfg, cams.c2w[i], intr, h, w, points=True)
-    shown = outputs(structure, params, scene, cfg)["gridnerf"]
     raw_i = scene.raw_normalized(i)
     images = {"gridnerf": shown.show(out)[1]}
     for name, fn in (("baseline_denoised", baseline.process_denoised_frame),
@@ -54,11 +54,12 @@ def scene_rows(scene_name: str) -> dict:
     run_variant(scene_name, "default", "default", [])
     cfg, scene, structure, params, _ = load_run(Path("runs") / scene_name / "default")
     n = len(scene.names)
+    shown = outputs(structure, params, scene, cfg)["gridnerf"]  # exposed once per run
     per_row: dict[str, list] = {r: [] for r in ROWS}
     for i in scene.test_idx:
         j = int(i) + 1 if int(i) + 1 < n else int(i) - 1
-        a = _views(scene, cfg, structure, params, int(i))
-        b = _views(scene, cfg, structure, params, j)
+        a = _views(scene, cfg, structure, params, shown, int(i))
+        b = _views(scene, cfg, structure, params, shown, j)
         for row in ROWS:
             if row in a["images"] and row in b["images"]:
                 per_row[row].append(consistency.warp_disagreement(

@@ -69,10 +69,12 @@ def assemble(runs: Path, scenes: list[str]) -> dict:
     return record
 
 
-def _cell(m: dict | None) -> str:
+def _cell(m: dict | None, suffix: str = "") -> str:
+    """PSNR / SSIM / CIEDE2000 of metrics m (suffix "_aligned": the aligned ones)."""
     if not m:
         return "-"
-    return f"{fmt(m['psnr'])} / {fmt(m['ssim'], 3)} / {fmt(m['delta_e'])}"
+    return (f"{fmt(m['psnr' + suffix])} / {fmt(m['ssim' + suffix], 3)} / "
+            f"{fmt(m['delta_e' + suffix])}")
 
 
 def markdown(record: dict, scenes: list[str], consistency: dict | None) -> str:
@@ -83,10 +85,7 @@ def markdown(record: dict, scenes: list[str], consistency: dict | None) -> str:
     for name, label in (("mean_nine", "**mean, nine**"), ("mean_heldout", "**mean, held out**")):
         lines.append([label, *[_cell(record[r][name]) + (
             f" (n={record[r][name]['n']})" if record[r][name] else "") for r in rows_done]])
-    aligned = [[s, *[(f"{fmt(record[r]['scenes'][s]['psnr_aligned'])} / "
-                      f"{fmt(record[r]['scenes'][s]['ssim_aligned'], 3)} / "
-                      f"{fmt(record[r]['scenes'][s]['delta_e_aligned'])}")
-                     if s in record[r]["scenes"] else "-" for r in rows_done]]
+    aligned = [[s, *[_cell(record[r]["scenes"].get(s), "_aligned") for r in rows_done]]
                for s in scenes if any(s in record[r]["scenes"] for r in rows_done)]
     legend = "\n".join(f"- `{r}`: {record[r]['label']} (runs/<scene>/{record[r]['variant']}, "
                        f"`{record[r]['key']}`)" for r in record)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from gridnerf import rays
 from gridnerf.cameras import project_points
 
 
@@ -34,10 +35,7 @@ def world_points(depth, acc, origins, directions, ndc: bool, ndc_intrinsics=None
     valid = acc >= min_acc
     if ndc:
         fx, fy, w, h = (float(v) for v in np.asarray(ndc_intrinsics))
-        # inverse of rays.ndc_points with near = 1: z = 2 / (z_ndc - 1)
-        zn = np.minimum(p[..., 2], 1.0 - 1e-6)
-        z = 2.0 / (zn - 1.0)
-        p = np.stack([-p[..., 0] * z * w / (2.0 * fx), -p[..., 1] * z * h / (2.0 * fy), z], -1)
+        p = rays.world_from_ndc(p, fx, fy, w, h, near=1.0, xp=np)
     return p, valid & np.all(np.isfinite(p), axis=-1)
 
 

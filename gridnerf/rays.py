@@ -132,6 +132,15 @@ def ndc_points(points, fx, fy, width, height, near=1.0, xp=None):
     )
 
 
+def world_from_ndc(points_ndc, fx, fy, width, height, near=1.0, xp=None):
+    """World points (..., 3) of NDC points (..., 3) with z_ndc < 1: the inverse of
+    ndc_points (z = -ndc_depth_to_world(z_ndc))."""
+    xp = xp or _namespace(points_ndc)
+    z = -ndc_depth_to_world(xp.minimum(points_ndc[..., 2], 1.0 - 1e-6), near)
+    return xp.stack([-points_ndc[..., 0] * z * width / (2.0 * fx),
+                     -points_ndc[..., 1] * z * height / (2.0 * fy), z], axis=-1)
+
+
 def ndc_depth_to_world(z_ndc, near=1.0):
     """NDC z in [-1, 1) -> world depth along -z (near .. infinity)."""
     return 2.0 * near / (1.0 - z_ndc)

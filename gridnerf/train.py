@@ -319,8 +319,8 @@ def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage:
 
 def _training_rays(data: dataset.RayData, chunk: int, stride: int = 2):
     """Every `stride`-th pixel per axis of each training frame as grid-space rays, in padded
-    chunks (origins, directions), each (chunk, 3): padding rays start far outside the box,
-    so they miss it and weigh nothing."""
+    chunks (origins, directions, n_real): (chunk, 3) each, the first n_real real; padding
+    rays start far outside the box, so they miss it and weigh nothing."""
     h, w = data.image_hw
     for f in range(int(data.c2w.shape[0])):
         o, d = dataset.image_rays(data.c2w[f], data.intrinsics[f], h, w)
@@ -331,7 +331,7 @@ def _training_rays(data: dataset.RayData, chunk: int, stride: int = 2):
             sl = slice(s, s + chunk)
             pad = chunk - o[sl].shape[0]
             yield (np.pad(o[sl], ((0, pad), (0, 0)), constant_values=1e6),
-                   np.pad(d[sl], ((0, pad), (0, 0)), mode="edge"))
+                   np.pad(d[sl], ((0, pad), (0, 0)), mode="edge"), chunk - pad)
 
 
 def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, near_t: float,
@@ -343,7 +343,7 @@ def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, nea
     vis = np.zeros(structure.n_rows, np.float32)
     essential = np.zeros(structure.n_rows, bool)
     mass = np.zeros(structure.n_rows, np.float64)
-    for oc, dc in _training_rays(data, int(cfg.render.chunk), stride):
+    for oc, dc, _ in _training_rays(data, int(cfg.render.chunk), stride):
         v_max, v_sum, v_ess = fn(structure, params, oc, dc, near_t, far_t, cfg.render,
                                  mass=cfg.grid.prune_mass)
         vis = np.maximum(vis, np.asarray(v_max))
@@ -355,20 +355,19 @@ def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, nea
 def carving_rescue(structure, params, keep: np.ndarray, data: dataset.RayData, cfg: Config,
                    near_t: float, far_t: float, stride: int = 2) -> tuple[np.ndarray, float]:
     """(M,) bool: vertices that training rays emptied by carving to `keep` need back
-    (render.carving_rescue with grid.prune_mass, prune_guard and prune_guard_acc), and the share of
-    the training rays (every `stride`-th pixel per axis) that were emptied."""
+    (render.carving_rescue with grid.prune_mass, prune_guard and prune_guard_acc), and the
+    share of the training rays (every `stride`-th pixel per axis) that were emptied."""
     fn = jax.jit(render.carving_rescue, static_argnames=("cfg", "mass", "ratio", "min_acc"))
     rescue = np.zeros(structure.n_rows, bool)
     emptied, n = 0.0, 0
     keep = jnp.asarray(keep)
-    for oc, dc in _training_rays(data, int(cfg.render.chunk), stride):
+    for oc, dc, n_real in _training_rays(data, int(cfg.render.chunk), stride):
         v_res, r_empty = fn(structure, params, keep, oc, dc, near_t, far_t, cfg.render,
                             mass=cfg.grid.prune_mass, ratio=cfg.grid.prune_guard,
                             min_acc=cfg.grid.prune_guard_acc)
         rescue |= np.asarray(v_res) > 0
-        real = oc[:, 0] < 1e5  # not padding
-        emptied += float(np.asarray(r_empty)[real].sum())
-        n += int(real.sum())
+        emptied += float(np.asarray(r_empty)[:n_real].sum())
+        n += n_real
     return rescue, emptied / max(n, 1)
 
 
