@@ -51,6 +51,8 @@ class GridStructure:
     neighbors: (M, 3) int32, row of the +x/+y/+z neighbour vertex, M when absent
     occupancy: (Bx, By, Bz) bool, block of occ_factor^3 cells may hold density
     bbox_min, bbox_max: (3,) float32
+    background: (2, 3) float32, the backdrop a ray's leftover transmittance renders: row 0
+      its low-light camera RGB, row 1 its gains (zeros / ones: black, the old compositing)
     """
 
     index: jax.Array
@@ -59,6 +61,7 @@ class GridStructure:
     occupancy: jax.Array
     bbox_min: jax.Array
     bbox_max: jax.Array
+    background: jax.Array
     resolution: tuple[int, int, int] = (2, 2, 2)
     sh_degree: int = 0
     occ_factor: int = 1
@@ -79,7 +82,8 @@ class GridStructure:
 
 jax.tree_util.register_dataclass(
     GridStructure,
-    data_fields=["index", "coords", "neighbors", "occupancy", "bbox_min", "bbox_max"],
+    data_fields=["index", "coords", "neighbors", "occupancy", "bbox_min", "bbox_max",
+                 "background"],
     meta_fields=["resolution", "sh_degree", "occ_factor", "color_scale"],
 )
 
@@ -104,9 +108,13 @@ def _check_layout(resolution, bbox_min, bbox_max, sh_degree, occ_factor) -> None
         raise GridNerfError(None, f"occ_factor {occ_factor} is invalid", "use an integer >= 1")
 
 
+BLACK = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]], np.float32)  # backdrop: none
+
+
 def _build_structure(kept: np.ndarray, bbox_min, bbox_max, sh_degree: int, occ_factor: int,
-                     color_scale: float) -> GridStructure:
-    """Structure from a dense (Rx, Ry, Rz) bool mask of kept vertices (host side)."""
+                     color_scale: float, background=BLACK) -> GridStructure:
+    """Structure from a dense (Rx, Ry, Rz) bool mask of kept vertices (host side);
+    background: (2, 3) as GridStructure.background."""
     res = tuple(int(r) for r in kept.shape)
     coords = np.argwhere(kept).astype(np.int32)  # C order, matches index assignment below
     m = coords.shape[0]
@@ -122,7 +130,7 @@ def _build_structure(kept: np.ndarray, bbox_min, bbox_max, sh_degree: int, occ_f
         index=jnp.asarray(index), coords=jnp.asarray(coords), neighbors=jnp.asarray(neighbors),
         occupancy=jnp.asarray(_cells_to_blocks(_cells_with_kept_corner(kept), occ_factor)),
         bbox_min=jnp.asarray(bbox_min, jnp.float32), bbox_max=jnp.asarray(bbox_max, jnp.float32),
-        resolution=res, sh_degree=int(sh_degree), occ_factor=int(occ_factor),
+        background=jnp.asarray(background, jnp.float32).reshape(2, 3), resolution=res, sh_degree=int(sh_degree), occ_factor=int(occ_factor),
         color_scale=float(color_scale))
 
 
@@ -150,8 +158,9 @@ def _cells_to_blocks(cells, f: int, xp=np):
 
 def init_grid(resolution, bbox_min, bbox_max, sh_degree: int = 0, init_density: float = -4.0,
               init_log_gain=(0.0, 0.0, 0.0), key=None, color_scale: float = 1.0,
-              occ_factor: int = 1, init_rgb_noise: float = 0.0):
-    """Dense grid, every vertex occupied -> (structure, params).
+              occ_factor: int = 1, init_rgb_noise: float = 0.0, background=BLACK):
+    """Dense grid, every vertex occupied -> (structure, params); background: (2, 3) as
+    GridStructure.background (the default: black, nothing behind the grid).
 
     init_density is raw: -4 gives sigma = 0.018 per voxel, so a ray crossing 64 voxels keeps
     31% transmittance and every depth receives gradient. Colour starts at c_l = color_scale
@@ -161,7 +170,7 @@ def init_grid(resolution, bbox_min, bbox_max, sh_degree: int = 0, init_density: 
     resolution = tuple(int(r) for r in resolution)
     _check_layout(resolution, bbox_min, bbox_max, sh_degree, occ_factor)
     structure = _build_structure(np.ones(resolution, bool), bbox_min, bbox_max, sh_degree,
-                                 occ_factor, color_scale)
+                                 occ_factor, color_scale, background)
     m, n_sh = structure.n_rows, n_sh_coeffs(sh_degree)
     rgb = np.zeros((m, 3, n_sh), np.float32)
     rgb[:, :, 0] = RGB_UNIT_RAW
@@ -310,7 +319,7 @@ def prune(structure: GridStructure, params, keep_vertex_mask):
     kept = np.zeros(structure.resolution, bool)
     kept[tuple(coords[keep].T)] = True
     new = _build_structure(kept, structure.bbox_min, structure.bbox_max, structure.sh_degree,
-                           structure.occ_factor, structure.color_scale)
+                           structure.occ_factor, structure.color_scale, structure.background)
     rows = jnp.asarray(np.flatnonzero(keep))
     return new, jax.tree_util.tree_map(lambda a: a[rows], params)
 
@@ -403,7 +412,7 @@ def resample(structure: GridStructure, params, new_resolution, bbox_min=None, bb
     ix, iy, iz = axes_in
     kept = cells[np.ix_(*axes_c)] & ix[:, None, None] & iy[None, :, None] & iz[None, None, :]
     new = _build_structure(kept, lo, hi, structure.sh_degree, structure.occ_factor,
-                           structure.color_scale)
+                           structure.color_scale, structure.background)
     coords = np.asarray(new.coords)
     table = feature_table(structure, params)
     lookup = jax.jit(trilinear_index_space, static_argnames=("outside_empty",))
@@ -464,6 +473,7 @@ def to_state(structure: GridStructure, params) -> dict[str, np.ndarray]:
         "resolution": np.asarray(structure.resolution, np.int64), "meta": meta,
         "bbox": np.stack([np.asarray(structure.bbox_min), np.asarray(structure.bbox_max)]),
         "color_scale": np.asarray(structure.color_scale, np.float64),
+        "background": np.asarray(structure.background),
         **{f"param_{k}": np.asarray(v) for k, v in params.items()},
     }
 
@@ -475,7 +485,8 @@ def from_state(state: dict[str, np.ndarray]):
     kept[tuple(np.asarray(state["coords"]).T)] = True
     sh_degree, occ_factor = (int(v) for v in state["meta"])
     structure = _build_structure(kept, state["bbox"][0], state["bbox"][1], sh_degree,
-                                 occ_factor, float(state["color_scale"]))
+                                 occ_factor, float(state["color_scale"]),
+                                 state.get("background", BLACK))  # runs before the backdrop
     structure = dataclasses.replace(structure, occupancy=jnp.asarray(state["occupancy"]))
     params = {k[len("param_"):]: jnp.asarray(v) for k, v in state.items()
               if k.startswith("param_")}

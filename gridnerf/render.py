@@ -172,11 +172,26 @@ def render_rays(structure: GridStructure, params, origins, directions, near_t, f
     sigma, rgb_low, gain = gridlib.decode(structure, feats, unit_dirs[:, None, :])
     w, sums = composite(sigma, step, {"rgb_low": rgb_low, "gain": gain,
                                       "rgb_restored": rgb_low * gain, "depth": t})
+    acc = jnp.sum(w, axis=-1)
+    sums = composite_background(structure, sums, acc)
     scale = (jnp.asarray(structure.resolution, jnp.float32) - 1.0) / (
         structure.bbox_max - structure.bbox_min)
     speed = jnp.linalg.norm(directions * scale, axis=-1, keepdims=True)  # voxels per unit t
-    return {**sums, "acc": jnp.sum(w, axis=-1), "n_occupied": n_occupied, "weights": w,
+    return {**sums, "acc": acc, "n_occupied": n_occupied, "weights": w,
             "s_vox": (t - t[:, :1]) * speed, "step_vox": step}
+
+
+def composite_background(structure: GridStructure, sums: dict, acc) -> dict:
+    """Add the backdrop behind the grid: rgb_low += (1 - acc) b, rgb_restored += (1 - acc)
+    b g with (b, g) = structure.background; `gain` and `depth` are the grid's alone.
+
+    sums: rgb_low, rgb_restored (n, 3) (composite's sums); acc: (n,). With a grey backdrop
+    a ray that ends on nothing shows the capture's mean colour, so dark texture cannot be
+    rendered as transparency for free (grid.background)."""
+    rest = (1.0 - acc)[:, None]
+    low, gain = structure.background[0], structure.background[1]
+    return {**sums, "rgb_low": sums["rgb_low"] + rest * low,
+            "rgb_restored": sums["rgb_restored"] + rest * (low * gain)}
 
 
 def essential_samples(w: jax.Array, mass: float) -> jax.Array:
@@ -367,4 +382,8 @@ def render_rays_reference(structure: GridStructure, params, origins, directions,
             out["rgb_restored"][r] += w * c_low * gain
             out["depth"][r] += w * t
             out["acc"][r] += w
+    back = np.asarray(structure.background, np.float64)  # every ray, those missing the box too
+    rest = (1.0 - out["acc"])[:, None]
+    out["rgb_low"] += rest * back[0]
+    out["rgb_restored"] += rest * back[0] * back[1]
     return out

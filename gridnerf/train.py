@@ -194,14 +194,16 @@ def make_step(cfg: Config, tx, near_t: float, far_t: float, locus=None, scene_il
     return step
 
 
-def data_statistics(data: dataset.RayData, key, n_patches: int = 256) -> tuple[float, np.ndarray]:
-    """Mean target level and grey-world log gains (3,) of the training data (masked means)."""
+def data_statistics(data: dataset.RayData, key, n_patches: int = 256
+                    ) -> tuple[float, np.ndarray, np.ndarray]:
+    """Mean target level, grey-world log gains (3,) and mean colour (3,) of the training
+    data (masked means over n_patches random 8x8 patches)."""
     sample = jax.jit(partial(dataset.batch, n_patches=n_patches, patch=8))(data, key)
     y = np.asarray(sample["target"], np.float64).reshape(-1, 3)
     m = np.asarray(sample["mask"], np.float64).reshape(-1, 3)
     means = (y * m).sum(0) / np.maximum(m.sum(0), 1.0)
     gains = illuminant.gains_from_illuminant(illuminant.grey_world(y, m), floor=1e-6)
-    return float(max(means.mean(), 1e-12)), np.log(gains)
+    return float(max(means.mean(), 1e-12)), np.log(gains), means
 
 
 def _estimate_frames(data: dataset.RayData, scene) -> tuple[list, list]:
@@ -443,15 +445,36 @@ def train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool = Fals
         return _train(scene_dir, run, cfg, overwrite_config, session)
 
 
+def initial_grid(data: dataset.RayData, scene, cfg: Config, key, scene_ill=None):
+    """(structure, params) a run starts from: the dense first-stage grid on the scene's box,
+    colour at the data's mean level, gains at the L_ca target (scene_ill (3,), else the
+    data's grey world; ones without gains), the backdrop of grid.background."""
+    bbox_min, bbox_max, near_t, _ = dataset.grid_box(scene)
+    if scene.forward_facing and cfg.grid.ndc_xy == "frustums":
+        bbox_min[:2], bbox_max[:2] = dataset.frustum_xy(scene, scene.train_idx, bbox_min,
+                                                        bbox_max, near_t)
+    color_scale, log_gain, mean_colour = data_statistics(data, jax.random.fold_in(key, 1))
+    if scene_ill is not None:  # start the gains at the target
+        log_gain = np.log(illuminant.gains_from_illuminant(scene_ill, floor=1e-6))
+    if not cfg.loss.use_gains:
+        log_gain = np.zeros(3)
+    background = grid.BLACK
+    if cfg.grid.background == "mean":  # the capture's mean colour, at the gains' start
+        background = np.stack([mean_colour, np.exp(log_gain)])
+    return grid.init_grid(
+        resolve_resolution(cfg.grid.resolutions[0], bbox_min, bbox_max, data.image_hw,
+                           scene.forward_facing),
+        bbox_min, bbox_max, sh_degree=cfg.grid.sh_degree, init_density=cfg.grid.init_density,
+        init_log_gain=log_gain, color_scale=color_scale, background=background,
+        key=jax.random.fold_in(key, 2))
+
+
 def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
            session: runfolder.Session) -> dict:
     cfg = runfolder.resolve_config(run, cfg, overwrite_config)
     scene = runfolder.open_scene(scene_dir, run)
     data = dataset.training_data(scene, cfg.data)
-    bbox_min, bbox_max, near_t, far_t = dataset.grid_box(scene)
-    if scene.forward_facing and cfg.grid.ndc_xy == "frustums":
-        bbox_min[:2], bbox_max[:2] = dataset.frustum_xy(scene, scene.train_idx, bbox_min,
-                                                        bbox_max, near_t)
+    near_t, far_t = dataset.grid_box(scene)[2:]
     data, colour = colour_inputs(data, scene, cfg)
     scene_ill = None if "scene_ill" not in colour else np.asarray(colour["scene_ill"])
     if scene_ill is not None:
@@ -475,20 +498,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
             return json.loads((run / "summary.json").read_text())
         print(f"resuming {run} at stage {stage}, step {start}")
     else:
-        color_scale, log_gain = data_statistics(data, jax.random.fold_in(key, 1))
-        if scene_ill is not None:  # start the gains at the target
-            log_gain = np.log(illuminant.gains_from_illuminant(scene_ill, floor=1e-6))
-        structure, params = grid.init_grid(
-            resolve_resolution(cfg.grid.resolutions[0], bbox_min, bbox_max, data.image_hw,
-                               scene.forward_facing),
-            bbox_min,
-            bbox_max,
-            sh_degree=cfg.grid.sh_degree,
-            init_density=cfg.grid.init_density,
-            init_log_gain=log_gain if cfg.loss.use_gains else np.zeros(3),
-            color_scale=color_scale,
-            key=jax.random.fold_in(key, 2),
-        )
+        structure, params = initial_grid(data, scene, cfg, key, scene_ill)
         stage, start, elapsed, opt_leaves = 0, 0, 0.0, []
 
     # Training really starts: save the config, drop metrics logged after the checkpoint.

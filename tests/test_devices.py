@@ -20,7 +20,7 @@ _SCRIPT = textwrap.dedent("""
     scene = load_scene(scene_dir, near_far=(near, far))
     data = dataset.build(scene, scene.train_idx, True, 1, "raw")
     lo, hi, near_t, far_t = dataset.grid_box(scene)
-    color_scale, log_gain = train.data_statistics(data, jax.random.PRNGKey(1))
+    color_scale, log_gain, _ = train.data_statistics(data, jax.random.PRNGKey(1))
     structure, params = grid.init_grid((16, 16, 8), lo, hi, init_log_gain=log_gain,
                                        color_scale=color_scale)
     tx = train.make_optimizer(cfg, 5)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -214,12 +216,18 @@ def test_device_occupancy_matches_the_host_reference(occ_factor):
 def test_state_round_trip():
     structure, params = make((5, 4, 3), sh_degree=1, color_scale=0.004, occ_factor=2)
     structure, params = grid.prune(structure, params, np.arange(structure.n_rows) % 3 > 0)
+    structure = dataclasses.replace(structure, background=jnp.asarray(
+        [[0.01, 0.02, 0.005], [1.5, 1.0, 2.5]], jnp.float32))  # a grey backdrop
     back, bp = grid.from_state(grid.to_state(structure, params))
     assert (back.resolution, back.sh_degree, back.occ_factor, back.color_scale) == (
         structure.resolution, 1, 2, 0.004)
     for a, b in zip(jax.tree_util.tree_leaves((structure, params)),
                     jax.tree_util.tree_leaves((back, bp)), strict=True):
         np.testing.assert_array_equal(a, b)
+    old = {k: v for k, v in grid.to_state(structure, params).items() if k != "background"}
+    np.testing.assert_array_equal(grid.from_state(old)[0].background, grid.BLACK)  # old runs
+    up, _ = grid.upsample(structure, params, (9, 7, 5))
+    np.testing.assert_array_equal(up.background, structure.background)  # stages keep it
 
 
 def test_decode_activations_and_ranges():

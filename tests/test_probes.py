@@ -114,6 +114,18 @@ def test_stage_counts_are_checked_after_all_overrides():
     assert cfgmod.from_dict(cfgmod.to_dict(cfg)) == cfg
 
 
+def test_a_saved_config_without_a_newer_field_reads_as_it_was_trained():
+    """Runs saved before grid.background existed composited over black; their config must
+    say so (not the new default), so that a cached run is never mistaken for a new one."""
+    from gridnerf import config as cfgmod
+
+    saved = cfgmod.to_dict(cfgmod.preset("default"))
+    assert saved["grid"]["background"] == "mean"
+    del saved["grid"]["background"]
+    assert cfgmod.from_dict(saved).grid.background == "black"
+    assert cfgmod.from_dict(saved) != cfgmod.preset("default")
+
+
 def test_bad_saved_config_names_the_file(tmp_path):
     from gridnerf import config as cfgmod
     from gridnerf.errors import ConfigError

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -297,3 +299,27 @@ def test_carving_rescue_gives_back_a_spread_wall_but_not_fog_before_a_surface():
                                           jnp.asarray(keep | (rescue > 0)))
     w_all = render._sample_weights(structure, params, o, d, 0.0, 5.0, cfg)[0]
     assert np.all(np.asarray(w_kept.sum(-1))[:16] > 0.8 * np.asarray(w_all.sum(-1))[:16])
+
+
+def test_backdrop_fills_what_the_grid_leaves_and_matches_the_reference():
+    """rgb_low(backdrop) = rgb_low(black) + (1 - acc) b, restored with the backdrop's gains
+    g; rays that miss the box show b itself; gain, depth and acc are the grid's alone."""
+    structure, params = random_scene(0, seed=6)
+    o, d = random_rays(seed=7)
+    o[0], d[0] = [5.0, 5.0, -2.0], [0.0, 0.0, 1.0]  # misses the box
+    black = render_np(structure, params, o, d, 0.2, 3.0, CFG)
+    b, g = np.array([0.02, 0.05, 0.01], np.float32), np.array([2.0, 1.0, 3.0], np.float32)
+    grey = dataclasses.replace(structure, background=jnp.asarray(np.stack([b, g])))
+    out = render_np(grey, params, o, d, 0.2, 3.0, CFG)
+    rest = 1.0 - black["acc"][:, None]
+    assert rest.min() < 0.5 and rest[0] == 1.0
+    np.testing.assert_allclose(out["rgb_low"], black["rgb_low"] + rest * b, rtol=1e-5, atol=1e-8)
+    np.testing.assert_allclose(out["rgb_restored"], black["rgb_restored"] + rest * b * g,
+                               rtol=1e-5, atol=1e-8)
+    np.testing.assert_allclose(out["rgb_low"][0], b, rtol=1e-6)
+    for k in ("gain", "depth", "acc"):
+        np.testing.assert_array_equal(out[k], black[k])
+    ref = render.render_rays_reference(grey, params, o, d, 0.2, 3.0, CFG)
+    for k in KEYS:
+        np.testing.assert_allclose(out[k], ref[k], atol=2e-5 * max(1.0, np.abs(ref[k]).max()),
+                                   err_msg=k)
