@@ -130,8 +130,8 @@ def _build_structure(kept: np.ndarray, bbox_min, bbox_max, sh_degree: int, occ_f
         index=jnp.asarray(index), coords=jnp.asarray(coords), neighbors=jnp.asarray(neighbors),
         occupancy=jnp.asarray(_cells_to_blocks(_cells_with_kept_corner(kept), occ_factor)),
         bbox_min=jnp.asarray(bbox_min, jnp.float32), bbox_max=jnp.asarray(bbox_max, jnp.float32),
-        background=jnp.asarray(background, jnp.float32).reshape(2, 3), resolution=res, sh_degree=int(sh_degree), occ_factor=int(occ_factor),
-        color_scale=float(color_scale))
+        background=jnp.asarray(background, jnp.float32).reshape(2, 3), resolution=res,
+        sh_degree=int(sh_degree), occ_factor=int(occ_factor), color_scale=float(color_scale))
 
 
 def _cells_with_kept_corner(kept, xp=np):
