@@ -402,7 +402,27 @@ def _preset_processed() -> Config:
     return replace(o, data=replace(o.data, target="processed"))
 
 
+def _preset_fast() -> Config:
+    """Speed end of the speed-vs-error study: the default's first two stages only
+    (48x27x24 -> 96x54x48, 600 + 600 steps)."""
+    c = Config()
+    return replace(c, grid=replace(c.grid, resolutions=((48, 0, 24), (96, 0, 48))),
+                   train=replace(c.train, steps_per_stage=(600, 600)))
+
+
+def _preset_fine() -> Config:
+    """Accuracy end of the speed-vs-error study: the default's three stages, then a fourth
+    at 288x162x96 (~1.6 binned training pixels per voxel across x) for 600 steps, up to 96
+    occupied samples per ray."""
+    c = Config()
+    return replace(c, grid=replace(c.grid, resolutions=(*c.grid.resolutions, (288, 0, 96))),
+                   render=replace(c.render, max_samples=96),
+                   train=replace(c.train, steps_per_stage=(*c.train.steps_per_stage, 600)))
+
+
 PRESETS: dict[str, Any] = {
+    "fast": _preset_fast,
+    "fine": _preset_fine,
     "oracle": _preset_oracle,
     "processed": _preset_processed,
     "default": Config,
