@@ -57,11 +57,14 @@ eval: $(STAMP)
 render: $(STAMP)
 	$(RUN)gridnerf render "$(RUN_DIR)" --path spiral
 
+# every scene unless SCENE is given on the command line (make ablate SCENE=bucket)
+ABLATE_SCENES = $(if $(filter command line,$(origin SCENE)),$(SCENE),all)
 ablate: $(STAMP)
-	$(RUN)python experiments/ablate.py --scene "$(SCENE)"
+	$(RUN)python experiments/ablate.py --scenes "$(ABLATE_SCENES)"
 
+# QUICK=1: the whole report small (160x90 scenes, shrunk presets) under reports/quick/
 report: $(STAMP)
-	$(RUN)python experiments/report.py
+	$(RUN)python experiments/report.py $(if $(QUICK),--quick)
 
 recon: $(STAMP)
 	$(RUN)python experiments/recon.py --scenes all --oracle heldout

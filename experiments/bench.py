@@ -320,8 +320,12 @@ WORKERS = {"step": worker_step, "render": worker_render, "psnr": worker_psnr}
 
 
 class Bench:
-    def __init__(self, out: Path, cfg: dict, fresh: bool, quick: bool, scene: str):
+    def __init__(self, out: Path, cfg: dict, fresh: bool, quick: bool, scene: str,
+                 folder: Path | None = None):
+        """folder: an existing scene folder to train on at any size (experiments/speed.py);
+        None: the built-in `scene`, simulated at the sizes of cfg."""
         self.out, self.cfg, self.fresh, self.quick, self.scene = out, cfg, fresh, quick, scene
+        self.folder = folder
         self.items: dict[str, dict] = {}
 
     def _path(self, name: str, spec: dict) -> Path:
@@ -366,6 +370,8 @@ class Bench:
     # -- scenes and training runs ------------------------------------------------------
 
     def scene_dir(self, size) -> Path:
+        if self.folder is not None:
+            return self.folder
         w, h = size
         base = self.out / "scenes" if self.quick else REPO / "data" / "sim"
         name = self.scene if (w, h) == (480, 270) and not self.quick else f"{self.scene}_{w}x{h}"
@@ -373,6 +379,8 @@ class Bench:
 
     def simulate(self, tag: str, size) -> Path:
         folder = self.scene_dir(size)
+        if self.folder is not None:
+            return folder
         spec = {"scene": self.scene, "size": list(size), "frames": self.cfg["frames"],
                 "folder": str(folder)}
 

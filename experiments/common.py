@@ -11,12 +11,35 @@ from gridnerf.eval_run import evaluate_run
 from gridnerf.sim import HELDOUT, MIXED, SCENES, simulate_scene
 from gridnerf.train import train
 
+# Quick mode (`make report QUICK=1`): every study on 160x90, 12-frame versions of its
+# scenes (data/quick/<scene>) with each preset shrunk by quick_sets, in its own run root
+# (runs_quick/) and report folder: minutes instead of hours, to check that every figure
+# comes out. Its numbers say nothing about the method.
+QUICK_SIZE = {"width": 160, "height": 90, "n_frames": 12}
 
-def scene_dir(scene: str) -> Path:
-    """A built-in, held-out or mixed-light scene name (simulated on first use) or a folder."""
+
+def scene_dir(scene: str, quick: bool = False) -> Path:
+    """A built-in, held-out or mixed-light scene name (simulated on first use; the small
+    version under data/quick with `quick`) or a folder."""
     if scene in SCENES or scene in HELDOUT or scene in MIXED:
+        if quick:
+            return simulate_scene(scene, Path("data/quick") / scene, **QUICK_SIZE)
         return simulate_scene(scene, Path("data/sim") / scene)
     return Path(scene)
+
+
+def quick_sets(cfg: cfgmod.Config) -> list[str]:
+    """Overrides that shrink a preset for quick mode and keep its shape: every stage's
+    resolution / 4 (at least 8; y stays from the aspect), steps / 20 (at least 10), 8
+    patches a batch, up to 24 samples a ray, carving at 1 % (a few coarse steps leave fog,
+    which the default threshold would cut into the content)."""
+    res = [[max(8, r[0] // 4), 0 if r[1] == 0 else max(8, r[1] // 4), max(8, r[2] // 4)]
+           for r in cfg.grid.resolutions]
+    steps = [max(10, s // 20) for s in cfg.train.steps_per_stage]
+    return [f"grid.resolutions={json.dumps(res).replace(' ', '')}",
+            f"train.steps_per_stage={json.dumps(steps).replace(' ', '')}",
+            "train.batch_patches=8", "render.max_samples=24", "grid.prune_threshold=0.01",
+            "train.log_every=10"]
 
 
 def simulated_folders(spec: str):
@@ -31,11 +54,15 @@ def simulated_folders(spec: str):
         yield name, folder
 
 
-def run_variant(scene: str, name: str, preset: str, overrides: list[str]) -> dict:
-    """Train (resuming if possible) and evaluate runs/<scene>/<name>; returns eval metrics."""
-    sdir = scene_dir(scene)
-    run = Path("runs") / sdir.name / name
+def run_variant(scene: str, name: str, preset: str, overrides: list[str],
+                runs: Path = Path("runs"), quick: bool = False) -> dict:
+    """Train (resuming if possible) and evaluate <runs>/<scene>/<name>; returns eval metrics.
+    quick: the small scene and quick_sets on top of the preset and overrides."""
+    sdir = scene_dir(scene, quick)
+    run = Path(runs) / sdir.name / name
     cfg = cfgmod.override(cfgmod.preset(preset), overrides)
+    if quick:
+        cfg = cfgmod.override(cfg, quick_sets(cfg))
     if (run / "config.json").exists() and (cfgmod.effective(cfgmod.load(run / "config.json"))
                                            != cfgmod.effective(cfg)):
         raise SystemExit(f"{run} holds a different config; delete it to re-run this variant")

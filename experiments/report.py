@@ -1,15 +1,22 @@
 """The per-scene report in the paper's layout, from every evaluated run (issue 9).
 
-Reads runs/<scene>/<variant>/eval/metrics.json (nothing is trained unless --run-missing
-asks) and writes reports/report.md and reports/report.json: for each method row and
-each scene PSNR / SSIM / CIEDE2000, raw and aligned (per-channel affine fit in linear
-space first), then the mean over the nine built-in scenes and, separately, over the
-held-out ones (no default was tuned on those). Rows whose runs are missing say so; the
-paper's CNN rows need pretrained weights that are not available offline and are n/a.
-The multi-view consistency table (experiments/consistency.py) is appended when
-reports/consistency.json exists.
+Reads <runs>/<scene>/<variant>/eval/metrics.json and writes <out>.md and <out>.json: for
+each method row and each scene PSNR / SSIM / CIEDE2000, raw and aligned (per-channel
+affine fit in linear space first), then the mean over the nine built-in scenes and,
+separately, over the held-out ones (no default was tuned on those). Rows whose runs are
+missing say so; the paper's CNN rows need pretrained weights that are not available
+offline and are n/a. The studies' tables are appended when their files exist beside the
+report (ablation, sweep, speed, consistency: experiments/<study>.py), with their plots,
+and a figure of one test view per scene side by side (dark input, each method,
+reference) is written as <out>_views.png.
+
+Nothing is trained unless asked: --run-missing a,b|all trains every row's run of those
+scenes first. --quick builds the whole report small (160x90 scenes, presets shrunk by
+common.quick_sets, runs under runs_quick/, report under reports/quick/): every run and
+study it needs, in minutes, to check that every figure comes out.
 
     python experiments/report.py [--runs runs] [--out reports/report] [--run-missing a,b|all]
+    python experiments/report.py --quick
 """
 
 from __future__ import annotations
@@ -19,7 +26,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from common import fmt, markdown_table, run_variant, write_report
+from common import fmt, markdown_table, run_variant, scene_dir, write_report
 
 from gridnerf.sim import HELDOUT, SCENES
 
@@ -38,13 +45,22 @@ ROWS = [
      "baseline_binned_matched"),
     ("dark_frame", "one dark frame: demosaic + grey world + gamma", "default",
      "baseline_dark_frame"),
+    ("llnerf", "LLNeRF-style: lighting / reflectance decomposition and its enhancement "
+     "losses on the grid, trained on dark sRGB frames", "llnerf", "llnerf"),
     ("oracle", "oracle: the grid trained on the clean references (upper bound)", "oracle",
      "gridnerf"),
 ]
 NOT_AVAILABLE = {
-    "llnerf": "LLNeRF-style decomposition on the grid: not built yet",
     "cnn": "SID, RED, ABF, DNF: need pretrained weights, not available offline",
 }
+# run folder -> preset of the rows' runs (--run-missing, --quick)
+RUN_PRESETS = {"default": "default", "nogain": "nogain", "processed": "processed",
+               "llnerf": "llnerf", "oracle": "oracle"}
+# the studies appended to the report, in order: (file stem, title, experiments/ script)
+STUDIES = [("ablation", "Ablation", "ablate"), ("sweep", "Darkness sweep", "sweep"),
+           ("speed", "Speed against error", "speed"),
+           ("consistency", "Multi-view consistency", "consistency")]
+QUICK_SCENES = ["bucket", "held_arc_brick"]
 METRICS = ("psnr", "ssim", "delta_e", "psnr_aligned", "ssim_aligned", "delta_e_aligned")
 
 
@@ -77,7 +93,9 @@ def _cell(m: dict | None, suffix: str = "") -> str:
             f"{fmt(m['delta_e' + suffix])}")
 
 
-def markdown(record: dict, scenes: list[str], consistency: dict | None) -> str:
+def markdown(record: dict, scenes: list[str], folder: Path, views: str | None) -> str:
+    """The report: rows table, aligned table, then each study found in `folder` (its .md
+    without its title, its .png linked) and the views figure (`views`, a file name)."""
     rows_done = [r for r in record if record[r]["scenes"]]
     header = ["scene", *rows_done]
     lines = [[s, *[_cell(record[r]["scenes"].get(s)) for r in rows_done]] for s in scenes
@@ -98,36 +116,151 @@ def markdown(record: dict, scenes: list[str], consistency: dict | None) -> str:
             + "\n## Test views\n\n" + markdown_table(header, lines)
             + "\n\n## Aligned (per-channel affine fit in linear space first)\n\n"
             + markdown_table(header, aligned) + "\n")
-    if consistency:
-        text += ("\n## Multi-view consistency\n\n(reports/consistency.md: mean absolute sRGB "
-                 "difference, 0-255, between a test view and its neighbouring frame at the "
-                 "grid's surface points)\n\n")
-        cols = sorted({k for v in consistency.values() for k in v})
-        text += markdown_table(["scene", *cols], [
-            [s, *[fmt(255 * v[c]["mae"]) if c in v else "-" for c in cols]]
-            for s, v in consistency.items()]) + "\n"
+    if views:
+        text += (f"\n## One test view per scene\n\n![test views]({views})\n\nColumns: "
+                 + ", ".join(label for _, label in FIGURE_COLUMNS) + ".\n")
+    for stem, title, script in STUDIES:
+        md = folder / f"{stem}.md"
+        if not md.is_file():
+            text += f"\n## {title}\n\nNot built yet: `python experiments/{script}.py`.\n"
+            continue
+        body = md.read_text().split("\n", 1)[1] if md.read_text().startswith("# ") \
+            else md.read_text()
+        text += f"\n## {title}\n" + body.rstrip("\n") + "\n"
+        if (folder / f"{stem}.png").is_file():
+            text += f"\n![{title}]({stem}.png)\n"
     return text
+
+
+# (source, label) of the views figure's columns; source: an eval image of a run
+# ("<variant>:<file suffix>"), "render:<variant>:<output>" rendered now, or the 2D rows
+FIGURE_COLUMNS = [
+    ("default:baseline", "dark frame + grey world + exposure"),
+    ("denoised", "2D: + non-local means"),
+    ("render:nogain:global_grey_world", "RawNeRF + ISP"),
+    ("processed:pred", "2D + NeRF"),
+    ("llnerf:pred", "LLNeRF-style"),
+    ("default:pred", "ours"),
+    ("oracle:pred", "oracle"),
+    ("default:gt", "reference"),
+]
+
+
+def figure(runs: Path, scenes: list[str], path: Path, quick: bool = False,
+           tile: tuple[int, int] = (192, 108)) -> bool:
+    """One test view per scene (its middle test frame), FIGURE_COLUMNS side by side, tiles
+    of `tile` (w, h) pixels; missing runs leave a grey tile. False when no scene has one."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from skimage.transform import resize
+
+    from gridnerf import baseline, color, eval_run, image_io
+
+    rows = []
+    for scene in scenes:
+        ours = runs / scene / "default"
+        if not (ours / "eval" / "metrics.json").is_file():
+            continue
+        views = json.loads((ours / "eval" / "metrics.json").read_text()).get("test_views", [])
+        if not views:
+            continue
+        name = views[len(views) // 2]
+        tiles = []
+        for source, _ in FIGURE_COLUMNS:
+            img = None
+            parts = source.split(":")
+            if parts[0] == "denoised":
+                sc = eval_run.load_run(ours)[1]
+                i = sc.names.index(name)
+                img = color.srgb_encode(np.clip(baseline.process_denoised_frame(
+                    sc.raw_normalized(i), sc.cfa, sc.xyz_to_cam), 0, 1))
+            elif parts[0] == "render":
+                run = runs / scene / parts[1]
+                if (run / "summary.json").is_file():
+                    cfg, sc, structure, params, _ = eval_run.load_run(run)
+                    i, cams = sc.names.index(name), sc.cameras
+                    intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]])
+                    out = eval_run.render_view(structure, params, sc, cfg, cams.c2w[i], intr,
+                                               cams.height, cams.width)
+                    img = eval_run.outputs(structure, params, sc, cfg)[parts[2]].show(out)[1]
+            else:
+                png = runs / scene / parts[0] / "eval" / f"{name}_{parts[1]}.png"
+                if png.is_file():
+                    img = image_io.read_png(png)
+            tiles.append(np.full((tile[1], tile[0], 3), 0.5) if img is None else
+                         resize(np.clip(np.asarray(img, np.float64), 0, 1), (tile[1], tile[0]),
+                                anti_aliasing=True))
+        rows.append((scene, name, tiles))
+    if not rows:
+        return False
+    n_cols = len(FIGURE_COLUMNS)
+    fig, axes = plt.subplots(len(rows), n_cols, figsize=(1.6 * n_cols, 1.0 * len(rows) + 0.4),
+                             squeeze=False)
+    for r, (scene, name, tiles) in enumerate(rows):
+        for c, img in enumerate(tiles):
+            ax = axes[r][c]
+            ax.imshow(img)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(FIGURE_COLUMNS[c][1], fontsize=6)
+            if c == 0:
+                ax.set_ylabel(f"{scene}\n{name}", fontsize=6)
+    fig.tight_layout(pad=0.2)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return True
+
+
+def build_quick(runs: Path, folder: Path) -> None:
+    """Every run and study of the report, small (module docstring)."""
+    import ablate
+    import speed
+    import sweep
+
+    for scene in QUICK_SCENES:
+        for variant, preset in RUN_PRESETS.items():
+            run_variant(scene, variant, preset, [], runs, quick=True)
+    ablate.build(QUICK_SCENES, runs, folder / "ablation", quick=True)
+    sweep.build(QUICK_SCENES[:1], list(sweep.METHODS), [0.3, 1.0], runs, folder / "sweep",
+                quick=True)
+    speed.build(QUICK_SCENES[:1], ["fast", "default"], 200, runs, folder / "speed",
+                quick=True)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--runs", default="runs")
-    ap.add_argument("--out", default="reports/report")
+    ap.add_argument("--runs", default=None, help="run root (default runs, quick: runs_quick)")
+    ap.add_argument("--out", default=None,
+                    help="report path stem (default reports/report, quick: reports/quick/report)")
     ap.add_argument("--run-missing", default="",
-                    help="scenes whose default run is trained first: a,b,c or all")
+                    help="scenes whose row runs are trained first: a,b,c or all")
+    ap.add_argument("--quick", action="store_true", help="the whole report, small, in minutes")
+    ap.add_argument("--figure-scenes", default="bucket,box,held_arc_brick,held_deep_hall")
     args = ap.parse_args()
+    runs = Path(args.runs or ("runs_quick" if args.quick else "runs"))
+    out = Path(args.out or ("reports/quick/report" if args.quick else "reports/report"))
     scenes = [*SCENES, *HELDOUT]
+    if args.quick:
+        build_quick(runs, out.parent)
+        for scene in QUICK_SCENES:  # the quick runs live under the small scenes' names
+            scene_dir(scene, quick=True)
     todo = scenes if args.run_missing == "all" else [s for s in args.run_missing.split(",") if s]
     for scene in todo:
-        run_variant(scene, "default", "default", [])
-    record = assemble(Path(args.runs), scenes)
+        for variant, preset in RUN_PRESETS.items():
+            run_variant(scene, variant, preset, [], runs)
+    record = assemble(runs, scenes)
     if not any(r["scenes"] for r in record.values()):
-        raise SystemExit(f"no evaluated runs under {args.runs}/: run `make train SCENE=<name>` "
+        raise SystemExit(f"no evaluated runs under {runs}/: run `make train SCENE=<name>` "
                          "or `make recon` first")
-    cons_path = Path("reports/consistency.json")
-    consistency = json.loads(cons_path.read_text()) if cons_path.is_file() else None
-    text = markdown(record, scenes, consistency)
-    write_report(args.out, text, record)
+    views = out.parent / f"{out.name}_views.png"
+    fig_scenes = QUICK_SCENES if args.quick else args.figure_scenes.split(",")
+    has_views = figure(runs, fig_scenes, views)
+    text = markdown(record, scenes, out.parent, views.name if has_views else None)
+    write_report(out, text, record)
     print(text)
 
 

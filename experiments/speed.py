@@ -1,0 +1,132 @@
+"""Speed against error: test PSNR against training wall time for presets fast -> fine.
+
+For each scene and preset in PRESETS, one `gridnerf train` process checkpoints every
+`--every` steps and each checkpoint is scored on the test views as `gridnerf eval` scores a
+run: the benchmark's own machinery (experiments/bench.py: Bench.train with snapshots, the
+"psnr" worker), so a point's time is the checkpoint file's time since the process started
+(imports, bounds, compiles and carving included). The curves run alone on the machine only
+when nothing else uses the CPU: the load average is kept with every item. Cached per item
+in <runs>/speed/<preset>/cache. Writes <out>.md (time-to-quality table), <out>.json and
+<out>.png (one curve per preset, one panel per scene).
+
+    python experiments/speed.py [--scenes bucket] [--presets fast,default,fine] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+from common import fmt, markdown_table, quick_sets, scene_dir, write_report
+
+import bench
+from gridnerf import config as cfgmod
+
+PRESETS = ("fast", "default", "fine")
+
+
+def curve(scene: str, preset: str, runs: Path, every: int, quick: bool) -> dict:
+    """{"points": [{"wall_s", "step", "stage", "psnr"}], "train": the training item}."""
+    folder = scene_dir(scene, quick)
+    sets = quick_sets(cfgmod.preset(preset)) if quick else []
+    meta = json.loads((folder / "sim.json").read_text()) if (folder / "sim.json").is_file() \
+        else {"width": 0, "height": 0}
+    cfg = {**bench.FULL, "preset": preset, "sets": sets, "snapshot_every": every, "jobs": 1}
+    b = bench.Bench(Path(runs).resolve() / "speed" / preset, cfg, fresh=False, quick=False,
+                    scene=folder.name, folder=folder.resolve())
+    run = b.train("small", (meta["width"], meta["height"]), snapshots=True, need_run=True)
+    spec = {"run": run["run"], "run_id": run["id"],
+            "snapshots": [s["dir"] for s in run["snapshots"]]}
+    psnr = b.item("psnr_curve", spec, lambda: bench.run_worker("psnr", spec,
+                                                               b.log("psnr_curve")))
+    points = [{"wall_s": snap["wall_s"], "step": s["step"], "stage": s["stage"],
+               "psnr": s["psnr"]} for s, snap in zip(psnr["scores"], run["snapshots"],
+                                                     strict=True)]
+    return {"points": points, "train_wall_s": run["wall_s"], "train_seconds":
+            run["train_seconds"], "final_resolution": run["final_resolution"],
+            "occupied_fraction": run["occupied_fraction"],
+            "load_average": run["machine"].get("load_average")}
+
+
+def time_to(points: list[dict], psnr: float) -> float | None:
+    """Wall seconds of the first checkpoint at or above `psnr` (None: never)."""
+    return next((p["wall_s"] for p in points if p["psnr"] >= psnr), None)
+
+
+def markdown(record: dict) -> str:
+    rows = []
+    for scene, per_preset in record.items():
+        best = max(c["points"][-1]["psnr"] for c in per_preset.values())
+        for preset, c in per_preset.items():
+            final = c["points"][-1]
+            rows.append([scene, preset, "x".join(map(str, c["final_resolution"])),
+                         fmt(final["psnr"]), fmt(c["train_wall_s"], 0),
+                         fmt(time_to(c["points"], final["psnr"] - 0.5), 0),
+                         fmt(time_to(c["points"], best - 1.0), 0),
+                         fmt(100 * c["occupied_fraction"], 1)])
+    return ("# Speed against error\n\nTest PSNR of checkpoints against the training "
+            "process's wall time (2 cores). Time-to-quality: seconds to the first checkpoint "
+            "within 0.5 dB of the preset's own final PSNR, and within 1 dB of the best "
+            "preset's final PSNR on the scene ('n/a': never).\n\n"
+            + markdown_table(["scene", "preset", "final grid", "final PSNR", "wall s",
+                              "s to final - 0.5 dB", "s to best - 1 dB", "occupied %"], rows)
+            + "\n")
+
+
+def plot(record: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(record)
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.2), squeeze=False)
+    for ax, (scene, per_preset) in zip(axes[0], record.items(), strict=True):
+        for preset, c in per_preset.items():
+            ax.plot([p["wall_s"] for p in c["points"]], [p["psnr"] for p in c["points"]],
+                    marker=".", label=preset)
+        ax.set_title(scene)
+        ax.set_xlabel("training wall time (s)")
+        ax.set_ylabel("test PSNR (dB)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default="bucket")
+    ap.add_argument("--presets", default=",".join(PRESETS))
+    ap.add_argument("--every", type=int, default=200, help="steps between scored checkpoints")
+    ap.add_argument("--runs", default="runs")
+    ap.add_argument("--out", default="reports/speed")
+    ap.add_argument("--quick", action="store_true", help="small scenes, shrunk presets")
+    args = ap.parse_args()
+    print(build([s for s in args.scenes.split(",") if s],
+                [p for p in args.presets.split(",") if p], args.every, Path(args.runs),
+                args.out, args.quick))
+
+
+def build(scenes: list[str], presets: list[str], every: int, runs: Path, out,
+          quick: bool) -> str:
+    """Train and score what is missing, write <out>.md, .json and .png; returns the
+    markdown. quick: checkpoints every every / 20 steps (at least 5)."""
+    every = max(5, every // 20) if quick else every
+    if quick:  # inherited by the training processes: compile fast, time nothing
+        os.environ["XLA_FLAGS"] = (f"{os.environ.get('XLA_FLAGS', '')} "
+                                   f"{bench.QUICK_XLA_FLAGS}").strip()
+    record = {scene: {p: curve(scene, p, runs, every, quick) for p in presets}
+              for scene in scenes}
+    text = markdown(record)
+    write_report(out, text, {"quick": quick, "every": every, "results": record})
+    plot(record, Path(out).with_suffix(".png"))
+    return text
+
+
+if __name__ == "__main__":
+    main()

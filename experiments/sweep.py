@@ -1,0 +1,118 @@
+"""Darkness sweep (the paper's Fig. 6 protocol): train with the raw scaled by gamma.
+
+Bright-NeRF scales the raw after black-level removal, I_gamma = gamma * I_raw, so noise and
+signal shrink alike and only the photon budget seems to change; `data.exposure_ratio`
+does exactly that (gridnerf.dataset.build). For each scene and gamma in GAMMAS (and the
+extreme EXTREME) every method in METHODS is trained and scored on the test views; gamma
+1 is the method's ordinary run. Runs are cached in <runs>/<scene>/<method>_gamma<g>
+(gamma 1: <runs>/<scene>/<method>), so the sweep can be built in parts. Writes
+<out>.md, <out>.json and <out>.png (PSNR and CIEDE2000 against gamma, one line per method
+and scene).
+
+    python experiments/sweep.py [--scenes bucket] [--methods default,llnerf] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+from common import fmt, markdown_table, run_variant, write_report
+
+GAMMAS = (0.3, 0.4, 0.6, 0.8, 1.0, 1.2, 1.5, 1.8)  # the paper's sweep
+EXTREME = 0.1
+# method -> (preset, eval summary key of its shown output)
+METHODS = {"default": ("default", "gridnerf"), "llnerf": ("llnerf", "llnerf")}
+
+
+def variant(method: str, gamma: float) -> str:
+    """The run folder name of a method at gamma (gamma 1: the method's own run)."""
+    return method if gamma == 1.0 else f"{method}_gamma{gamma:g}"
+
+
+def sweep(scenes: list[str], methods: list[str], gammas: list[float], runs: Path,
+          quick: bool) -> dict:
+    """{method: {scene: {gamma: metrics}}} of the test views, training what is missing."""
+    record: dict = {}
+    for method in methods:
+        preset, key = METHODS[method]
+        for scene in scenes:
+            for g in gammas:
+                sets = [] if g == 1.0 else [f"data.exposure_ratio={g:g}"]
+                m = run_variant(scene, variant(method, g), preset, sets, runs, quick)
+                record.setdefault(method, {}).setdefault(scene, {})[f"{g:g}"] = {
+                    k: float(m["summary"][key][k]) for k in ("psnr", "ssim", "delta_e")}
+    return record
+
+
+def markdown(record: dict, gammas: list[float]) -> str:
+    lines = []
+    for method, per_scene in record.items():
+        for scene, by_gamma in per_scene.items():
+            lines.append([method, scene, *[
+                f"{fmt(by_gamma[f'{g:g}']['psnr'])} / {fmt(by_gamma[f'{g:g}']['delta_e'])}"
+                if f"{g:g}" in by_gamma else "-" for g in gammas]])
+    return ("# Darkness sweep\n\nRaw scaled by gamma after black-level removal (the paper's "
+            "protocol); each cell: test-view PSNR / CIEDE2000.\n\n"
+            + markdown_table(["method", "scene", *[f"gamma {g:g}" for g in gammas]], lines)
+            + "\n")
+
+
+def plot(record: dict, gammas: list[float], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    for method, per_scene in record.items():
+        for scene, by_gamma in per_scene.items():
+            gs = [g for g in gammas if f"{g:g}" in by_gamma]
+            for ax, metric in zip(axes, ("psnr", "delta_e"), strict=True):
+                ax.plot(gs, [by_gamma[f"{g:g}"][metric] for g in gs], marker="o",
+                        label=f"{method}, {scene}")
+    for ax, label in zip(axes, ("PSNR (dB)", "CIEDE2000"), strict=True):
+        ax.set_xscale("log")
+        ax.set_xlabel("gamma (raw scale)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default="bucket")
+    ap.add_argument("--methods", default="default,llnerf")
+    ap.add_argument("--gammas", default=",".join(f"{g:g}" for g in (EXTREME, *GAMMAS)))
+    ap.add_argument("--runs", default="runs")
+    ap.add_argument("--out", default="reports/sweep")
+    ap.add_argument("--quick", action="store_true", help="small scenes, shrunk presets")
+    args = ap.parse_args()
+    methods = [m for m in args.methods.split(",") if m]
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise SystemExit(f"unknown method {unknown[0]!r}: choose from {', '.join(METHODS)}")
+    gammas = sorted(float(g) for g in args.gammas.split(","))
+    if not all(np.isfinite(g) and g > 0 for g in gammas):
+        raise SystemExit("--gammas: positive numbers, e.g. 0.1,0.3,1")
+    print(build([s for s in args.scenes.split(",") if s], methods, gammas, Path(args.runs),
+                args.out, args.quick))
+
+
+def build(scenes: list[str], methods: list[str], gammas: list[float], runs: Path, out,
+          quick: bool) -> str:
+    """Train what is missing, write <out>.md, .json and .png; returns the markdown."""
+    record = sweep(scenes, methods, gammas, runs, quick)
+    text = markdown(record, gammas)
+    write_report(out, text, {"gammas": gammas, "quick": quick, "results": record})
+    plot(record, gammas, Path(out).with_suffix(".png"))
+    return text
+
+
+if __name__ == "__main__":
+    main()

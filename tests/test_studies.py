@@ -1,0 +1,87 @@
+"""The report's studies (experiments/ablate.py, sweep.py, speed.py): their tables, means
+and plots from given results, and how the report picks them up. No training here."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO / "experiments"))
+
+import ablate  # noqa: E402
+import speed  # noqa: E402
+import sweep  # noqa: E402
+
+
+def _m(psnr: float) -> dict:
+    return {"psnr": psnr, "ssim": 0.5, "delta_e": 10.0, "psnr_aligned": psnr + 1.0}
+
+
+def test_ablation_means_keep_nine_and_held_out_apart():
+    record = {
+        "bucket": {"no_cr": {"matrix": _m(12.0), "global_gain": _m(18.0)},
+                   "full_tv": {"matrix": _m(20.0)}},
+        "deer": {"no_cr": {"matrix": _m(14.0)}, "full_tv": {"matrix": _m(22.0)}},
+        "held_arc_brick": {"full_tv": {"matrix": _m(15.0)}},
+    }
+    nine = ablate.means(record, ablate.SCENES)
+    held = ablate.means(record, ablate.HELDOUT)
+    assert nine["full_tv"]["matrix"]["psnr"] == 21.0 and nine["full_tv"]["matrix"]["n"] == 2
+    assert nine["no_cr"]["global_gain"]["n"] == 1  # only where the output exists
+    assert held["full_tv"]["matrix"]["psnr"] == 15.0 and "no_cr" not in held
+    text = ablate.markdown(record, nine, held)
+    assert "**mean, held out**" in text and "global_gain" in text
+
+
+def test_sweep_table_and_plot(tmp_path):
+    record = {"default": {"bucket": {"0.3": _m(16.0) | {"delta_e": 14.0},
+                                     "1": _m(19.0) | {"delta_e": 11.0}}}}
+    text = sweep.markdown(record, [0.1, 0.3, 1.0])
+    assert "| default | bucket | - | 16.00 / 14.00 | 19.00 / 11.00 |" in text
+    sweep.plot(record, [0.1, 0.3, 1.0], tmp_path / "sweep.png")
+    assert (tmp_path / "sweep.png").stat().st_size > 1000
+    assert sweep.variant("default", 1.0) == "default"
+    assert sweep.variant("llnerf", 0.3) == "llnerf_gamma0.3"
+
+
+def test_speed_time_to_quality():
+    points = [{"wall_s": 10.0, "psnr": 15.0}, {"wall_s": 20.0, "psnr": 18.6},
+              {"wall_s": 30.0, "psnr": 19.0}]
+    assert speed.time_to(points, 18.5) == 20.0
+    assert speed.time_to(points, 19.5) is None
+    curve = {"points": points, "train_wall_s": 31.0, "final_resolution": [96, 54, 48],
+             "occupied_fraction": 0.25}
+    text = speed.markdown({"bucket": {"fast": curve,
+                                      "fine": {**curve, "points": [*points, {
+                                          "wall_s": 60.0, "psnr": 21.0}]}}})
+    # fast: within 0.5 dB of its own 19.0 at 20 s; never within 1 dB of the best (21.0)
+    assert "| bucket | fast | 96x54x48 | 19.00 | 31 | 20 | n/a | 25.0 |" in text
+    assert "| bucket | fine | 96x54x48 | 21.00 | 31 | 60 | 60 | 25.0 |" in text
+
+
+@pytest.mark.parametrize("with_png", [False, True])
+def test_report_appends_the_studies_it_finds(tmp_path, with_png):
+    run = tmp_path / "runs" / "bucket" / "default" / "eval"
+    run.mkdir(parents=True)
+    m = {"psnr": 20.0, "ssim": 0.5, "delta_e": 10.0, "psnr_aligned": 21.0,
+         "ssim_aligned": 0.6, "delta_e_aligned": 9.0}
+    (run / "metrics.json").write_text(json.dumps({"summary": {"gridnerf": m}}))
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "sweep.md").write_text("# Darkness sweep\n\nthe sweep table\n")
+    if with_png:
+        (out / "sweep.png").write_bytes(b"not checked")
+    proc = subprocess.run([sys.executable, str(REPO / "experiments" / "report.py"),
+                           "--runs", "runs", "--out", "out/report"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    text = (out / "report.md").read_text()
+    assert "## Darkness sweep\n\nthe sweep table" in text
+    assert ("![Darkness sweep](sweep.png)" in text) == with_png
+    assert "## Ablation\n\nNot built yet: `python experiments/ablation.py`" not in text
+    assert "Not built yet: `python experiments/ablate.py`" in text
