@@ -113,9 +113,11 @@ class DataConfig(_Section):
     binning: bool = True  # train on 2x2-binned camera RGB (True) or on the Bayer mosaic (False)
     downscale: int = 1  # extra box downscale of training images (1 = binned/raw resolution)
     eval_downscale: int = 1  # downscale of eval renders relative to the full frame / gt
-    # "raw" (the method), "reference" (the oracle, trained on gt/, clean) or "processed"
-    # (2D + NeRF: trained on each frame processed by the 2D pipeline with a denoiser)
-    target: Literal["raw", "reference", "processed"] = "raw"
+    # "raw" (the method), "reference" (the oracle, trained on gt/, clean), "processed"
+    # (2D + NeRF: trained on each frame processed by the 2D pipeline with a denoiser) or
+    # "dark_srgb" (the LLNeRF-style row: each frame as a camera saves a dark photo, binned,
+    # grey world, colour matrix, no brightening, sRGB curve; needs loss.method=llnerf)
+    target: Literal["raw", "reference", "processed", "dark_srgb"] = "raw"
     # black level of the data term: "file" (the frames' BlackLevel tags) or "fit": per-CFA
     # offsets fitted from the noise against the field before the last stage (gridnerf
     # .sensorfit), taken off the targets of the last stage. Experimental: against a render
@@ -277,10 +279,30 @@ class LossConfig(_Section):
     ca_target: Literal["batch", "scene", "map"] = "scene"
     ca_map_block: int = 16  # "map": block side in training pixels (noise averages down)
     ca_map_tau: float = 0.1  # "map": log-chromaticity step above which blocks differ in paint
+    # "brightnerf" (the method: gains, L_ca and smoothness on the raw) or "llnerf" (the
+    # LLNeRF-style comparison row, gridnerf.llnerf: the dark sRGB frames of
+    # data.target=dark_srgb, the colour split into lighting max_k c_k and reflectance, the
+    # lighting enhanced as alpha v^gamma with log alpha, log gamma in the gain field)
+    method: Literal["brightnerf", "llnerf"] = "brightnerf"
+    # llnerf's enhancement losses in Zero-DCE's form (gridnerf.llnerf). Weights and level
+    # from LLNeRF's released training script (github.com/onpix/LLNeRF scripts/trian.sh:
+    # exposure_loss_mult 0.1, fixed_exposure 0.55, gray_loss_mult 0.1, alpha_ltv and
+    # gamma_ltv_loss_mult 0.1 each; Zero-DCE's own E is 0.6)
+    w_exposure: float = 0.1  # exposure control: mean |pooled mean intensity - level|
+    exposure_level: float = 0.55  # E, the sRGB intensity the enhanced render is pushed to
+    exposure_pool: int = 4  # side of the pooled regions of a ray patch (divides patch_size)
+    w_color_constancy: float = 0.1  # sum over channel pairs of (mean_p - mean_q)^2
+    w_enhance_tv: float = 0.1  # grid TV of log alpha and log gamma (losses.tv_loss)
+    # llnerf's data term on the dark sRGB: "rawnerf" (RawNeRF's weighted L2, losses.data_loss,
+    # as LLNeRF's released script trains, data_loss_type 'rawnerf'; the grid's priors were
+    # weighed against this term) or "mse" (plain MSE: 6e-4 on the 160x90 test bucket against
+    # 0.6 weighted, so the TV, opacity and sparsity priors would dominate the fit)
+    llnerf_data: Literal["rawnerf", "mse"] = "rawnerf"
 
     def _check(self) -> None:
         for name in ("w_data", "w_ca", "w_smooth", "tv_density", "tv_rgb", "sparsity",
-                     "distortion", "opacity"):
+                     "distortion", "opacity", "w_exposure", "w_color_constancy",
+                     "w_enhance_tv"):
             self._range(name, 0.0)
         self._range("tv_fraction", 0.0, 1.0, lo_open=True)
         self._range("ca_illuminant_p", 1.0)
@@ -290,6 +312,8 @@ class LossConfig(_Section):
                       "needs loss.ca_target=scene or map)")
         self._require("ca_map_block", self.ca_map_block >= 2, "a whole number >= 2")
         self._range("ca_map_tau", 0.0, lo_open=True)
+        self._range("exposure_level", 0.0, 1.0, lo_open=True, hi_open=True)
+        self._require("exposure_pool", self.exposure_pool >= 1, "a whole number >= 1")
 
 
 @dataclass(frozen=True)
@@ -360,6 +384,20 @@ class Config:
                 None, f"train.steps_per_stage = {list(self.train.steps_per_stage)} has "
                 f"{n_steps} stage(s) but grid.resolutions has {n_res}",
                 "give one step count per resolution stage (set both together)")
+        llnerf = self.loss.method == "llnerf"
+        if (llnerf != (self.data.target == "dark_srgb") or llnerf and not self.loss.use_gains
+                or llnerf and not self.data.binning):
+            raise ConfigError(
+                None, f"loss.method = {self.loss.method!r} with data.target = "
+                f"{self.data.target!r}, loss.use_gains = {_dump(self.loss.use_gains)} and "
+                f"data.binning = {_dump(self.data.binning)}",
+                "use loss.method=llnerf with data.target=dark_srgb, loss.use_gains=true and "
+                "data.binning=true (the llnerf preset), or neither")
+        if llnerf and self.train.patch_size % self.loss.exposure_pool:
+            raise ConfigError(
+                None, f"loss.exposure_pool = {self.loss.exposure_pool} does not divide "
+                f"train.patch_size = {self.train.patch_size}",
+                "set loss.exposure_pool to a divisor of train.patch_size, e.g. 4 for 8")
         if self.data.black_offset == "fit" and (n_res < 2 or self.data.target != "raw"):
             raise ConfigError(None, "data.black_offset = 'fit' needs a field to fit against "
                               "(two or more stages) and the raw frames (data.target = raw)",
@@ -420,7 +458,18 @@ def _preset_fine() -> Config:
                    train=replace(c.train, steps_per_stage=(*c.train.steps_per_stage, 600)))
 
 
+def _preset_llnerf() -> Config:
+    """The LLNeRF-style row (Wang et al., ICCV 2023) on the default grid: trained on the
+    dark sRGB frames (data.target=dark_srgb), colour = reflectance x lighting, the lighting
+    enhanced per voxel (alpha v^gamma in the gain field) under LLNeRF's enhancement losses
+    (gridnerf.llnerf); shown as enhanced, with no auto exposure."""
+    c = Config()
+    return replace(c, data=replace(c.data, target="dark_srgb"),
+                   loss=replace(c.loss, method="llnerf"))
+
+
 PRESETS: dict[str, Any] = {
+    "llnerf": _preset_llnerf,
     "fast": _preset_fast,
     "fine": _preset_fine,
     "oracle": _preset_oracle,
@@ -433,7 +482,8 @@ PRESETS: dict[str, Any] = {
 
 
 def preset(name: str) -> Config:
-    """The named preset (`default`, `tiny`, `nogain`, `patch`, `oracle`, `processed`)."""
+    """The named preset (`default`, `tiny`, `nogain`, `patch`, `oracle`, `processed`,
+    `llnerf`, `fast`, `fine`)."""
     if name not in PRESETS:
         raise ConfigError(None, f"unknown preset {name!r}",
                           f"use --preset with one of {', '.join(sorted(PRESETS))}")
@@ -509,16 +559,22 @@ def diff(a: Config, b: Config) -> list[str]:
 # loss fields that only act through the gains: inert when loss.use_gains is false
 GAIN_FIELDS = ("w_ca", "w_smooth", "smooth_mode", "ca_stop_grad", "gain_map", "ca_illuminant",
                "ca_illuminant_p", "ca_locus", "ca_target", "ca_map_block", "ca_map_tau")
+# loss fields of loss.method = "llnerf" alone: inert in the other runs
+LLNERF_FIELDS = ("w_exposure", "exposure_level", "exposure_pool", "w_color_constancy",
+                 "w_enhance_tv", "llnerf_data")
 
 
 def effective(cfg: Config) -> Config:
     """cfg with the fields that cannot change its training reset to their defaults (the
     GAIN_FIELDS of a run without gains), so that two configs that train alike compare equal
-    (cached experiment runs, e.g. the oracle, survive a change of the colour defaults)."""
-    if cfg.loss.use_gains:
-        return cfg
+    (cached experiment runs, e.g. the oracle, survive a change of the colour defaults), and
+    the LLNERF_FIELDS of a run that is not loss.method = "llnerf"."""
     base = LossConfig()
-    return replace(cfg, loss=replace(cfg.loss, **{k: getattr(base, k) for k in GAIN_FIELDS}))
+    inert = (() if cfg.loss.use_gains else GAIN_FIELDS) + (
+        () if cfg.loss.method == "llnerf" else LLNERF_FIELDS)
+    if not inert:
+        return cfg
+    return replace(cfg, loss=replace(cfg.loss, **{k: getattr(base, k) for k in inert}))
 
 
 def get(cfg: Config, dotted: str) -> Any:

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gridnerf import baseline, image_io, raw, rays
+from gridnerf import baseline, image_io, llnerf, raw, rays
 from gridnerf.errors import SceneError
 from gridnerf.scene import Scene
 
@@ -65,9 +65,13 @@ def build(scene: Scene, frames: np.ndarray, binning: bool, downscale: int = 1,
     (rgb_linear) box-downscaled to the binned size, exposure 1, all valid; "processed":
     the "2D + NeRF" data, each training frame processed on its own by the 2D pipeline
     (baseline.process_denoised_frame: demosaic, grey world, colour matrix, auto exposure,
-    non-local means; rgb_linear), box-downscaled the same way. exposure_ratio gamma scales
-    the raw targets (I_gamma = I_raw gamma after black-level removal, the paper's darkness
-    sweep: noise and signal alike, so only the magnitude changes).
+    non-local means; rgb_linear), box-downscaled the same way; "dark_srgb": the LLNeRF-style
+    row's data, each training frame as a camera saves a dark photo (the binned frame through
+    llnerf.dark_srgb_frame: grey world, colour matrix, no brightening, sRGB curve;
+    rgb_srgb in [0, 1]), exposure 1, pixels with a saturated channel invalid. exposure_ratio
+    gamma scales the raw targets (I_gamma = I_raw gamma after black-level removal, the
+    paper's darkness sweep: noise and signal alike, so only the magnitude changes); for
+    "dark_srgb" the binned raw before it is processed.
     """
     cams = scene.cameras
     full = ndc_intrinsics(scene)
@@ -85,6 +89,18 @@ def build(scene: Scene, frames: np.ndarray, binning: bool, downscale: int = 1,
             scene.raw_normalized(int(i)), scene.cfa, scene.xyz_to_cam), 2 * downscale)
             for i in frames]).astype(np.float32)
         valid = np.ones(pixels.shape, bool)
+        inv_exposure = np.ones(len(frames), np.float32)
+    elif target == "dark_srgb":  # the LLNeRF-style row: the dark photos a camera saves
+        if not binning:
+            raise SceneError(scene.path, "data.target=dark_srgb trains on binned frames: it "
+                             "needs data.binning=true", "set data.binning=true")
+        factor = 1.0 / (2 * downscale)
+        pairs = [scene.rgb_cam_binned(int(i), downscale) for i in frames]
+        pixels = np.stack([llnerf.dark_srgb_frame(rgb_cam * float(exposure_ratio),
+                                                  scene.xyz_to_cam, ok)
+                           for rgb_cam, ok in pairs]).astype(np.float32)
+        valid = np.stack([np.broadcast_to(ok.all(axis=-1, keepdims=True), ok.shape)
+                          for _, ok in pairs])
         inv_exposure = np.ones(len(frames), np.float32)
     elif target == "reference":
         missing = [scene.names[i] for i in frames if scene.names[i] not in scene.gt_linear_paths]

@@ -12,7 +12,9 @@ raw and after a per-channel affine alignment in linear space, for
 - `baseline_denoised`: the same with non-local-means denoising (the paper's 2D row),
 - `baseline_binned_matched`: 2x2 binning, grey world, exposure matched to the reference
   (the generous per-frame pipeline of the reconstruction table),
-plus train_seconds, rays_per_second and peak memory.
+plus train_seconds, rays_per_second and peak memory. A run of loss.method = "llnerf" shows
+one output in place of the first three, `llnerf`: its enhanced render (gridnerf.llnerf),
+decoded from sRGB to linear, no auto exposure.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from gridnerf import (
     exposure,
     illuminant,
     image_io,
+    llnerf,
     raw,
     rays,
     render,
@@ -123,13 +126,37 @@ class Output:
                                    self.matrix)
 
 
-def outputs(structure, params, scene, cfg, out: dict | None = None) -> dict[str, Output]:
+@dataclass(frozen=True)
+class EnhancedOutput:
+    """The LLNeRF-style output: the dark sRGB render enhanced per ray
+    (llnerf.enhanced_render), decoded to linear sRGB; no exposure (alpha stays 1)."""
+
+    alpha: float = 1.0
+
+    def show(self, out: dict) -> tuple[np.ndarray, np.ndarray]:
+        """(rgb_linear, rgb_srgb) of a render (render_view / training_render output)."""
+        rgb_srgb = np.asarray(llnerf.enhanced_render(out["rgb_low"], out["gain"], out["acc"]),
+                              np.float32)
+        return color.srgb_decode(rgb_srgb).astype(np.float32), rgb_srgb
+
+
+def main_output(cfg) -> str:
+    """The name of a run's shown output: "llnerf" for loss.method = "llnerf", else
+    "gridnerf" (the one written as <view>_pred.png and rendered along camera paths)."""
+    return "llnerf" if cfg.loss.method == "llnerf" else "gridnerf"
+
+
+def outputs(structure, params, scene, cfg,
+            out: dict | None = None) -> dict[str, Output | EnhancedOutput]:
     """The shown outputs of a run, each exposed on the training render (training_render,
     or `out`): "gridnerf" (the colour matrix, or matrix-free when output.use_color_matrix
     is off), "gridnerf_matrix_free", and "global_grey_world" (the field's low-light colour
     times one grey-world gain for the scene, global_gains). output.color_matrix =
     "adapted" takes the matrix for the white the gains balanced (field_neutral; the grey
-    world's for the global row), exposure.display_matrix."""
+    world's for the global row), exposure.display_matrix. loss.method = "llnerf": only
+    "llnerf" (EnhancedOutput), nothing exposed."""
+    if cfg.loss.method == "llnerf":
+        return {"llnerf": EnhancedOutput()}
     out = training_render(structure, params, scene, cfg) if out is None else out
     raw_target = cfg.data.target == "raw"
     ones = np.ones(3)
@@ -162,6 +189,7 @@ def evaluate_run(run: Path) -> dict:
     out_dir = run / "eval"
     out_dir.mkdir(parents=True, exist_ok=True)
     shown = outputs(structure, params, scene, cfg)
+    main = main_output(cfg)
     adapted = cfg.output.color_matrix == "adapted"  # the baselines take the same matrix
     per_view: dict[str, dict[str, dict]] = {
         m: {} for m in [*shown, "baseline_dark_frame", "baseline_denoised",
@@ -176,7 +204,7 @@ def evaluate_run(run: Path) -> dict:
         gt_linear = _gt(scene, name, h, w)
         for method, output in shown.items():
             pred_linear, pred_srgb = output.show(out)
-            if method == "gridnerf":
+            if method == main:
                 image_io.write_png(out_dir / f"{name}_pred.png", pred_srgb)
                 image_io.write_exr(out_dir / f"{name}_pred.exr", pred_linear)
                 depth = out["depth"] / max(float(np.percentile(out["depth"], 99)), 1e-6)
@@ -185,7 +213,7 @@ def evaluate_run(run: Path) -> dict:
                 )
             if gt_linear is not None:
                 per_view[method][name] = evaluate.image_metrics(pred_linear, gt_linear)
-                if method == "gridnerf":
+                if method == main:
                     gt_srgb = color.srgb_encode(gt_linear)
                     image_io.write_png(out_dir / f"{name}_gt.png", gt_srgb)
                     image_io.write_png(
@@ -274,7 +302,7 @@ def camera_path(scene, kind: str, n_frames: int) -> np.ndarray:
 def render_run(run: Path, path: str = "spiral", n_frames: int = 60) -> Path:
     """Render test views (`path='test'`) or a camera path to run/render/: PNG, EXR, mp4."""
     cfg, scene, structure, params, _ = load_run(run)
-    main = outputs(structure, params, scene, cfg)["gridnerf"]
+    main = outputs(structure, params, scene, cfg)[main_output(cfg)]
     cams = scene.cameras
     ds = cfg.data.eval_downscale
     h, w = cams.height // ds, cams.width // ds

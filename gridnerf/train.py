@@ -34,6 +34,7 @@ from gridnerf import (
     grid,
     illum_map,
     illuminant,
+    llnerf,
     losses,
     render,
     runfolder,
@@ -92,6 +93,8 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
     loss.ca_locus, the L_ca illuminant estimate is projected onto it; else None.
     scene_ill: (3,) the capture's illuminant (scene_illuminant) when loss.ca_target is
     "scene": the L_ca target for every batch, no per-batch estimate; else None.
+    loss.method = "llnerf": the LLNeRF-style terms (llnerf_terms) replace the data term,
+    L_ca and the smoothness; the terms after them are shared.
     """
     shape = rays["target"].shape  # (P, p, p, 3)
     flat = {k: v.reshape(-1, 3) for k, v in rays.items()}
@@ -99,10 +102,13 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
     out = render.render_rays(
         structure, params, flat["origins"], flat["directions"], near_t, far_t, cfg.render, key=k0
     )
-    terms = {"data": losses.data_loss(out["rgb_low"], flat["target"], flat["mask"])}
     lc = cfg.loss
     k1, k2 = jax.random.split(key)
-    if lc.use_gains:
+    if lc.method == "llnerf":
+        terms = llnerf_terms(structure, params, flat, out, shape, k0, k1, cfg, near_t, far_t)
+    else:
+        terms = {"data": losses.data_loss(out["rgb_low"], flat["target"], flat["mask"])}
+    if lc.use_gains and lc.method == "brightnerf":
         gain = out["gain"]
         if lc.gain_map == "normalized":
             # the gains composited with stop-gradient density (same samples, same key; XLA
@@ -160,9 +166,36 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
         "sparsity": lc.sparsity,
         "distortion": lc.distortion,
         "opacity": lc.opacity,
+        "exposure": lc.w_exposure,
+        "color_constancy": lc.w_color_constancy,
+        "enhance_tv": lc.w_enhance_tv,
     }
     total = sum(weights[k] * v for k, v in terms.items())
     return total, terms
+
+
+def llnerf_terms(structure, params, flat: dict, out: dict, shape, k0, k1, cfg: Config,
+                 near_t: float, far_t: float) -> dict:
+    """The LLNeRF-style terms of one batch (gridnerf.llnerf): "data" (the dark render against
+    the dark sRGB, loss.llnerf_data), "exposure" and "color_constancy" (of the enhanced
+    render), "enhance_tv" (grid TV of log alpha and log gamma, rows sampled with k1).
+
+    flat: the batch's (n, 3) arrays; out: its render (key k0); shape: (P, p, p, 3). With
+    loss.gain_map = "normalized" the enhancement parameters are composited with
+    stop-gradient density (same samples, same key, as for L_ca), so the enhancement losses
+    train the enhancement field alone.
+    """
+    g_out = out
+    if cfg.loss.gain_map == "normalized":
+        frozen = {**params, "density": jax.lax.stop_gradient(params["density"])}
+        g_out = render.render_rays(structure, frozen, flat["origins"], flat["directions"],
+                                   near_t, far_t, cfg.render, key=k0)
+    terms = llnerf.loss_terms(out["rgb_low"], g_out["gain"], g_out["acc"], flat["target"],
+                              flat["mask"], shape, cfg.loss.exposure_level,
+                              cfg.loss.exposure_pool, cfg.loss.llnerf_data)
+    terms["enhance_tv"] = llnerf.enhancement_tv(structure, params["log_gain"], sample_key=k1,
+                                                fraction=cfg.loss.tv_fraction)
+    return terms
 
 
 def make_step(cfg: Config, tx, near_t: float, far_t: float, locus=None, scene_ill=None):
@@ -175,7 +208,8 @@ def make_step(cfg: Config, tx, near_t: float, far_t: float, locus=None, scene_il
     replicated. train.batch_patches must be a multiple of the device count.
     """
     devices.check_divisible(cfg.train.batch_patches, "train.batch_patches")
-    if cfg.loss.use_gains and cfg.loss.ca_target != "batch" and scene_ill is None:
+    if (cfg.loss.use_gains and cfg.loss.method == "brightnerf" and cfg.loss.ca_target != "batch"
+            and scene_ill is None):
         raise ValueError("loss.ca_target = 'scene' needs the capture's illuminant: pass "
                          "make_step(..., **colour_inputs(data, scene, cfg)[1])")
 
@@ -260,9 +294,9 @@ def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> tuple[dataset.Ra
     data gains its illuminant map for loss.ca_target = "map" (with_illuminant_map);
     kwargs: {"scene_ill": (3,)} for the "scene" and "map" targets (the map's anchor, and
     where the gains start), {"locus": (n, 3)} for the batch target with loss.ca_locus, {}
-    otherwise (no gains, or the batch's own estimate).
+    otherwise (no gains, loss.method = "llnerf", or the batch's own estimate).
     """
-    if not cfg.loss.use_gains:
+    if not cfg.loss.use_gains or cfg.loss.method == "llnerf":
         return data, {}
     if cfg.loss.ca_target in ("scene", "map"):
         frames = _estimate_frames(data, scene)  # binned once for both estimates
@@ -448,7 +482,8 @@ def train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool = Fals
 def initial_grid(data: dataset.RayData, scene, cfg: Config, key, scene_ill=None):
     """(structure, params) a run starts from: the dense first-stage grid on the scene's box,
     colour at the data's mean level, gains at the L_ca target (scene_ill (3,), else the
-    data's grey world; ones without gains), the backdrop of grid.background."""
+    data's grey world; ones without gains; loss.method = "llnerf": llnerf.init_log_gain),
+    the backdrop of grid.background."""
     bbox_min, bbox_max, near_t, _ = dataset.grid_box(scene)
     if scene.forward_facing and cfg.grid.ndc_xy == "frustums":
         bbox_min[:2], bbox_max[:2] = dataset.frustum_xy(scene, scene.train_idx, bbox_min,
@@ -456,6 +491,8 @@ def initial_grid(data: dataset.RayData, scene, cfg: Config, key, scene_ill=None)
     color_scale, log_gain, mean_colour = data_statistics(data, jax.random.fold_in(key, 1))
     if scene_ill is not None:  # start the gains at the target
         log_gain = np.log(illuminant.gains_from_illuminant(scene_ill, floor=1e-6))
+    if cfg.loss.method == "llnerf":  # alpha brings the mean level to E, gamma 1
+        log_gain = llnerf.init_log_gain(color_scale, cfg.loss.exposure_level)
     if not cfg.loss.use_gains:
         log_gain = np.zeros(3)
     background = grid.BLACK

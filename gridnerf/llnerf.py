@@ -1,0 +1,161 @@
+"""The LLNeRF-style comparison row on the grid: pure functions.
+
+LLNeRF (Wang et al., "Lighting up NeRF via Unsupervised Decomposition and Enhancement",
+ICCV 2023) trains on the camera-finished (sRGB) dark photos, splits the colour into a
+lighting and a reflectance part and enhances the lighting under unsupervised losses. Here
+on the same sparse grid as the method (loss.method = "llnerf", the `llnerf` preset):
+
+- data (dark_srgb_frame, data.target = "dark_srgb"): each training frame as a camera saves
+  a dark photo: 2x2 binning of the normalised raw, grey world, the colour matrix, NO
+  brightening, the sRGB curve, clipped to [0, 1]. The grid's low-light colour stores it.
+- decomposition (decompose): a rendered dark colour c (sRGB) is lighting v = max_k c_k
+  (scalar) times reflectance r = c / v.
+- enhancement (enhance): v_e = alpha v^gamma, c_e = clip(r v_e, 0, 1). alpha, gamma > 0 per
+  vertex in the grid's gain field (log_gain channel ALPHA = log alpha, GAMMA = log gamma;
+  channel 2 unused), composited along the ray (the renderer's gain = sum_i w_i exp(log_gain_i))
+  and divided by the opacity as losses.normalized_gain does (enhancement_params).
+- losses (loss_terms, enhancement_tv), per batch of (P, p, p) ray patches: data = c against
+  the dark sRGB, "rawnerf" (losses.data_loss: LLNeRF's released script trains its sRGB
+  input with data_loss_type 'rawnerf', and the grid's regularisers were weighed against
+  that term; the plain MSE of dark sRGB is ~1000x smaller) or "mse" (plain masked MSE),
+  loss.llnerf_data; LLNeRF's enhancement losses in Zero-DCE's form (Guo et al., CVPR 2020)
+  on c_e: exposure control, mean over pool x pool regions of |mean intensity - E|; colour
+  constancy, sum over channel pairs of (mean_p - mean_q)^2 over the batch; total variation
+  of log alpha and log gamma on the grid (losses.tv_loss). The enhancement losses see c as
+  a constant, so they train the enhancement field alone and the dark colour follows the
+  data.
+
+Weights and E (config.LossConfig: w_exposure 0.1, exposure_level 0.55, w_color_constancy
+0.1, w_enhance_tv 0.1) are those of LLNeRF's released training script (exposure_loss_mult,
+fixed_exposure, gray_loss_mult, alpha_/gamma_ltv_loss_mult). Differences from LLNeRF: its
+release learns gamma per channel (3) and alpha as a scalar, which the 3-channel gain field
+cannot hold with both; its losses are per-pixel squared ones; it enhances per sample, not
+per ray.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gridnerf import baseline, color, exposure, losses
+from gridnerf.grid import GridStructure
+
+EPS = 1e-6  # floor of the lighting v: r = c / max(v, EPS) and v^gamma stay finite at v = 0
+ALPHA, GAMMA = 0, 1  # log_gain channels of log alpha and log gamma
+_TINY = 1e-30
+
+
+def dark_srgb_frame(rgb_cam, xyz_to_cam, valid=None) -> np.ndarray:
+    """One frame as a camera saves a dark photo: grey-world white balance
+    (baseline.grey_world_gains over the valid pixels), the colour matrix
+    (exposure.display_matrix: the ColorMatrix for D65, row-normalised), no exposure, the
+    sRGB curve (color.srgb_encode, which clips to [0, 1]).
+
+    rgb_cam: (h, w, 3) binned camera RGB (raw.bin2x2 of the normalised raw, negatives
+    kept); xyz_to_cam: (3, 3) DNG ColorMatrix; valid: optional (h, w) or (h, w, 3) bool,
+    the unsaturated pixels (all channels) the grey world averages over.
+    Returns rgb_srgb (h, w, 3) float32 in [0, 1].
+    """
+    rgb_cam = np.asarray(rgb_cam, np.float64)
+    mask = None
+    if valid is not None:
+        valid = np.asarray(valid, bool)
+        mask = valid.all(axis=-1) if valid.ndim == rgb_cam.ndim else valid
+    rgb_cam = rgb_cam * baseline.grey_world_gains(rgb_cam, mask).astype(np.float64)
+    rgb_linear = rgb_cam @ exposure.display_matrix(xyz_to_cam, True).T
+    return color.srgb_encode(rgb_linear).astype(np.float32)
+
+
+def decompose(rgb_srgb):
+    """LLNeRF's decomposition: rgb_srgb (..., 3) >= 0 -> (v (...,), r (..., 3)), the
+    lighting v = max over channels and the reflectance r = c / max(v, EPS) (max_k r_k = 1).
+    r * v == c wherever v >= EPS or c = 0."""
+    v = jnp.max(rgb_srgb, axis=-1)
+    return v, rgb_srgb / jnp.maximum(v, EPS)[..., None]
+
+
+def enhance(rgb_srgb, alpha, gamma):
+    """The enhanced colour c_e = clip(r * alpha * v^gamma, 0, 1) of (v, r) = decompose(c).
+
+    rgb_srgb: (..., 3) dark sRGB >= 0; alpha, gamma: (...) > 0 (or scalars). v is floored
+    at EPS inside the power, so alpha = gamma = 1 gives back c exactly (up to rounding) and
+    black stays black with finite gradients. Returns rgb_srgb (..., 3) in [0, 1].
+    """
+    v, r = decompose(rgb_srgb)
+    v_e = alpha * jnp.maximum(v, EPS) ** gamma
+    return jnp.clip(r * v_e[..., None], 0.0, 1.0)
+
+
+def enhancement_params(gain, acc):
+    """Per-ray (alpha, gamma), (...) each, from a render's composited gain (..., 3) =
+    sum_i w_i exp(log_gain_i) and opacity acc (...): losses.normalized_gain (acc a constant,
+    floored at 1e-3), channels ALPHA and GAMMA."""
+    g = losses.normalized_gain(gain, acc)
+    return g[..., ALPHA], g[..., GAMMA]
+
+
+def enhanced_render(rgb_srgb, gain, acc):
+    """The shown output of a render: enhance(rgb_srgb, *enhancement_params(gain, acc)).
+    rgb_srgb, gain: (..., 3); acc: (...). Returns rgb_srgb (..., 3) in [0, 1]."""
+    return enhance(rgb_srgb, *enhancement_params(gain, acc))
+
+
+def init_log_gain(mean_level: float, level: float) -> np.ndarray:
+    """(3,) log_gain a run starts from: gamma = 1 and alpha = level / mean_level, so the
+    data's mean intensity (mean_level, e.g. train.data_statistics) starts at the exposure
+    level E (as the method's gains start at the L_ca target)."""
+    return np.array([np.log(level / max(mean_level, 1e-6)), 0.0, 0.0])
+
+
+def data_loss(rgb_srgb, target, mask):
+    """Plain masked MSE: sum m (c - y)^2 / sum m. rgb_srgb, target, mask: (n, 3)."""
+    diff = jnp.where(mask > 0, rgb_srgb - target, 0.0)
+    return jnp.sum(mask * diff**2) / jnp.maximum(jnp.sum(mask), _TINY)
+
+
+def exposure_loss(rgb_srgb, level: float, pool: int = 4):
+    """Zero-DCE's exposure control: mean over pool x pool regions of each patch of
+    |mean intensity - level|, the intensity the channel mean (Zero-DCE's average intensity).
+
+    rgb_srgb: (P, h, w, 3) ray patches, h and w multiples of pool. Returns a scalar >= 0,
+    0 iff every region's mean intensity is `level`.
+    """
+    p, h, w, _ = rgb_srgb.shape
+    if h % pool or w % pool:
+        raise ValueError(f"patches of {h}x{w} do not split into {pool}x{pool} regions")
+    y = jnp.mean(rgb_srgb, axis=-1).reshape(p, h // pool, pool, w // pool, pool)
+    return jnp.mean(jnp.abs(jnp.mean(y, axis=(2, 4)) - level))
+
+
+def color_constancy_loss(rgb_srgb):
+    """Zero-DCE's colour constancy: sum over the channel pairs (R, G), (R, B), (G, B) of
+    (mean_p - mean_q)^2, the means over the whole batch. rgb_srgb: (..., 3). 0 for grey."""
+    m = jnp.mean(rgb_srgb.reshape(-1, 3), axis=0)
+    return (m[0] - m[1]) ** 2 + (m[0] - m[2]) ** 2 + (m[1] - m[2]) ** 2
+
+
+def enhancement_tv(structure: GridStructure, log_gain, sample_key=None, fraction: float = 1.0):
+    """TV of the enhancement field on the grid: losses.tv_loss of log_gain (M, 3) channels
+    ALPHA and GAMMA (TV(log alpha) + TV(log gamma), LLNeRF's alpha and gamma smoothness)."""
+    return losses.tv_loss(structure, log_gain[:, :2], sample_key=sample_key, fraction=fraction)
+
+
+def loss_terms(rgb_srgb, gain, acc, target, mask, patch_shape, level: float,
+               pool: int = 4, data: str = "rawnerf") -> dict:
+    """The per-batch terms: {"data", "exposure", "color_constancy"} (scalars, unweighted).
+
+    rgb_srgb: (n, 3) the rendered dark colour c; gain: (n, 3) composited gains and acc (n,)
+    opacity (render with stop-gradient density so that the enhancement losses cannot move
+    the geometry); target, mask: (n, 3) dark sRGB and its weights; patch_shape: (P, p, p,
+    3) of the batch; data: "rawnerf" (losses.data_loss) or "mse" (data_loss). The enhanced
+    render c_e = enhanced_render(sg(c), gain, acc).
+    """
+    if data not in ("rawnerf", "mse"):
+        raise ValueError(f"unknown data term {data!r}: use 'rawnerf' or 'mse'")
+    fit = losses.data_loss if data == "rawnerf" else data_loss
+    rgb_e = enhanced_render(jax.lax.stop_gradient(rgb_srgb), gain, acc).reshape(patch_shape)
+    return {"data": fit(rgb_srgb, target, mask),
+            "exposure": exposure_loss(rgb_e, level, pool),
+            "color_constancy": color_constancy_loss(rgb_e)}
