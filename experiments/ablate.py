@@ -13,7 +13,8 @@ scene (its `global_grey_world` output), which is what "no gains" vs "gains" shou
 Writes <out>.md and <out>.json: per scene, then the mean over the nine built-in scenes and,
 apart, over the held-out ones.
 
-    python experiments/ablate.py [--scenes all|nine|heldout|a,b] [--quick]
+    python experiments/ablate.py [--scenes all|nine|heldout|a,b] [--study parts|colour]
+                                 [--quick]
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from common import fmt, markdown_table, run_variant, write_report
 
-from gridnerf.sim import HELDOUT, SCENES
+from gridnerf.sim import HELDOUT, MIXED, SCENES
 
 # (key, label, run folder, preset, overrides)
 VARIANTS = [
@@ -33,6 +34,24 @@ VARIANTS = [
     ("full_tv", "full, smoothness as grid TV (default)", "default", "default", []),
     ("full_patch", "full, smoothness as eq. 15 on ray patches", "patch", "patch", []),
 ]
+# --study colour (issue 8's rows): no white balance, one global grey-world gain (both the
+# no-gain run), the field with each L_ca illuminant estimate, the per-frame illuminant map
+# target, and the default with the black offsets fitted from the noise
+COLOUR_VARIANTS = [
+    ("no_cr", "no white balance / one grey-world gain (no gains)", "nogain", "nogain", []),
+    ("grey_world", "field, L_ca target grey world", "ca_grey_world", "default",
+     ["loss.ca_illuminant=grey_world"]),
+    ("shades_of_grey", "field, L_ca target shades of grey (p = 6)", "ca_shades_of_grey",
+     "default", ["loss.ca_illuminant=shades_of_grey"]),
+    ("grey_edge", "field, L_ca target grey edge", "ca_grey_edge", "default",
+     ["loss.ca_illuminant=grey_edge"]),
+    ("consensus", "field, L_ca target consensus (default)", "default", "default", []),
+    ("map", "field, L_ca target per-frame illuminant map", "ca_map", "default",
+     ["loss.ca_target=map"]),
+    ("black_fit", "default + black offsets fitted from the noise", "black_fit", "default",
+     ["data.black_offset=fit"]),
+]
+STUDIES = {"parts": VARIANTS, "colour": COLOUR_VARIANTS}
 # (column, eval summary key) shown for every variant; the no-gain run adds its global gain
 OUTPUTS = [("matrix", "gridnerf"), ("matrix_free", "gridnerf_matrix_free"),
            ("global_gain", "global_grey_world")]
@@ -40,15 +59,17 @@ METRICS = ("psnr", "ssim", "delta_e", "psnr_aligned")
 
 
 def scene_list(spec: str) -> list[str]:
-    named = {"all": [*SCENES, *HELDOUT], "nine": list(SCENES), "heldout": list(HELDOUT)}
-    return named.get(spec, [s for s in spec.split(",") if s])
+    """Comma-separated scene names and groups: all (nine + held out), nine, heldout, mixed."""
+    named = {"all": [*SCENES, *HELDOUT], "nine": list(SCENES), "heldout": list(HELDOUT),
+             "mixed": list(MIXED)}
+    return [n for item in spec.split(",") if item for n in named.get(item, [item])]
 
 
-def ablate(scenes: list[str], runs: Path, quick: bool) -> dict:
+def ablate(scenes: list[str], runs: Path, quick: bool, variants=VARIANTS) -> dict:
     """{scene: {variant: {output: metrics}}}, training what is missing."""
     record: dict = {}
     for scene in scenes:
-        for key, _, folder, preset, sets in VARIANTS:
+        for key, _, folder, preset, sets in variants:
             summary = run_variant(scene, folder, preset, sets, runs, quick)["summary"]
             shown = OUTPUTS if key == "no_cr" else OUTPUTS[:2]
             record.setdefault(scene, {})[key] = {
@@ -57,11 +78,11 @@ def ablate(scenes: list[str], runs: Path, quick: bool) -> dict:
     return record
 
 
-def means(record: dict, group) -> dict:
+def means(record: dict, group, variants=VARIANTS) -> dict:
     """{variant: {output: mean metrics}} over the scenes of `group` in the record."""
     got = [record[s] for s in group if s in record]
     out: dict = {}
-    for key, *_ in VARIANTS:
+    for key, *_ in variants:
         for name, _ in OUTPUTS:
             vals = [g[key][name] for g in got if name in g.get(key, {})]
             if vals:
@@ -70,8 +91,8 @@ def means(record: dict, group) -> dict:
     return out
 
 
-def markdown(record: dict, mean_nine: dict, mean_held: dict) -> str:
-    labels = {key: label for key, label, *_ in VARIANTS}
+def markdown(record: dict, mean_nine: dict, mean_held: dict, variants=VARIANTS) -> str:
+    labels = {key: label for key, label, *_ in variants}
 
     def rows(scene: str, per: dict) -> list[list[str]]:
         return [[scene, labels[key], name, fmt(m["psnr"]), fmt(m["ssim"], 3),
@@ -89,19 +110,27 @@ def markdown(record: dict, mean_nine: dict, mean_held: dict) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="all")
+    ap.add_argument("--scenes", default="all", help="names and groups: all, nine, heldout, "
+                    "mixed (e.g. nine,mixed for the colour study)")
+    ap.add_argument("--study", default="parts", choices=list(STUDIES),
+                    help="parts: Bright-NeRF's parts; colour: white balance and estimators")
     ap.add_argument("--runs", default="runs")
-    ap.add_argument("--out", default="reports/ablation")
+    ap.add_argument("--out", default=None,
+                    help="default reports/ablation (parts), reports/ablation_colour (colour)")
     ap.add_argument("--quick", action="store_true", help="small scenes, shrunk presets")
     args = ap.parse_args()
-    print(build(scene_list(args.scenes), Path(args.runs), args.out, args.quick))
+    out = args.out or ("reports/ablation" if args.study == "parts"
+                       else "reports/ablation_colour")
+    print(build(scene_list(args.scenes), Path(args.runs), out, args.quick,
+                STUDIES[args.study]))
 
 
-def build(scenes: list[str], runs: Path, out, quick: bool) -> str:
+def build(scenes: list[str], runs: Path, out, quick: bool, variants=VARIANTS) -> str:
     """Train what is missing, write <out>.md and <out>.json; returns the markdown."""
-    record = ablate(scenes, runs, quick)
-    mean_nine, mean_held = means(record, SCENES), means(record, HELDOUT)
-    text = markdown(record, mean_nine, mean_held)
+    record = ablate(scenes, runs, quick, variants)
+    mean_nine = means(record, SCENES, variants)
+    mean_held = means(record, HELDOUT, variants)
+    text = markdown(record, mean_nine, mean_held, variants)
     write_report(out, text, {"quick": quick, "scenes": record, "mean_nine": mean_nine,
                              "mean_heldout": mean_held})
     return text

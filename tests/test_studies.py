@@ -85,3 +85,14 @@ def test_report_appends_the_studies_it_finds(tmp_path, with_png):
     assert ("![Darkness sweep](sweep.png)" in text) == with_png
     assert "## Ablation\n\nNot built yet: `python experiments/ablation.py`" not in text
     assert "Not built yet: `python experiments/ablate.py`" in text
+
+
+def test_ablation_scene_groups_and_colour_study():
+    assert ablate.scene_list("nine,mixed") == [*ablate.SCENES, *ablate.MIXED]
+    assert ablate.scene_list("all") == [*ablate.SCENES, *ablate.HELDOUT]
+    assert ablate.scene_list("box,deer") == ["box", "deer"]
+    record = {"bucket": {"grey_world": {"matrix": _m(18.0)}, "map": {"matrix": _m(19.0)}}}
+    nine = ablate.means(record, ablate.SCENES, ablate.COLOUR_VARIANTS)
+    assert set(nine) == {"grey_world", "map"}
+    assert "per-frame illuminant map" in ablate.markdown(record, nine, {},
+                                                         ablate.COLOUR_VARIANTS)
