@@ -255,6 +255,7 @@ def _colour_prior_grads(gain_map: str, smooth_mode: str, illuminant: str = "grey
     c = cfgmod.preset("tiny")
     c = replace(c, render=replace(c.render, max_samples=16),
                 loss=replace(c.loss, w_data=0.0, tv_density=0.0, tv_rgb=0.0, sparsity=0.0,
+                             opacity=0.0,
                              w_ca=1.0, w_smooth=1.0, smooth_mode=smooth_mode,
                              gain_map=gain_map, ca_illuminant=illuminant))
     structure, params, rays = _foggy_scene()
