@@ -26,8 +26,9 @@ import json
 from pathlib import Path
 
 import numpy as np
-from common import fmt, markdown_table, run_variant, scene_dir, write_report
+from common import fmt, markdown_table, quick_sets, run_variant, scene_dir, write_report
 
+from gridnerf import config as cfgmod
 from gridnerf.sim import HELDOUT, SCENES
 
 # (row, label, run variant, key in that run's eval summary)
@@ -64,19 +65,37 @@ QUICK_SCENES = ["bucket", "held_arc_brick"]
 METRICS = ("psnr", "ssim", "delta_e", "psnr_aligned", "ssim_aligned", "delta_e_aligned")
 
 
-def assemble(runs: Path, scenes: list[str]) -> dict:
-    """{row: {"label", "scenes": {scene: metrics}, "mean_nine", "mean_heldout"}} from the
-    evaluated runs under `runs`; a mean covers the scenes the row has (with their count)."""
+def stale(run: Path, variant: str, quick: bool = False) -> bool:
+    """Whether the run's saved config differs from what its variant's preset trains today
+    (common.quick_sets on top in quick mode): an old default's run is not this default's
+    row. A run without config.json is taken as it is."""
+    path = run / "config.json"
+    if not path.is_file() or variant not in RUN_PRESETS:
+        return False
+    want = cfgmod.preset(RUN_PRESETS[variant])
+    if quick:
+        want = cfgmod.override(want, quick_sets(want))
+    return cfgmod.effective(cfgmod.load(path)) != cfgmod.effective(want)
+
+
+def assemble(runs: Path, scenes: list[str], quick: bool = False) -> dict:
+    """{row: {"label", "scenes": {scene: metrics}, "stale": [scene], "mean_nine",
+    "mean_heldout"}} from the evaluated runs under `runs` whose config is their preset's
+    today (others are listed as stale, not used); a mean covers the scenes the row has
+    (with their count)."""
     record = {}
     for row, label, variant, key in ROWS:
-        per_scene = {}
+        per_scene, old = {}, []
         for scene in scenes:
             path = runs / scene / variant / "eval" / "metrics.json"
-            if path.is_file():
+            if path.is_file() and stale(path.parent.parent, variant, quick):
+                old.append(scene)
+            elif path.is_file():
                 summary = json.loads(path.read_text())["summary"].get(key)
                 if summary:
                     per_scene[scene] = {k: float(summary[k]) for k in METRICS}
-        entry = {"label": label, "variant": variant, "key": key, "scenes": per_scene}
+        entry = {"label": label, "variant": variant, "key": key, "scenes": per_scene,
+                 "stale": old}
         for name, group in (("mean_nine", SCENES), ("mean_heldout", HELDOUT)):
             got = [per_scene[s] for s in group if s in per_scene]
             entry[name] = ({k: float(np.mean([g[k] for g in got])) for k in METRICS}
@@ -108,11 +127,15 @@ def markdown(record: dict, scenes: list[str], folder: Path, views: str | None) -
     legend = "\n".join(f"- `{r}`: {record[r]['label']} (runs/<scene>/{record[r]['variant']}, "
                        f"`{record[r]['key']}`)" for r in record)
     missing = [r for r in record if not record[r]["scenes"]]
+    stale_runs = sorted({f"runs/{s}/{record[r]['variant']}" for r in record
+                         for s in record[r]["stale"]})
     text = ("# gridnerf report\n\nEach cell: PSNR / SSIM / CIEDE2000 (sRGB, 16-pixel border "
             "crop). Held-out scenes (no default tuned on them) are averaged separately.\n\n"
             f"{legend}\n"
             + "".join(f"- `{r}`: no evaluated runs yet\n" for r in missing)
             + "".join(f"- {k}: n/a ({v})\n" for k, v in NOT_AVAILABLE.items())
+            + (f"- left out, trained with another config than their preset's today: "
+               f"{', '.join(stale_runs)}\n" if stale_runs else "")
             + "\n## Test views\n\n" + markdown_table(header, lines)
             + "\n\n## Aligned (per-channel affine fit in linear space first)\n\n"
             + markdown_table(header, aligned) + "\n")
@@ -252,7 +275,7 @@ def main() -> None:
     for scene in todo:
         for variant, preset in RUN_PRESETS.items():
             run_variant(scene, variant, preset, [], runs)
-    record = assemble(runs, scenes)
+    record = assemble(runs, scenes, args.quick)
     if not any(r["scenes"] for r in record.values()):
         raise SystemExit(f"no evaluated runs under {runs}/: run `make train SCENE=<name>` "
                          "or `make recon` first")

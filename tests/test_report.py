@@ -52,3 +52,20 @@ def test_report_without_runs_says_what_to_do(tmp_path):
     proc = _report(tmp_path)
     assert proc.returncode != 0 and "make recon" in proc.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_report_leaves_out_runs_of_another_config(tmp_path):
+    from gridnerf import config as cfgmod
+
+    runs = tmp_path / "runs"
+    _write(runs, "bucket", "default", _metrics(20.0))
+    _write(runs, "deer", "default", _metrics(18.0))
+    old = cfgmod.override(cfgmod.preset("default"), ["grid.background=black"])
+    cfgmod.save(old, runs / "bucket" / "default" / "config.json")
+    cfgmod.save(cfgmod.preset("default"), runs / "deer" / "default" / "config.json")
+    proc = _report(tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    record = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert set(record["ours"]["scenes"]) == {"deer"} and record["ours"]["stale"] == ["bucket"]
+    assert "another config than their preset's today: runs/bucket/default" in (
+        tmp_path / "out" / "report.md").read_text()
