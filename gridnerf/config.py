@@ -181,8 +181,10 @@ class GridConfig(_Section):
     fit_margin: float = 2.0  # margin around the content, in voxels of the first stage
     # what a ray sees behind the grid: "mean" (the capture's mean colour: every ray of a
     # capture ends on something, so a dark texture is not rendered as transparency for
-    # free; box: the table's dark wood grain was carved into black holes, 19.41 -> 19.92 dB)
-    # or "black" (nothing: the compositing of NeRF without a background)
+    # free; box: the table's dark wood grain was carved into black holes, 19.41 -> 19.94 dB;
+    # the nine scenes' mean 20.74 -> 21.28, but SSIM lower on six of them: brick and print
+    # soften, docs/reconstruction.md "Session 8") or "black" (nothing: the compositing of
+    # NeRF without a background)
     background: Literal["black", "mean"] = "mean"
     occupancy_threshold: float = 0.005  # cells whose max alpha is below this are skipped
     occupancy_every: int = 100  # refresh the empty-space bitmask every this many steps
