@@ -95,6 +95,22 @@ def update_readme(name: str, text: str, path: Path = Path("README.md")) -> None:
     atomic.write_text(path, f"{head}{begin}{marker}-->\n{text}\n{end}{rest.split(end, 1)[1]}")
 
 
+def pyplot():
+    """matplotlib.pyplot on the non-interactive Agg backend (no display needed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig, path, dpi: int = 90) -> None:
+    """Write a matplotlib figure as a PNG atomically (its folder made) and close it."""
+    atomic.write(Path(path), lambda tmp: fig.savefig(tmp, format="png", dpi=dpi))
+    pyplot().close(fig)
+
+
 def fmt(x, nd=2) -> str:
     return "n/a" if x is None or isinstance(x, str) else f"{x:.{nd}f}"
 

@@ -26,7 +26,16 @@ import json
 from pathlib import Path
 
 import numpy as np
-from common import fmt, markdown_table, quick_sets, run_variant, scene_dir, write_report
+from common import (
+    fmt,
+    markdown_table,
+    pyplot,
+    quick_sets,
+    run_variant,
+    save_figure,
+    scene_dir,
+    write_report,
+)
 
 from gridnerf import config as cfgmod
 from gridnerf.sim import HELDOUT, SCENES
@@ -173,10 +182,6 @@ def figure(runs: Path, scenes: list[str], path: Path, quick: bool = False,
            tile: tuple[int, int] = (192, 108)) -> bool:
     """One test view per scene (its middle test frame), FIGURE_COLUMNS side by side, tiles
     of `tile` (w, h) pixels; missing runs leave a grey tile. False when no scene has one."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from skimage.transform import resize
 
     from gridnerf import baseline, color, eval_run, image_io
@@ -219,6 +224,7 @@ def figure(runs: Path, scenes: list[str], path: Path, quick: bool = False,
     if not rows:
         return False
     n_cols = len(FIGURE_COLUMNS)
+    plt = pyplot()
     fig, axes = plt.subplots(len(rows), n_cols, figsize=(1.6 * n_cols, 1.0 * len(rows) + 0.4),
                              squeeze=False)
     for r, (scene, name, tiles) in enumerate(rows):
@@ -232,9 +238,7 @@ def figure(runs: Path, scenes: list[str], path: Path, quick: bool = False,
             if c == 0:
                 ax.set_ylabel(f"{scene}\n{name}", fontsize=6)
     fig.tight_layout(pad=0.2)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)
     return True
 
 

@@ -19,7 +19,7 @@ import json
 import os
 from pathlib import Path
 
-from common import fmt, markdown_table, quick_sets, scene_dir, write_report
+from common import fmt, markdown_table, pyplot, quick_sets, save_figure, scene_dir, write_report
 
 import bench
 from gridnerf import config as cfgmod
@@ -76,11 +76,7 @@ def markdown(record: dict) -> str:
 
 
 def plot(record: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     n = len(record)
     fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.2), squeeze=False)
     for ax, (scene, per_preset) in zip(axes[0], record.items(), strict=True):
@@ -93,9 +89,7 @@ def plot(record: dict, path: Path) -> None:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main() -> None:

@@ -18,7 +18,7 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from common import fmt, markdown_table, run_variant, write_report
+from common import fmt, markdown_table, pyplot, run_variant, save_figure, write_report
 
 GAMMAS = (0.3, 0.4, 0.6, 0.8, 1.0, 1.2, 1.5, 1.8)  # the paper's sweep
 EXTREME = 0.1
@@ -60,11 +60,7 @@ def markdown(record: dict, gammas: list[float]) -> str:
 
 
 def plot(record: dict, gammas: list[float], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
     for method, per_scene in record.items():
         for scene, by_gamma in per_scene.items():
@@ -79,9 +75,7 @@ def plot(record: dict, gammas: list[float], path: Path) -> None:
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main() -> None:
