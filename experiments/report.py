@@ -181,7 +181,8 @@ FIGURE_COLUMNS = [
 def figure(runs: Path, scenes: list[str], path: Path, quick: bool = False,
            tile: tuple[int, int] = (192, 108)) -> bool:
     """One test view per scene (its middle test frame), FIGURE_COLUMNS side by side, tiles
-    of `tile` (w, h) pixels; missing runs leave a grey tile. False when no scene has one."""
+    of `tile` (w, h) pixels; missing runs, and runs of another config than their preset's
+    today (stale), leave a grey tile. False when no scene has one."""
     from skimage.transform import resize
 
     from gridnerf import baseline, color, eval_run, image_io
@@ -206,7 +207,7 @@ def figure(runs: Path, scenes: list[str], path: Path, quick: bool = False,
                     sc.raw_normalized(i), sc.cfa, sc.xyz_to_cam), 0, 1))
             elif parts[0] == "render":
                 run = runs / scene / parts[1]
-                if (run / "summary.json").is_file():
+                if (run / "summary.json").is_file() and not stale(run, parts[1], quick):
                     cfg, sc, structure, params, _ = eval_run.load_run(run)
                     i, cams = sc.names.index(name), sc.cameras
                     intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]])
@@ -215,7 +216,7 @@ def figure(runs: Path, scenes: list[str], path: Path, quick: bool = False,
                     img = eval_run.outputs(structure, params, sc, cfg)[parts[2]].show(out)[1]
             else:
                 png = runs / scene / parts[0] / "eval" / f"{name}_{parts[1]}.png"
-                if png.is_file():
+                if png.is_file() and not stale(runs / scene / parts[0], parts[0], quick):
                     img = image_io.read_png(png)
             tiles.append(np.full((tile[1], tile[0], 3), 0.5) if img is None else
                          resize(np.clip(np.asarray(img, np.float64), 0, 1), (tile[1], tile[0]),
@@ -285,7 +286,7 @@ def main() -> None:
                          "or `make recon` first")
     views = out.parent / f"{out.name}_views.png"
     fig_scenes = QUICK_SCENES if args.quick else args.figure_scenes.split(",")
-    has_views = figure(runs, fig_scenes, views)
+    has_views = figure(runs, fig_scenes, views, args.quick)
     text = markdown(record, scenes, out.parent, views.name if has_views else None)
     write_report(out, text, record)
     print(text)
