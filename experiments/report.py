@@ -179,7 +179,7 @@ FIGURE_COLUMNS = [
 
 
 def figure(runs: Path, scenes: list[str], path: Path, quick: bool = False,
-           tile: tuple[int, int] = (192, 108)) -> bool:
+           tile: tuple[int, int] = (160, 90)) -> bool:
     """One test view per scene (its middle test frame), FIGURE_COLUMNS side by side, tiles
     of `tile` (w, h) pixels; missing runs, and runs of another config than their preset's
     today (stale), leave a grey tile. False when no scene has one."""
@@ -239,7 +239,7 @@ def figure(runs: Path, scenes: list[str], path: Path, quick: bool = False,
             if c == 0:
                 ax.set_ylabel(f"{scene}\n{name}", fontsize=6)
     fig.tight_layout(pad=0.2)
-    save_figure(fig, path, dpi=120)
+    save_figure(fig, path, dpi=100)
     return True
 
 
