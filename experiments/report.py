@@ -33,7 +33,6 @@ from common import (
     quick_sets,
     run_variant,
     save_figure,
-    scene_dir,
     write_report,
 )
 
@@ -274,8 +273,6 @@ def main() -> None:
     scenes = [*SCENES, *HELDOUT]
     if args.quick:
         build_quick(runs, out.parent)
-        for scene in QUICK_SCENES:  # the quick runs live under the small scenes' names
-            scene_dir(scene, quick=True)
     todo = scenes if args.run_missing == "all" else [s for s in args.run_missing.split(",") if s]
     for scene in todo:
         for variant, preset in RUN_PRESETS.items():

@@ -111,12 +111,8 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
     if lc.use_gains and lc.method == "brightnerf":
         gain = out["gain"]
         if lc.gain_map == "normalized":
-            # the gains composited with stop-gradient density (same samples, same key; XLA
-            # shares the forward pass), divided by the opacity: the colour prior cannot
-            # move density, and half-transparent rays are not pushed to target / acc
-            frozen = {**params, "density": jax.lax.stop_gradient(params["density"])}
-            g_out = render.render_rays(structure, frozen, flat["origins"], flat["directions"],
-                                       near_t, far_t, cfg.render, key=k0)
+            # divided by the opacity: half-transparent rays are not pushed to target / acc
+            g_out = _frozen_density_render(structure, params, flat, cfg, near_t, far_t, k0)
             gain = losses.normalized_gain(g_out["gain"], g_out["acc"])
         c_ill = None  # None: ca_loss's grey world of the batch (the paper's target)
         if lc.ca_target == "map":
@@ -174,6 +170,16 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
     return total, terms
 
 
+def _frozen_density_render(structure, params, flat: dict, cfg: Config, near_t: float,
+                           far_t: float, key) -> dict:
+    """The batch rendered again with stop-gradient density (same samples: same `key` as the
+    main render; XLA shares the forward pass): what a prior computed from its gain field
+    (L_ca, the smoothness, LLNeRF's enhancement losses) can never move the geometry."""
+    frozen = {**params, "density": jax.lax.stop_gradient(params["density"])}
+    return render.render_rays(structure, frozen, flat["origins"], flat["directions"], near_t,
+                              far_t, cfg.render, key=key)
+
+
 def llnerf_terms(structure, params, flat: dict, out: dict, shape, k0, k1, cfg: Config,
                  near_t: float, far_t: float) -> dict:
     """The LLNeRF-style terms of one batch (gridnerf.llnerf): "data" (the dark render against
@@ -187,9 +193,7 @@ def llnerf_terms(structure, params, flat: dict, out: dict, shape, k0, k1, cfg: C
     """
     g_out = out
     if cfg.loss.gain_map == "normalized":
-        frozen = {**params, "density": jax.lax.stop_gradient(params["density"])}
-        g_out = render.render_rays(structure, frozen, flat["origins"], flat["directions"],
-                                   near_t, far_t, cfg.render, key=k0)
+        g_out = _frozen_density_render(structure, params, flat, cfg, near_t, far_t, k0)
     terms = llnerf.loss_terms(out["rgb_low"], g_out["gain"], g_out["acc"], flat["target"],
                               flat["mask"], shape, cfg.loss.exposure_level,
                               cfg.loss.exposure_pool, cfg.loss.llnerf_data)
