@@ -23,8 +23,8 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from common import fmt, markdown_table, run_variant, write_report
 
+from common import fmt, markdown_table, run_variant, write_report
 from gridnerf.sim import HELDOUT, MIXED, SCENES
 
 # (key, label, run folder, preset, overrides)

@@ -20,8 +20,8 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from common import markdown_table, run_variant, simulated_folders, write_report
 
+from common import markdown_table, run_variant, simulated_folders, write_report
 from gridnerf import baseline, color, consistency, raw
 from gridnerf.eval_run import _gt, load_run, outputs, render_view
 from gridnerf.sim import HELDOUT, SCENES

@@ -22,14 +22,14 @@ import json
 from pathlib import Path
 
 import numpy as np
-from common import markdown_table, simulated_folders, write_report
-from illuminants import raw_images
 from PIL import Image
 
+from common import markdown_table, simulated_folders, write_report
 from gridnerf import illum_map, raw
 from gridnerf import illuminant as il
 from gridnerf.scene import raw_files
 from gridnerf.sim import HELDOUT, MIXED, SCENES
+from illuminants import raw_images
 
 
 def true_map(folder: Path, sim: dict, name: str, hw: tuple[int, int]) -> np.ndarray:

@@ -28,8 +28,8 @@ import json
 from pathlib import Path
 
 import numpy as np
-from common import simulated_folders, write_report
 
+from common import simulated_folders, write_report
 from gridnerf import illuminant as il
 from gridnerf import raw
 from gridnerf.scene import raw_files

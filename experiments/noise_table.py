@@ -21,8 +21,8 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from common import simulated_folders, write_report
 
+from common import simulated_folders, write_report
 from gridnerf import noisefit
 from gridnerf.sim import MIXED
 

@@ -19,8 +19,8 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from common import markdown_table, write_report
 
+from common import markdown_table, write_report
 from gridnerf import eval_run, evaluate, noisefit, raw
 
 

@@ -19,8 +19,8 @@ import argparse
 import json
 
 import numpy as np
-from common import markdown_table, simulated_folders, write_report
 
+from common import markdown_table, simulated_folders, write_report
 from gridnerf import evaluate, exposure, illuminant, image_io
 from gridnerf.sim import sensor
 

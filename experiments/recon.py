@@ -22,8 +22,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from common import fmt, markdown_table, run_variant, update_readme, write_report
 
+from common import fmt, markdown_table, run_variant, update_readme, write_report
 from gridnerf.sim import HELDOUT, SCENES
 
 

@@ -26,6 +26,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+
 from common import (
     fmt,
     markdown_table,
@@ -35,7 +36,6 @@ from common import (
     save_figure,
     write_report,
 )
-
 from gridnerf import config as cfgmod
 from gridnerf.sim import HELDOUT, SCENES
 

@@ -19,9 +19,8 @@ import json
 import os
 from pathlib import Path
 
-from common import fmt, markdown_table, pyplot, quick_sets, save_figure, scene_dir, write_report
-
 import bench
+from common import fmt, markdown_table, pyplot, quick_sets, save_figure, scene_dir, write_report
 from gridnerf import config as cfgmod
 
 PRESETS = ("fast", "default", "fine")

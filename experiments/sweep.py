@@ -18,6 +18,7 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+
 from common import fmt, markdown_table, pyplot, run_variant, save_figure, write_report
 
 GAMMAS = (0.3, 0.4, 0.6, 0.8, 1.0, 1.2, 1.5, 1.8)  # the paper's sweep
