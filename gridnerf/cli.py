@@ -15,13 +15,14 @@ from gridnerf.errors import GridNerfError
 
 
 def _simulate(args) -> None:
-    from gridnerf.sim import HELDOUT, MIXED, SCENES, simulate_scene
+    from gridnerf.sim import DEV, HELDOUT, MIXED, SCENES, simulate_scene
 
-    names = {"all": SCENES, "heldout": HELDOUT, "mixed": MIXED}.get(args.name, (args.name,))
+    groups = {"all": SCENES, "heldout": HELDOUT, "dev": DEV, "mixed": MIXED}
+    names = groups.get(args.name, (args.name,))
     for name in names:
-        if name not in SCENES + HELDOUT + MIXED:
-            fix = (f"choose one of {', '.join(SCENES + HELDOUT + MIXED)}, 'all', 'heldout' "
-                   "or 'mixed'")
+        if name not in SCENES + HELDOUT + DEV + MIXED:
+            fix = (f"choose one of {', '.join(SCENES + HELDOUT + DEV + MIXED)}, 'all', "
+                   "'heldout', 'dev' or 'mixed'")
             raise GridNerfError(None, f"unknown scene {name!r}", fix)
         out = Path(args.out) if args.out and len(names) == 1 else Path("data/sim") / name
         path = simulate_scene(
@@ -119,8 +120,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("simulate", help="write a simulated low-light RAW scene")
     s.add_argument("name", help="scene name (bucket, held_arc_brick, mixed_lamp_window, ...), "
-                   "'all' (the nine scenes), 'heldout' (the held-out scenes) or 'mixed' (the "
-                   "mixed-light scenes)")
+                   "'all' (the nine scenes), 'heldout' (the held-out scenes), 'dev' (the tuning "
+                   "scenes with an arc and a slide rig) or 'mixed' (the mixed-light scenes)")
     s.add_argument("--out", help="scene folder (default data/sim/<name>)")
     s.add_argument("--width", type=_positive_int, default=480)
     s.add_argument("--height", type=_positive_int, default=270)

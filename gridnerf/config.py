@@ -248,6 +248,10 @@ class LossConfig(_Section):
     # is near the capture's mean (grey patches in novel views, 19.20 dB); 0.1 fills them
     # (19.51; box 19.94 either way). Over black, 0.1-0.5 cost box SSIM (0.67 -> 0.62)
     opacity: float = 0.1
+    # the opacity prior acts in the first `opacity_stages` stages only (0: in every stage).
+    # Holes are made in the coarse stage and carving keeps them; later stages left free of
+    # the prior can sharpen texture that the prior would blur into an opaque mean
+    opacity_stages: int = 0
     tv_fraction: float = 0.25  # fraction of voxels sampled per step for TV terms
     use_gains: bool = True  # False: ablation without the colour-restoration (gain) field
     # gain map of L_ca and the patch smoothness: "normalized" = S / acc composited with
@@ -307,6 +311,8 @@ class LossConfig(_Section):
                      "w_enhance_tv"):
             self._range(name, 0.0)
         self._range("tv_fraction", 0.0, 1.0, lo_open=True)
+        self._require("opacity_stages", self.opacity_stages >= 0,
+                      "a whole number >= 0 (0: the opacity prior in every stage)")
         self._range("ca_illuminant_p", 1.0)
         self._require("ca_illuminant", self.ca_illuminant != "consensus"
                       or self.ca_target != "batch", "one of 'grey_world', 'shades_of_grey', "

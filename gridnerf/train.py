@@ -232,6 +232,15 @@ def make_step(cfg: Config, tx, near_t: float, far_t: float, locus=None, scene_il
     return step
 
 
+def stage_config(cfg: Config, stage: int) -> Config:
+    """The config one stage's step is built with: `cfg` with loss.opacity = 0 from stage
+    loss.opacity_stages on (when that is > 0); otherwise `cfg` itself."""
+    n = cfg.loss.opacity_stages
+    if n == 0 or stage < n or cfg.loss.opacity == 0:
+        return cfg
+    return dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, opacity=0.0))
+
+
 def data_statistics(data: dataset.RayData, key, n_patches: int = 256
                     ) -> tuple[float, np.ndarray, np.ndarray]:
     """Mean target level, grey-world log gains (3,) and mean colour (3,) of the training
@@ -574,7 +583,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         if opt_leaves:
             opt_state = checkpoint.unflatten_like(opt_state, opt_leaves)
             opt_leaves = []
-        step_fn = make_step(cfg, tx, near_t, far_t, **colour)
+        step_fn = make_step(stage_config(cfg, stage), tx, near_t, far_t, **colour)
         structure = grid.update_occupancy(structure, params, cfg.grid.occupancy_threshold)
         t_stage = time.perf_counter()
         last_save = t_stage

@@ -14,7 +14,7 @@ from gridnerf import cli
 from gridnerf.color import CAMERA_XYZ_TO_CAM, luminance, srgb_encode
 from gridnerf.errors import SceneError
 from gridnerf.raw import bin2x2
-from gridnerf.sim import HELDOUT, MIXED, SCENES, simulate_scene, writer
+from gridnerf.sim import DEV, HELDOUT, MIXED, SCENES, simulate_scene, writer
 from gridnerf.sim import scenes as sc
 from gridnerf.sim import sensor as sn
 from gridnerf.sim import textures as tx
@@ -291,6 +291,19 @@ def test_heldout_scenes_are_named_and_distinct():
     assert all(sc.build_scene(name).rig == "tripod" for name in SCENES)
     with pytest.raises(ValueError, match="unknown scene"):
         sc.build_scene("held_nothing")
+
+
+def test_tuning_scenes_have_the_new_rigs_and_are_not_held_out(tmp_path):
+    """DEV: one arc and one slide, distinct from the nine, the held-out and the mixed
+    scenes, single-light, marked as not held out in the scene's manifest."""
+    assert not set(DEV) & set(SCENES + HELDOUT + MIXED)
+    assert {sc.build_scene(name).rig for name in DEV} == {"arc", "slide"}
+    for name in DEV:
+        spec = sc.build_scene(name)
+        assert "Tuning" in sc._DEV[name].__doc__ and not spec.layered
+        assert spec.sensor.camera_model in CAMERA_XYZ_TO_CAM
+    out = simulate_scene(DEV[0], tmp_path / DEV[0], width=64, height=36, n_frames=2)
+    assert json.loads((out / "sim.json").read_text())["held_out"] is False
 
 
 @pytest.mark.parametrize("name", ["bucket", "held_arc_brick", "held_slide_shelf"])

@@ -360,6 +360,23 @@ def test_effective_config_ignores_gain_fields_without_gains():
     assert cfgmod.effective(o) != cfgmod.effective(tweaked)
 
 
+def test_opacity_prior_only_in_its_stages():
+    """loss.opacity_stages = n: stages < n train with the prior, later ones without; 0 keeps
+    it everywhere; a negative count is refused."""
+    from gridnerf.errors import ConfigError
+    from gridnerf.train import stage_config
+
+    cfg = cfgmod.override(cfgmod.preset("default"), ["loss.opacity=0.1",
+                                                     "loss.opacity_stages=1"])
+    assert stage_config(cfg, 0) == cfg
+    later = stage_config(cfg, 1)
+    assert later.loss.opacity == 0.0 and replace(later, loss=cfg.loss) == cfg
+    everywhere = cfgmod.override(cfg, ["loss.opacity_stages=0"])
+    assert all(stage_config(everywhere, k) == everywhere for k in range(3))
+    with pytest.raises(ConfigError, match="loss.opacity_stages"):
+        cfgmod.override(cfg, ["loss.opacity_stages=-1"])
+
+
 def test_consensus_needs_the_scene_target():
     from gridnerf.errors import ConfigError
 

@@ -2,11 +2,12 @@
 
 `simulate_scene(name, out_dir, ...)` writes one scene folder (see `writer`);
 `SCENES` lists the nine scene names; `HELDOUT` the held-out scenes (other camera rigs,
-a wide depth range, high-frequency textures), on which no default is tuned; `MIXED` the
+a wide depth range, high-frequency textures), on which no default is tuned; `DEV` tuning
+scenes with rigs of those kinds (an arc, a slide) but other content; `MIXED` the
 mixed-light scenes (a warm lamp and daylight lighting different parts of the scene).
 """
 
-from gridnerf.sim.scenes import HELDOUT, MIXED, SCENES
+from gridnerf.sim.scenes import DEV, HELDOUT, MIXED, SCENES
 from gridnerf.sim.writer import simulate_scene
 
-__all__ = ["HELDOUT", "MIXED", "SCENES", "simulate_scene"]
+__all__ = ["DEV", "HELDOUT", "MIXED", "SCENES", "simulate_scene"]

@@ -39,6 +39,10 @@ SCENES: tuple[str, ...] = (
 HELDOUT: tuple[str, ...] = (
     "held_arc_brick", "held_slide_shelf", "held_deep_hall", "held_arc_table",
 )
+# Tuning scenes with the held-out set's kinds of rig, depth and texture (an arc, a slide),
+# but other geometry, textures and sensors: defaults may be chosen on these and the nine,
+# never on HELDOUT.
+DEV: tuple[str, ...] = ("dev_arc_shop", "dev_slide_bench")
 # Lit by two illuminants of different colour temperature (a lamp and daylight), each
 # dominating its own part of the scene: a global white balance cannot be right everywhere.
 MIXED: tuple[str, ...] = ("mixed_lamp_window", "mixed_desk_daylight")
@@ -150,6 +154,8 @@ _SENSORS = {
     "held_slide_shelf": (3000, "Canon EOS 5D Mark IV", "RGGB", 18.0, 0.035, 4.5),
     "held_deep_hall": (2400, "Sony ILCE-7SM2", "RGGB", 7.0, 0.014, 6.0),
     "held_arc_table": (3150, "Sony ILCE-7SM2", "GRBG", 28.0, 0.05, 4.0),
+    "dev_arc_shop": (2750, "Canon EOS 5D Mark IV", "RGGB", 11.0, 0.022, 5.0),
+    "dev_slide_bench": (2500, "Nikon D850", "GRBG", 14.0, 0.028, 5.0),
     # mixed light: kelvin is the lamp's; each scene names its lights' own temperatures
     "mixed_lamp_window": (2700, "Sony ILCE-7SM2", "RGGB", 12.0, 0.024, 5.0),
     "mixed_desk_daylight": (2400, "Canon EOS 5D Mark IV", "RGGB", 16.0, 0.03, 4.5),
@@ -584,6 +590,77 @@ _HELD = {"held_arc_brick": _held_arc_brick, "held_slide_shelf": _held_slide_shel
          "held_deep_hall": _held_deep_hall, "held_arc_table": _held_arc_table}
 
 
+# ---------------------------------------------------------------- tuning scenes (DEV)
+
+def _dev_arc_shop() -> SceneSpec:
+    """Tuning (not held out). A converging handheld arc around a shop counter before a
+    wall of glazed tiles and printed price lists: jars with text labels, a tiled photo
+    box, a globe, a checkered cloth. Subject ~2 m away, depth 1.4-4.6 m."""
+    tiles = tx.bricks([(0.78, 0.8, 0.74), (0.7, 0.74, 0.7)], (0.35, 0.33, 0.3),
+                      rows=7.0 / 0.15, cols=12.0 / 0.15, joint=0.06, aspect=1.0, seed=41)
+    wall = _b([0, 3.0, -2.2], [12.0, 7.0, 0.5], tiles)
+    floor = _floor(tx.noise((0.5, 0.45, 0.4), (0.3, 0.27, 0.24), cells=128, seed=42))
+    counter = tx.wood((0.55, 0.36, 0.2), (0.35, 0.22, 0.12), rings=12, planks=8, seed=43)
+    props = [
+        _b([0, 0.45, 0], [0.7, 0.45, 0.3], counter),  # top y = 0.9
+        _b([0, 0.905, 0.05], [0.45, 0.005, 0.2],
+           tx.checker((0.7, 0.12, 0.1), (0.93, 0.9, 0.85), (16, 8))),
+        _board([-0.45, 1.55, -1.65], [0.35, 0.45, 0.01],
+               tx.text(_INK, _PAPER, rows=26, cols=30, seed=44), tx.solid((0.25, 0.2, 0.15))),
+        _board([0.5, 1.6, -1.65], [0.3, 0.3, 0.01], tx.image("coffee", size=512),
+               tx.solid((0.2, 0.2, 0.2))),
+        _e([0.45, 1.065, -0.1], [0.16] * 3, tx.image("hubble_deep_field", (2, 1), size=512)),
+        _b([0.1, 1.0, -0.05], [0.12, 0.1, 0.1], tx.image("chelsea", (2, 2), size=512),
+           yaw=0.3),
+    ]
+    for i, x in enumerate((-0.55, -0.38, -0.21)):
+        props.append(_f([x, 1.0, 0.1], 0.07, 0.1, 0.065, tx.text(
+            _INK, [(0.95, 0.9, 0.8), (0.85, 0.92, 0.95), (0.95, 0.85, 0.85)][i], rows=4,
+            cols=10, repeat=(-1, 1), seed=45 + i)))
+        props.append(_f([x, 1.115, 0.1], 0.07, 0.015, 0.07, tx.solid((0.6, 0.55, 0.2))))
+    return SceneSpec(name="dev_arc_shop", room=(wall, floor), props=tuple(props),
+                     sensor=_sensor("dev_arc_shop"), target=(0.0, 1.05, 0.0),
+                     distance=2.0, height=0.4, rig="arc", yaw_spread_deg=16.0)
+
+
+def _dev_slide_bench() -> SceneSpec:
+    """Tuning (not held out). A slider capture of a workbench: a toolbox, cans with
+    printed labels and a radio on the bench ~1.3 m away, a pegboard with hanging tools
+    and a calendar of photos on the wall at ~2.6 m, a plank floor."""
+    wall = _b([0, 3.0, -2.3], [12.0, 7.0, 0.5],
+              tx.noise((0.75, 0.76, 0.72), (0.62, 0.64, 0.6), cells=160, seed=50))
+    peg = tx.dots((0.7, 0.6, 0.45), [(0.2, 0.17, 0.14)], n=48, radius=0.2)
+    floor = _floor(tx.wood((0.5, 0.4, 0.3), (0.3, 0.22, 0.15), rings=4, planks=50,
+                           repeat=(12.0, 1.0), seed=51))
+    bench = tx.wood((0.7, 0.55, 0.38), (0.5, 0.36, 0.22), rings=10, planks=5, seed=52)
+    metal = tx.solid((0.3, 0.32, 0.35))
+    props = [
+        _board([0.0, 1.55, -1.79], [1.0, 0.6, 0.005], peg, peg),  # pegboard
+        _b([0, 0.78, -0.6], [0.9, 0.03, 0.35], bench),  # top y = 0.81
+        *_legs([(-0.85, -0.3), (0.85, -0.3), (-0.85, -0.9), (0.85, -0.9)], 0.75, 0.03,
+               metal),
+        _b([-0.45, 0.93, -0.65], [0.22, 0.12, 0.12], tx.stripes(
+            [(0.75, 0.12, 0.1), (0.6, 0.1, 0.08)], 12, angle_deg=90), yaw=0.2),
+        _b([0.45, 0.92, -0.7], [0.16, 0.11, 0.08], tx.per_face(
+            {5: tx.image("camera", size=384)}, tx.solid((0.2, 0.18, 0.15))), yaw=-0.25),
+        _board([0.0, 1.75, -1.77], [0.25, 0.35, 0.01], tx.image("astronaut", size=512),
+               tx.solid((0.9, 0.9, 0.88))),
+        _board([0.75, 1.7, -1.77], [0.2, 0.28, 0.01],
+               tx.text(_INK, _PAPER, rows=18, cols=22, seed=53), tx.solid(_PAPER)),
+    ]
+    for i, x in enumerate((-0.1, 0.08, 0.22)):
+        props.append(_f([x, 0.89, -0.45 + 0.05 * i], 0.05, 0.08, 0.05, tx.text(
+            (0.1, 0.2, 0.5), (0.95, 0.93, 0.9), rows=3, cols=8, repeat=(-1, 1), seed=54 + i)))
+    for x in (-0.8, -0.6, -0.4):  # tools hanging on the pegboard
+        props += tube([[x, 1.95, -1.76], [x + 0.03, 1.55, -1.75]], 0.012, metal)
+    return SceneSpec(name="dev_slide_bench", room=(wall, floor), props=tuple(props),
+                     sensor=_sensor("dev_slide_bench"), target=(0.0, 1.0, -1.0),
+                     distance=2.3, height=0.2, rig="slide", baseline=0.35)
+
+
+_DEV = {"dev_arc_shop": _dev_arc_shop, "dev_slide_bench": _dev_slide_bench}
+
+
 # ---------------------------------------------------------------- mixed-light scenes
 
 def _mixed_lamp_window() -> SceneSpec:
@@ -642,14 +719,16 @@ _MIX = {"mixed_lamp_window": _mixed_lamp_window, "mixed_desk_daylight": _mixed_d
 
 
 def build_scene(name: str) -> SceneSpec:
-    """The SceneSpec for one of SCENES, HELDOUT or MIXED (ValueError for other names)."""
+    """The SceneSpec for one of SCENES, HELDOUT, DEV or MIXED (ValueError for other names)."""
     if name in _HELD:
         return _HELD[name]()
     if name in _MIX:
         return _MIX[name]()
+    if name in _DEV:
+        return _DEV[name]()
     if name not in _PROPS:
         raise ValueError(f"unknown scene {name!r}; choose one of "
-                         f"{', '.join(SCENES + HELDOUT + MIXED)}")
+                         f"{', '.join(SCENES + HELDOUT + DEV + MIXED)}")
     wall, table = _ROOMS[name]()
     return SceneSpec(name=name, room=_room(wall, table), props=tuple(_PROPS[name]()),
                      sensor=_sensor(name))

@@ -47,7 +47,7 @@ from gridnerf.sim.capture import (
     render_view,
     render_view_layers,
 )
-from gridnerf.sim.scenes import HELDOUT, MIXED, SCENES, build_scene
+from gridnerf.sim.scenes import DEV, HELDOUT, MIXED, SCENES, build_scene
 
 # Scene-folder format version, part of the cache key: bump it whenever the written
 # files change so that folders written before are rebuilt. 2: camera rigs, held-out
@@ -255,7 +255,7 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
 
 def simulate_scene(name: str, out_dir, width: int = 480, height: int = 270,
                    n_frames: int = 24, seed: int = 0, overwrite: bool = False) -> Path:
-    """Write scene `name` (one of SCENES, HELDOUT or MIXED) into out_dir; returns out_dir.
+    """Write scene `name` (one of SCENES, HELDOUT, DEV or MIXED) into out_dir; returns out_dir.
 
     If out_dir already holds a complete scene written with the same parameters
     (checked against the `sim.json` manifest, written last), it is reused and
@@ -265,9 +265,9 @@ def simulate_scene(name: str, out_dir, width: int = 480, height: int = 270,
     `<out_dir>.tmp-<pid>` and renamed at the end. Deterministic for a seed.
     """
     out = Path(out_dir)
-    if name not in SCENES + HELDOUT + MIXED:
+    if name not in SCENES + HELDOUT + DEV + MIXED:
         raise SceneError(out, f"unknown simulated scene {name!r}",
-                         f"choose one of {', '.join(SCENES + HELDOUT + MIXED)}")
+                         f"choose one of {', '.join(SCENES + HELDOUT + DEV + MIXED)}")
     if min(width, height) < MIN_SIZE or n_frames < 1:
         raise SceneError(out, f"cannot simulate {width}x{height} with {n_frames} frames",
                          f"use width and height of at least {MIN_SIZE} pixels (LibRaw's "
