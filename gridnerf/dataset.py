@@ -201,11 +201,30 @@ def sample_patches(data: RayData, key, n_patches: int, patch: int):
     return frame, v0[:, None, None] + dv, u0[:, None, None] + du
 
 
+def strided_pixels(data: RayData, n_rays: int):
+    """A deterministic, even sample of every training frame: frame, v, u (N, hs, ws) integer
+    pixels on a regular grid (the same stride across and down, centred in its cells), about
+    n_rays in all (at least one pixel a frame)."""
+    h, w = data.image_hw
+    n = data.c2w.shape[0]
+    stride = max(1, int(np.ceil(np.sqrt(n * h * w / max(n_rays, 1)))))
+    v = np.arange(min(stride // 2, h - 1), h, stride)
+    u = np.arange(min(stride // 2, w - 1), w, stride)
+    frame, vv, uu = np.meshgrid(np.arange(n), v, u, indexing="ij")
+    return jnp.asarray(frame), jnp.asarray(vv), jnp.asarray(uu)
+
+
 def batch(data: RayData, key, n_patches: int, patch: int) -> dict:
     """One training batch of (P, patch, patch) rays: origins, directions, target, mask (each
     (P, patch, patch, 3)), and "illuminant" when the data carry an illuminant map."""
     frame, v, u = sample_patches(data, key, n_patches, patch)
-    fr = jnp.broadcast_to(frame[:, None, None], v.shape)
+    return rays_at(data, jnp.broadcast_to(frame[:, None, None], v.shape), v, u)
+
+
+def rays_at(data: RayData, fr, v, u) -> dict:
+    """The rays of training pixels: fr, v, u integer arrays of one shape S (frame, row,
+    column) -> origins, directions, target, mask (each S + (3,)), and "illuminant" when the
+    data carry an illuminant map."""
     uf, vf = u.astype(jnp.float32), v.astype(jnp.float32)
     o, d = pixel_rays(data.c2w[fr], data.intrinsics[fr], uf, vf)
     o, d = to_grid_space(data.ndc, data.ndc_intrinsics, o, d)

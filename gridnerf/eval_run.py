@@ -25,7 +25,6 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -78,10 +77,20 @@ def render_view(structure, params, scene, cfg, c2w, intrinsics, height, width,
     return out
 
 
+# rays of the training render that auto exposure and the global grey world are taken on
+TRAINING_RENDER_RAYS = 65536
+
+
 def training_render(structure, params, scene, cfg) -> dict:
-    """The field rendered on a fixed sample of 128 8x8 training-ray patches: (8192, ...)."""
+    """The field rendered on an even, fixed sample of every training frame (about
+    TRAINING_RENDER_RAYS pixels on a regular grid, dataset.strided_pixels): (N, hs, ws, ...).
+
+    Not a random sample: 128 random 8x8 patches (the sample before) set the auto exposure
+    of box 28 % apart between two training seeds (0.6 dB) where a bright coloured wall
+    filled some patches and not others; an even grid over all frames does not depend on
+    the seed."""
     data = dataset.training_data(scene, cfg.data)
-    rays = dataset.batch(data, jax.random.PRNGKey(cfg.train.seed + 7), 128, 8)
+    rays = dataset.rays_at(data, *dataset.strided_pixels(data, TRAINING_RENDER_RAYS))
     near_t, far_t = dataset.grid_box(scene)[2:]
     return render.render_image(
         structure, params, rays["origins"], rays["directions"], near_t, far_t, cfg.render

@@ -63,6 +63,29 @@ def test_batch_rays_are_pixel_rays_in_ndc(small_scene):
     np.testing.assert_allclose(np.asarray(o[1, 2]), o2, rtol=1e-5, atol=1e-6)
 
 
+def test_strided_pixels_cover_every_frame_evenly(small_scene):
+    """The auto-exposure sample: every frame, a regular grid inside the image, about the
+    asked count, the same on every call (no key); rays_at gives the same rays as batch's
+    for the same pixels."""
+    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
+    data = dataset.build(scene, scene.train_idx, binning=True)
+    n, (h, w) = data.c2w.shape[0], data.image_hw
+    fr, v, u = (np.asarray(a) for a in dataset.strided_pixels(data, 500))
+    assert fr.shape == v.shape == u.shape and fr.shape[0] == n
+    assert 250 <= fr.size <= 1000 and set(fr[:, 0, 0]) == set(range(n))
+    assert v.min() >= 0 and v.max() < h and u.min() >= 0 and u.max() < w
+    dv, du = np.diff(v[0, :, 0]), np.diff(u[0, 0, :])
+    assert len(set(dv)) == 1 and set(dv) == set(du)  # one stride, down and across
+    again = dataset.strided_pixels(data, 500)
+    assert all(np.array_equal(a, np.asarray(b)) for a, b in zip((fr, v, u), again, strict=True))
+    assert dataset.strided_pixels(data, 10**9)[1].size == n * h * w  # stride 1: all pixels
+    b = dataset.batch(data, jax.random.PRNGKey(3), 2, 4)
+    f, pv, pu = dataset.sample_patches(data, jax.random.PRNGKey(3), 2, 4)
+    at = dataset.rays_at(data, jnp.broadcast_to(f[:, None, None], pv.shape), pv, pu)
+    for k in ("origins", "directions", "target", "mask"):
+        np.testing.assert_array_equal(np.asarray(at[k]), np.asarray(b[k]))
+
+
 def test_oracle_data_are_the_downscaled_references(small_scene):
     from gridnerf import image_io, raw
 

@@ -124,6 +124,10 @@ def test_a_saved_config_without_a_newer_field_reads_as_it_was_trained():
     del saved["grid"]["background"]
     assert cfgmod.from_dict(saved).grid.background == "black"
     assert cfgmod.from_dict(saved) != cfgmod.preset("default")
+    saved = cfgmod.to_dict(cfgmod.preset("default"))
+    assert saved["loss"]["opacity_stages"] == 1
+    del saved["loss"]["opacity_stages"]  # saved before it existed: the prior in every stage
+    assert cfgmod.from_dict(saved).loss.opacity_stages == 0
 
 
 def test_bad_saved_config_names_the_file(tmp_path):
