@@ -119,9 +119,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="all")
     ap.add_argument("--oracle", default="all", choices=["all", "heldout", "none"],
-                    help="which scenes also train the oracle preset (cached runs are read)")
+                    help="which scenes also train the oracle preset ('heldout': the held-out and "
+                    "the tuning scenes; cached runs are read)")
     args = ap.parse_args()
-    rows = [row_for(s, args.oracle == "all" or (args.oracle == "heldout" and s in HELDOUT)
+    rows = [row_for(s, args.oracle == "all" or (args.oracle == "heldout"
+                                                 and s in HELDOUT + DEV)
                     or (Path("runs") / s / "oracle" / "eval" / "metrics.json").is_file())
             for s in scene_list(args.scenes)]
     machine = f"{platform.machine()}, {os.cpu_count()} cores, python {sys.version.split()[0]}"
