@@ -8,7 +8,7 @@ from pathlib import Path
 from gridnerf import atomic
 from gridnerf import config as cfgmod
 from gridnerf.eval_run import evaluate_run
-from gridnerf.sim import DEV, HELDOUT, MIXED, SCENES, simulate_scene
+from gridnerf.sim import ALL_SCENES, simulate_scene
 from gridnerf.train import train
 
 # Quick mode (`make report QUICK=1`): every study on 160x90, 12-frame versions of its
@@ -21,7 +21,7 @@ QUICK_SIZE = {"width": 160, "height": 90, "n_frames": 12}
 def scene_dir(scene: str, quick: bool = False) -> Path:
     """A built-in, held-out, tuning or mixed-light scene name (simulated on first use; the small
     version under data/quick with `quick`) or a folder."""
-    if scene in SCENES + HELDOUT + DEV + MIXED:
+    if scene in ALL_SCENES:
         if quick:
             return simulate_scene(scene, Path("data/quick") / scene, **QUICK_SIZE)
         return simulate_scene(scene, Path("data/sim") / scene)
@@ -45,7 +45,7 @@ def quick_sets(cfg: cfgmod.Config) -> list[str]:
 def simulated_folders(spec: str):
     """(name, folder) of the simulated scenes named by `spec` ('all': nine + held-out +
     tuning + mixed, or comma-separated names) that exist under data/sim; says which are skipped."""
-    names = SCENES + HELDOUT + DEV + MIXED if spec == "all" else tuple(spec.split(","))
+    names = ALL_SCENES if spec == "all" else tuple(spec.split(","))
     for name in names:
         folder = Path("data/sim") / name
         if not (folder / "sim.json").exists():

@@ -3,12 +3,12 @@
 For each scene: the default preset (ours), the oracle preset (the same grid trained on the
 clean references: the representational ceiling) and the generous per-frame baseline (2x2
 binning, grey world, colour matrix, exposure matched to the reference, bilinear upsampling;
-gridnerf.baseline.process_binned_frame), scored on the test views. The nine built-in scenes
-, the tuning scenes with an arc and a slide rig (gridnerf.sim.DEV: defaults may be chosen
-on them) and the held-out scenes (gridnerf.sim.HELDOUT, which no default is tuned on) are
-reported in separate tables. Runs are cached in runs/<scene>/<preset>/ (re-running reuses finished
-runs). Writes reports/recon.md and reports/recon.json and, with --scenes all, the tables in
-README.md between the recon markers.
+gridnerf.baseline.process_binned_frame), scored on the test views. The nine built-in
+scenes, the tuning scenes with an arc and a slide rig (gridnerf.sim.DEV: defaults may be
+chosen on them) and the held-out scenes (gridnerf.sim.HELDOUT, which no default is tuned
+on) are reported in separate tables. Runs are cached in runs/<scene>/<preset>/ (re-running
+reuses finished runs). Writes reports/recon.md and reports/recon.json and, with --scenes
+all, the tables in README.md between the recon markers.
 
     python experiments/recon.py [--scenes all|nine|dev|heldout|name,name]
                                 [--oracle all|heldout|none]
@@ -72,11 +72,6 @@ def row_for(scene: str, oracle: bool) -> dict:
     return row
 
 
-def group(row: dict) -> str:
-    """"nine", "dev" or "heldout" (rows cached before the tuning scenes have no "group")."""
-    return row.get("group", "heldout" if row["held_out"] else "nine")
-
-
 def table(rows: list[dict]) -> str:
     body = []
     for r in rows:
@@ -131,11 +126,11 @@ def main() -> None:
             f"Command: `python experiments/recon.py --scenes {args.scenes} --oracle "
             f"{args.oracle}`; machine: "
             f"{machine}. Metrics on the test views (sRGB, 16-pixel border crop).\n",
-            "## Built-in scenes\n", table([r for r in rows if group(r) == "nine"]), "",
+            "## Built-in scenes\n", table([r for r in rows if r["group"] == "nine"]), "",
             "## Tuning scenes with an arc and a slide rig (defaults may be chosen on them)\n",
-            table([r for r in rows if group(r) == "dev"]), "",
+            table([r for r in rows if r["group"] == "dev"]), "",
             "## Held-out scenes (no default tuned on them)\n",
-            table([r for r in rows if group(r) == "heldout"]), ""]
+            table([r for r in rows if r["group"] == "heldout"]), ""]
     colour = ["## Colour: the gain field against one global grey-world gain (PSNR / "
               "CIEDE2000)\n", colour_table(rows), ""]
     write_report(Path("reports") / "recon", "\n".join(text + colour),

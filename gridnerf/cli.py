@@ -15,13 +15,13 @@ from gridnerf.errors import GridNerfError
 
 
 def _simulate(args) -> None:
-    from gridnerf.sim import DEV, HELDOUT, MIXED, SCENES, simulate_scene
+    from gridnerf.sim import ALL_SCENES, DEV, HELDOUT, MIXED, SCENES, simulate_scene
 
     groups = {"all": SCENES, "heldout": HELDOUT, "dev": DEV, "mixed": MIXED}
     names = groups.get(args.name, (args.name,))
     for name in names:
-        if name not in SCENES + HELDOUT + DEV + MIXED:
-            fix = (f"choose one of {', '.join(SCENES + HELDOUT + DEV + MIXED)}, 'all', "
+        if name not in ALL_SCENES:
+            fix = (f"choose one of {', '.join(ALL_SCENES)}, 'all', "
                    "'heldout', 'dev' or 'mixed'")
             raise GridNerfError(None, f"unknown scene {name!r}", fix)
         out = Path(args.out) if args.out and len(names) == 1 else Path("data/sim") / name

@@ -7,7 +7,7 @@ scenes with rigs of those kinds (an arc, a slide) but other content; `MIXED` the
 mixed-light scenes (a warm lamp and daylight lighting different parts of the scene).
 """
 
-from gridnerf.sim.scenes import DEV, HELDOUT, MIXED, SCENES
+from gridnerf.sim.scenes import ALL_SCENES, DEV, HELDOUT, MIXED, SCENES
 from gridnerf.sim.writer import simulate_scene
 
-__all__ = ["DEV", "HELDOUT", "MIXED", "SCENES", "simulate_scene"]
+__all__ = ["ALL_SCENES", "DEV", "HELDOUT", "MIXED", "SCENES", "simulate_scene"]

@@ -46,6 +46,8 @@ DEV: tuple[str, ...] = ("dev_arc_shop", "dev_slide_bench")
 # Lit by two illuminants of different colour temperature (a lamp and daylight), each
 # dominating its own part of the scene: a global white balance cannot be right everywhere.
 MIXED: tuple[str, ...] = ("mixed_lamp_window", "mixed_desk_daylight")
+# every scene name the simulator knows
+ALL_SCENES: tuple[str, ...] = SCENES + HELDOUT + DEV + MIXED
 RIGS: tuple[str, ...] = ("tripod", "arc", "slide")
 
 
@@ -728,7 +730,7 @@ def build_scene(name: str) -> SceneSpec:
         return _DEV[name]()
     if name not in _PROPS:
         raise ValueError(f"unknown scene {name!r}; choose one of "
-                         f"{', '.join(SCENES + HELDOUT + DEV + MIXED)}")
+                         f"{', '.join(ALL_SCENES)}")
     wall, table = _ROOMS[name]()
     return SceneSpec(name=name, room=_room(wall, table), props=tuple(_PROPS[name]()),
                      sensor=_sensor(name))

@@ -47,7 +47,7 @@ from gridnerf.sim.capture import (
     render_view,
     render_view_layers,
 )
-from gridnerf.sim.scenes import DEV, HELDOUT, MIXED, SCENES, build_scene
+from gridnerf.sim.scenes import ALL_SCENES, HELDOUT, build_scene
 
 # Scene-folder format version, part of the cache key: bump it whenever the written
 # files change so that folders written before are rebuilt. 2: camera rigs, held-out
@@ -265,9 +265,9 @@ def simulate_scene(name: str, out_dir, width: int = 480, height: int = 270,
     `<out_dir>.tmp-<pid>` and renamed at the end. Deterministic for a seed.
     """
     out = Path(out_dir)
-    if name not in SCENES + HELDOUT + DEV + MIXED:
+    if name not in ALL_SCENES:
         raise SceneError(out, f"unknown simulated scene {name!r}",
-                         f"choose one of {', '.join(SCENES + HELDOUT + DEV + MIXED)}")
+                         f"choose one of {', '.join(ALL_SCENES)}")
     if min(width, height) < MIN_SIZE or n_frames < 1:
         raise SceneError(out, f"cannot simulate {width}x{height} with {n_frames} frames",
                          f"use width and height of at least {MIN_SIZE} pixels (LibRaw's "
