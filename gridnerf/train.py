@@ -241,6 +241,34 @@ def stage_config(cfg: Config, stage: int) -> Config:
     return dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, opacity=0.0))
 
 
+# margin on the longest training ray when fitting the candidate count (a batch ray's pixel
+# may sit a fraction of a pixel off the fitted ones)
+CANDIDATE_MARGIN = 1.05
+
+
+def with_fitted_candidates(cfg: Config, structure, data: dataset.RayData, near_t: float,
+                           far_t: float) -> Config:
+    """cfg with render.n_candidates fitted to this stage's grid and the training rays
+    (render.fit_n_candidates over every training pixel, times CANDIDATE_MARGIN), where
+    the config leaves it 0 (auto); otherwise cfg itself.
+
+    The auto count crosses the box diagonal (192x118x64: 351 candidates per ray), but a
+    forward-facing NDC ray crosses little more than the z voxels: every training ray keeps
+    its full 1 / samples_per_voxel spacing either way, so the samples are the same and
+    only the candidate test (occupancy lookups, running count, search) shrinks.
+    Renders of other cameras (eval) keep the auto count.
+    """
+    if cfg.render.n_candidates:
+        return cfg
+    longest = 0
+    for oc, dc, _ in _training_rays(data, 1 << 16, stride=1):
+        longest = max(longest, render.fit_n_candidates(
+            structure, oc, dc, near_t, far_t, cfg.render.samples_per_voxel))
+    n = min(int(np.ceil(longest * CANDIDATE_MARGIN)) + 1,
+            render.n_candidates(structure, cfg.render))
+    return dataclasses.replace(cfg, render=dataclasses.replace(cfg.render, n_candidates=n))
+
+
 def data_statistics(data: dataset.RayData, key, n_patches: int = 256
                     ) -> tuple[float, np.ndarray, np.ndarray]:
     """Mean target level, grey-world log gains (3,) and mean colour (3,) of the training
@@ -583,7 +611,9 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         if opt_leaves:
             opt_state = checkpoint.unflatten_like(opt_state, opt_leaves)
             opt_leaves = []
-        step_fn = make_step(stage_config(cfg, stage), tx, near_t, far_t, **colour)
+        stage_cfg = with_fitted_candidates(stage_config(cfg, stage), structure, data,
+                                           near_t, far_t)
+        step_fn = make_step(stage_cfg, tx, near_t, far_t, **colour)
         structure = grid.update_occupancy(structure, params, cfg.grid.occupancy_threshold)
         t_stage = time.perf_counter()
         last_save = t_stage

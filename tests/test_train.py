@@ -478,3 +478,28 @@ def test_guarded_carving_gives_back_what_a_weight_threshold_empties(small_scene,
     assert 0.0 < info["emptied_ray_fraction"] <= 1.0
     assert not (kept["visibility"] & ~kept["guarded"]).any()
     assert kept["guarded"].sum() > kept["visibility"].sum()
+
+
+def test_fitted_candidates_render_the_training_rays_unchanged(tiny_run):
+    """with_fitted_candidates: fewer candidates than the box diagonal on a forward-facing
+    grid, and every training batch ray gets the very same samples and colour."""
+    import jax
+
+    from gridnerf import dataset, eval_run, render
+    from gridnerf.train import with_fitted_candidates
+
+    cfg, scene, structure, params, _ = eval_run.load_run(tiny_run[0])
+    data = dataset.training_data(scene, cfg.data)
+    near_t, far_t = dataset.grid_box(scene)[2:]
+    fitted = with_fitted_candidates(cfg, structure, data, near_t, far_t)
+    n_fit = fitted.render.n_candidates
+    assert 0 < n_fit < render.n_candidates(structure, cfg.render)
+    assert with_fitted_candidates(fitted, structure, data, near_t, far_t) is fitted
+    rays = dataset.batch(data, jax.random.PRNGKey(3), 16, 8)
+    key = jax.random.PRNGKey(4)
+    o, d = (rays[k].reshape(-1, 3) for k in ("origins", "directions"))
+    outs = [render.render_rays(structure, params, o, d, near_t, far_t, c.render, key=key)
+            for c in (cfg, fitted)]
+    for name in ("rgb_low", "acc", "depth"):
+        np.testing.assert_allclose(np.asarray(outs[0][name]), np.asarray(outs[1][name]),
+                                   rtol=1e-5, atol=1e-7)
