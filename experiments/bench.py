@@ -196,6 +196,8 @@ def _training_setup(run: str, scale: float, dense: bool, sets: list[str]):
     structure = grid.update_occupancy(structure, params, cfg.grid.occupancy_threshold)
     stage = len(cfg.train.steps_per_stage) - 1
     tx = train.make_optimizer(cfg, cfg.train.steps_per_stage[-1], stage)
+    cfg = train.with_fitted_candidates(train.stage_config(cfg, stage), structure, data,
+                                       near_t, far_t)  # the last stage's step config
     step = train.make_step(cfg, tx, near_t, far_t, **extra)
     return cfg, structure, params, tx.init(params), step, data, near_t, far_t
 
