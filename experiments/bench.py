@@ -297,7 +297,7 @@ def worker_psnr(a: dict) -> dict:
     cfg, scene, *_ = eval_run.load_run(Path(a["run"]))
     cams, ds = scene.cameras, cfg.data.eval_downscale
     h, w = cams.height // ds, cams.width // ds
-    gts = {i: eval_run._gt(scene, scene.names[i], h, w) for i in scene.test_idx}
+    gts = {i: eval_run.reference_linear(scene, scene.names[i], h, w) for i in scene.test_idx}
     scores = []
     for snap in a["snapshots"]:
         structure, params, _, header = runfolder.load_state(Path(snap))

@@ -23,7 +23,7 @@ import numpy as np
 
 from common import markdown_table, run_variant, simulated_folders, write_report
 from gridnerf import baseline, color, consistency, raw
-from gridnerf.eval_run import _gt, load_run, outputs, render_view
+from gridnerf.eval_run import load_run, outputs, reference_linear, render_view
 from gridnerf.sim import HELDOUT, SCENES
 
 ROWS = ("gridnerf", "baseline_denoised", "baseline_dark_frame", "reference")
@@ -43,7 +43,7 @@ def _views(scene, cfg, structure, params, shown, i: int) -> dict:
                      ("baseline_dark_frame", baseline.process_dark_frame)):
         linear = fn(raw_i, scene.cfa, scene.xyz_to_cam)
         images[name] = color.srgb_encode(raw.downscale(linear, ds) if ds > 1 else linear)
-    gt = _gt(scene, scene.names[i], h, w)
+    gt = reference_linear(scene, scene.names[i], h, w)
     if gt is not None:
         images["reference"] = color.srgb_encode(gt)
     return {"out": out, "images": images, "c2w": cams.c2w[i], "intr": intr}

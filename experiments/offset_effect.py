@@ -42,7 +42,7 @@ def score(run: Path, fix) -> dict:
         intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]])
         out = fix(eval_run.render_view(structure, params, scene, cfg, cams.c2w[i], intr,
                                        cams.height, cams.width))
-        gt = eval_run._gt(scene, scene.names[i], cams.height, cams.width)
+        gt = eval_run.reference_linear(scene, scene.names[i], cams.height, cams.width)
         views.append(evaluate.image_metrics(main.show(out)[0], gt))
     return {k: float(np.mean([v[k] for v in views])) for k in ("psnr", "ssim", "delta_e")}
 

@@ -585,10 +585,14 @@ def effective(cfg: Config) -> Config:
     """cfg with the fields that cannot change its training reset to their defaults (the
     GAIN_FIELDS of a run without gains), so that two configs that train alike compare equal
     (cached experiment runs, e.g. the oracle, survive a change of the colour defaults), and
-    the LLNERF_FIELDS of a run that is not loss.method = "llnerf"."""
+    the LLNERF_FIELDS of a run that is not loss.method = "llnerf"; a loss.method = "llnerf"
+    run reads only gain_map of the GAIN_FIELDS (train.llnerf_terms replace L_ca and the
+    smoothness)."""
     base = LossConfig()
-    inert = (() if cfg.loss.use_gains else GAIN_FIELDS) + (
-        () if cfg.loss.method == "llnerf" else LLNERF_FIELDS)
+    llnerf = cfg.loss.method == "llnerf"
+    gain_inert = (GAIN_FIELDS if not cfg.loss.use_gains
+                  else tuple(f for f in GAIN_FIELDS if f != "gain_map") if llnerf else ())
+    inert = gain_inert + (() if llnerf else LLNERF_FIELDS)
     if not inert:
         return cfg
     return replace(cfg, loss=replace(cfg.loss, **{k: getattr(base, k) for k in inert}))

@@ -210,7 +210,7 @@ def evaluate_run(run: Path) -> dict:
         name = scene.names[i]
         intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]]) / ds
         out = render_view(structure, params, scene, cfg, cams.c2w[i], intr, h, w)
-        gt_linear = _gt(scene, name, h, w)
+        gt_linear = reference_linear(scene, name, h, w)
         for method, output in shown.items():
             pred_linear, pred_srgb = output.show(out)
             if method == main:
@@ -241,7 +241,7 @@ def evaluate_run(run: Path) -> dict:
                                                                          gt_linear)
             binned_linear = baseline.process_binned_frame(
                 scene.raw_normalized(i), scene.cfa, scene.xyz_to_cam,
-                gt_linear if ds == 1 else _gt(scene, name, cams.height, cams.width),
+                gt_linear if ds == 1 else reference_linear(scene, name, cams.height, cams.width),
                 adapted=adapted)
             binned_linear = raw.downscale(binned_linear, ds) if ds > 1 else binned_linear
             per_view["baseline_binned_matched"][name] = evaluate.image_metrics(
@@ -265,7 +265,7 @@ def evaluate_run(run: Path) -> dict:
     return result
 
 
-def _gt(scene, name: str, h: int, w: int):
+def reference_linear(scene, name: str, h: int, w: int):
     path = scene.gt_linear_paths.get(name)
     if path is None:
         return None

@@ -121,6 +121,12 @@ def test_config_ties_the_method_to_its_data():
     d = cfgmod.preset("default")
     assert cfgmod.effective(d) == cfgmod.effective(cfgmod.override(d, ["loss.w_exposure=1"]))
     assert cfgmod.effective(cfg) != cfgmod.effective(cfgmod.override(cfg, ["loss.w_exposure=1"]))
+    # L_ca and the smoothness are not trained by the llnerf method: a change of the colour
+    # defaults leaves its runs current; the gain map's compositing is
+    assert cfgmod.effective(cfg) == cfgmod.effective(
+        cfgmod.override(cfg, ["loss.ca_target=map", "loss.w_ca=0.3", "loss.w_smooth=0"]))
+    assert cfgmod.effective(cfg) != cfgmod.effective(
+        cfgmod.override(cfg, ["loss.gain_map=raw"]))
     saved = cfgmod.to_dict(d)
     for k in cfgmod.LLNERF_FIELDS + ("method",):
         del saved["loss"][k]

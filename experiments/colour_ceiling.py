@@ -1,0 +1,102 @@
+"""How much of a run's error is white balance: its render shown with the true white.
+
+For each run (runs/<scene>/<variant>) the test views are rendered once and the field's
+low-light colour (`rgb_low`, camera RGB) is shown four ways through the run's own display
+matrix, each at the same mean luminance as the run's own output on that view (so only
+colour differs from `ours`):
+
+- `ours`: the run's output (its gain field; eval_run.outputs' "gridnerf"),
+- `global_gw`: one grey-world gain for the scene (eval_run.global_gains),
+- `true_global`: one gain from the true white of the view (the mean of the per-pixel truth),
+- `true_local`: per-pixel gains from the true white of each pixel: for mixed-light scenes
+  the blend of the two lights by the first one's share of the camera green signal
+  (illuminant/<frame>.png, written by the simulator), elsewhere the one light.
+
+`true_local - true_global` is what a perfect gain *field* could add over a perfect single
+gain on that reconstruction; `true_local - ours` is what colour still costs the run. The
+truth is read for scoring only; no trainer sees it. Run folders whose config uses the
+adapted matrix are shown with the D65 matrix here (the adapted one needs one white).
+
+    python experiments/colour_ceiling.py [--scenes all] [--variant default]
+
+Writes reports/colour_ceiling.md and reports/colour_ceiling.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from common import fmt, markdown_table, simulated_folders, write_report
+from gridnerf import color, eval_run, evaluate, exposure, illuminant
+from gridnerf.sim import MIXED
+from illuminant_maps import true_map
+
+ROWS = ("ours", "global_gw", "true_global", "true_local")
+
+
+def view_rows(out: dict, shown: dict, matrix: np.ndarray, truth: np.ndarray) -> dict:
+    """rgb_linear (H, W, 3) of each row for one rendered view; truth: (H, W, 3) true white
+    per pixel (green = 1)."""
+    ours, _ = shown["gridnerf"].show(out)
+    target = float(np.mean(color.luminance(ours)))
+    low = np.asarray(out["rgb_low"], np.float64)
+    local = np.asarray(illuminant.gains_from_illuminant(truth))
+    one = np.asarray(illuminant.gains_from_illuminant(truth.reshape(-1, 3).mean(0)))
+    rows = {"ours": ours}
+    for name, rgb_cam in (("global_gw", low * shown["global_grey_world"].gains),
+                          ("true_global", low * one), ("true_local", low * local)):
+        rgb = rgb_cam @ matrix.T
+        rows[name] = (exposure.alpha_for_luminance(rgb, target) * rgb).astype(np.float32)
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default="all")
+    ap.add_argument("--variant", default="default")
+    ap.add_argument("--runs", default="runs")
+    ap.add_argument("--out", default="reports/colour_ceiling")
+    args = ap.parse_args()
+    record, table = {}, []
+    for name, folder in simulated_folders(args.scenes):
+        run = Path(args.runs) / name / args.variant
+        if not (run / "summary.json").exists():
+            print(f"skipping {name}: no finished run at {run}")
+            continue
+        sim = json.loads((folder / "sim.json").read_text())
+        cfg, scene, structure, params, _ = eval_run.load_run(run)
+        shown = eval_run.outputs(structure, params, scene, cfg)
+        matrix = exposure.display_matrix(scene.xyz_to_cam, cfg.output.use_color_matrix)
+        cams = scene.cameras
+        per_view = {r: [] for r in ROWS}
+        for i in scene.test_idx:
+            view = scene.names[i]
+            intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]])
+            out = eval_run.render_view(structure, params, scene, cfg, cams.c2w[i], intr,
+                                       cams.height, cams.width)
+            gt_linear = eval_run.reference_linear(scene, view, cams.height, cams.width)
+            truth = true_map(folder, sim, view, (cams.height, cams.width))
+            for r, rgb_linear in view_rows(out, shown, matrix, truth).items():
+                per_view[r].append(evaluate.image_metrics(rgb_linear, gt_linear))
+        summary = {r: evaluate.summarize(dict(enumerate(v))) for r, v in per_view.items()}
+        record[name] = {"run": str(run), "mixed_light": name in MIXED, **summary}
+        table.append([name, *(f"{fmt(summary[r]['psnr'])} / {fmt(summary[r]['delta_e'])}"
+                              for r in ROWS),
+                      fmt(summary["true_local"]["psnr"] - summary["true_global"]["psnr"]),
+                      fmt(summary["true_local"]["psnr"] - summary["ours"]["psnr"])])
+        print(name, table[-1][1:], flush=True)
+    md = ("# Colour ceiling: the run's render shown with the true white\n\n"
+          f"`python experiments/colour_ceiling.py --scenes {args.scenes} --variant "
+          f"{args.variant}`. PSNR / CIEDE2000 on the test views, every row at the run's own "
+          "mean luminance per view. `field room`: true_local - true_global (what a perfect "
+          "gain field adds over a perfect single gain); `colour cost`: true_local - ours.\n\n"
+          + markdown_table(["scene", *ROWS, "field room", "colour cost"], table))
+    write_report(args.out, md, record)
+
+
+if __name__ == "__main__":
+    main()
