@@ -1,5 +1,6 @@
-"""The report's studies (experiments/ablate.py, sweep.py, speed.py): their tables, means
-and plots from given results, and how the report picks them up. No training here."""
+"""The report's studies (experiments/ablate.py, sweep.py, speed.py, colour_ceiling.py):
+their tables, means and plots from given results, and how the report picks them up. No
+training here."""
 
 from __future__ import annotations
 
@@ -8,12 +9,16 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+from gridnerf import color, eval_run
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO / "experiments"))
 
 import ablate  # noqa: E402
+import colour_ceiling  # noqa: E402
 import speed  # noqa: E402
 import sweep  # noqa: E402
 
@@ -96,3 +101,26 @@ def test_ablation_scene_groups_and_colour_study():
     assert set(nine) == {"grey_world", "map"}
     assert "per-frame illuminant map" in ablate.markdown(record, nine, {},
                                                          ablate.COLOUR_VARIANTS)
+
+
+def test_colour_ceiling_rows_share_luminance_and_undo_the_true_white():
+    """experiments/colour_ceiling.view_rows: every row at ours' mean luminance; a grey scene
+    lit by a different white in each half comes out neutral with the per-pixel truth, and
+    one gain (the truth's mean) leaves a cast in both halves."""
+    warm, cool = np.array([0.6, 1.0, 0.35]), np.array([0.37, 1.0, 0.72])
+    truth = np.empty((8, 10, 3))
+    truth[:, :5], truth[:, 5:] = warm, cool
+    out = {"rgb_low": 0.05 * truth}  # a grey wall (albedo 0.05) under the two lights
+    shown = {"gridnerf": eval_run.Output("rgb_low", np.ones(3), np.eye(3), alpha=3.0),
+             "global_grey_world": eval_run.Output("rgb_low", np.ones(3), np.eye(3))}
+    rows = colour_ceiling.view_rows(out, shown, np.eye(3), truth)
+    target = color.luminance(rows["ours"]).mean()
+    for name, rgb_linear in rows.items():
+        assert color.luminance(rgb_linear).mean() == pytest.approx(target, rel=1e-5), name
+    local = rows["true_local"]
+    assert np.allclose(local, local[..., 1:2], rtol=1e-5)  # neutral everywhere
+    one = rows["true_global"]
+    assert abs(one[0, 0, 0] - one[0, 0, 2]) > 0.1 * one[0, 0, 1]  # a cast remains
+    uniform = np.broadcast_to(warm, truth.shape)
+    same = colour_ceiling.view_rows({"rgb_low": 0.05 * uniform}, shown, np.eye(3), uniform)
+    assert np.allclose(same["true_local"], same["true_global"], rtol=1e-5)
