@@ -6,7 +6,8 @@ affine fit in linear space first), then the mean over the nine built-in scenes a
 separately, over the held-out ones (no default was tuned on those). Rows whose runs are
 missing say so; the paper's CNN rows need pretrained weights that are not available
 offline and are n/a. The studies' tables are appended when their files exist beside the
-report (ablation, sweep, speed, consistency: experiments/<study>.py), with their plots,
+report (ablation, sweep, speed, consistency, recon and the colour studies: STUDIES,
+each from experiments/<script>.py), with their plots,
 and a figure of one test view per scene side by side (dark input, each method,
 reference) is written as <out>_views.png.
 
@@ -65,10 +66,16 @@ NOT_AVAILABLE = {
 # run folder -> preset of the rows' runs (--run-missing, --quick)
 RUN_PRESETS = {"default": "default", "nogain": "nogain", "processed": "processed",
                "llnerf": "llnerf", "oracle": "oracle"}
-# the studies appended to the report, in order: (file stem, title, experiments/ script)
+# the studies appended to the report, in order: (file stem, title, experiments/ script);
+# the colour studies are issue 8's tables (illuminant error, sensor fit), over every scene
 STUDIES = [("ablation", "Ablation", "ablate"), ("sweep", "Darkness sweep", "sweep"),
            ("speed", "Speed against error", "speed"),
-           ("consistency", "Multi-view consistency", "consistency")]
+           ("consistency", "Multi-view consistency", "consistency"),
+           ("recon", "Reconstruction against the per-frame pipeline and the oracle", "recon"),
+           ("illuminants", "Illuminant estimation (angular error)", "illuminants"),
+           ("illuminant_maps", "Illuminant maps where lights mix", "illuminant_maps"),
+           ("colour_ceiling", "Colour ceiling (the true white)", "colour_ceiling"),
+           ("noise", "Sensor fit (fitted against true)", "noise_table")]
 QUICK_SCENES = ["bucket", "held_arc_brick"]
 METRICS = ("psnr", "ssim", "delta_e", "psnr_aligned", "ssim_aligned", "delta_e_aligned")
 
@@ -157,7 +164,7 @@ def markdown(record: dict, scenes: list[str], folder: Path, views: str | None) -
             continue
         body = md.read_text().split("\n", 1)[1] if md.read_text().startswith("# ") \
             else md.read_text()
-        text += f"\n## {title}\n" + body.rstrip("\n") + "\n"
+        text += f"\n## {title}\n\n" + body.strip("\n") + "\n"
         if (folder / f"{stem}.png").is_file():
             text += f"\n![{title}]({stem}.png)\n"
     return text

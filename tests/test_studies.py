@@ -79,6 +79,7 @@ def test_report_appends_the_studies_it_finds(tmp_path, with_png):
     out = tmp_path / "out"
     out.mkdir()
     (out / "sweep.md").write_text("# Darkness sweep\n\nthe sweep table\n")
+    (out / "noise.md").write_text("Sensor noise fitted from the frames\n\n| a table |\n")
     if with_png:
         (out / "sweep.png").write_bytes(b"not checked")
     proc = subprocess.run([sys.executable, str(REPO / "experiments" / "report.py"),
@@ -90,6 +91,9 @@ def test_report_appends_the_studies_it_finds(tmp_path, with_png):
     assert ("![Darkness sweep](sweep.png)" in text) == with_png
     assert "## Ablation\n\nNot built yet: `python experiments/ablation.py`" not in text
     assert "Not built yet: `python experiments/ablate.py`" in text
+    # a study without a title line (the colour tables) still sits under its heading
+    assert "## Sensor fit (fitted against true)\n\nSensor noise fitted" in text
+    assert "Not built yet: `python experiments/colour_ceiling.py`" in text
 
 
 def test_ablation_scene_groups_and_colour_study():
