@@ -162,7 +162,8 @@ def render_rays(structure: GridStructure, params, origins, directions, near_t, f
     Returns rgb_low (n,3) low-light camera RGB, gain (n,3) = sum w s, rgb_restored (n,3) =
     sum w c_l s, depth (n,) expected t (not divided by acc), acc (n,), n_occupied (n,) int32,
     and per sample (n, K): `weights` w_i, `s_vox` position along the ray in voxels from the
-    first sample, `step_vox` interval length in voxels (0 for unused slots).
+    first sample, `step_vox` interval length in voxels (0 for unused slots), and
+    `gain_samples` (n, K, 3) the gains s_i (frozen_density_gain).
     """
     u, t, step, n_occupied = march(structure, origins, directions, near_t, far_t, cfg, key)
     table = gridlib.feature_table(structure, params, pad_to=8)
@@ -178,7 +179,17 @@ def render_rays(structure: GridStructure, params, origins, directions, near_t, f
         structure.bbox_max - structure.bbox_min)
     speed = jnp.linalg.norm(directions * scale, axis=-1, keepdims=True)  # voxels per unit t
     return {**sums, "acc": acc, "n_occupied": n_occupied, "weights": w,
-            "s_vox": (t - t[:, :1]) * speed, "step_vox": step}
+            "s_vox": (t - t[:, :1]) * speed, "step_vox": step, "gain_samples": gain}
+
+
+def frozen_density_gain(out: dict) -> tuple[jax.Array, jax.Array]:
+    """(gain (n, 3), acc (n,)) of a render_rays output composited with stop-gradient
+    weights: sum sg(w_i) s_i and sg(acc). What a prior on the gain field (L_ca, the
+    smoothness, LLNeRF's enhancement losses) computes from these can never move the
+    geometry. Equal to rendering the rays again with stop-gradient density (same samples),
+    without a second march, gather and backward pass."""
+    w = jax.lax.stop_gradient(out["weights"])
+    return jnp.einsum("nk,nkc->nc", w, out["gain_samples"]), jax.lax.stop_gradient(out["acc"])
 
 
 def composite_background(structure: GridStructure, sums: dict, acc) -> dict:
@@ -270,7 +281,7 @@ def carving_rescue(structure: GridStructure, params, keep, origins, directions, 
 
 # per-sample outputs of render_rays, (n, K) each: needed by losses, not by images (at
 # 1920x1080 and K = 64 they are 1.6 GB per view; docs/speed.md)
-PER_SAMPLE = ("weights", "s_vox", "step_vox")
+PER_SAMPLE = ("weights", "s_vox", "step_vox", "gain_samples")
 
 
 def _render_pixels(structure, params, origins, directions, near_t, far_t, cfg):

@@ -105,15 +105,14 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
     lc = cfg.loss
     k1, k2 = jax.random.split(key)
     if lc.method == "llnerf":
-        terms = llnerf_terms(structure, params, flat, out, shape, k0, k1, cfg, near_t, far_t)
+        terms = llnerf_terms(structure, params, flat, out, shape, k1, cfg)
     else:
         terms = {"data": losses.data_loss(out["rgb_low"], flat["target"], flat["mask"])}
     if lc.use_gains and lc.method == "brightnerf":
         gain = out["gain"]
         if lc.gain_map == "normalized":
             # divided by the opacity: half-transparent rays are not pushed to target / acc
-            g_out = _frozen_density_render(structure, params, flat, cfg, near_t, far_t, k0)
-            gain = losses.normalized_gain(g_out["gain"], g_out["acc"])
+            gain = losses.normalized_gain(*render.frozen_density_gain(out))
         c_ill = None  # None: ca_loss's grey world of the batch (the paper's target)
         if lc.ca_target == "map":
             if "illuminant" not in flat:
@@ -170,31 +169,20 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
     return total, terms
 
 
-def _frozen_density_render(structure, params, flat: dict, cfg: Config, near_t: float,
-                           far_t: float, key) -> dict:
-    """The batch rendered again with stop-gradient density (same samples: same `key` as the
-    main render; XLA shares the forward pass): what a prior computed from its gain field
-    (L_ca, the smoothness, LLNeRF's enhancement losses) can never move the geometry."""
-    frozen = {**params, "density": jax.lax.stop_gradient(params["density"])}
-    return render.render_rays(structure, frozen, flat["origins"], flat["directions"], near_t,
-                              far_t, cfg.render, key=key)
-
-
-def llnerf_terms(structure, params, flat: dict, out: dict, shape, k0, k1, cfg: Config,
-                 near_t: float, far_t: float) -> dict:
+def llnerf_terms(structure, params, flat: dict, out: dict, shape, k1, cfg: Config) -> dict:
     """The LLNeRF-style terms of one batch (gridnerf.llnerf): "data" (the dark render against
     the dark sRGB, loss.llnerf_data), "exposure" and "color_constancy" (of the enhanced
     render), "enhance_tv" (grid TV of log alpha and log gamma, rows sampled with k1).
 
-    flat: the batch's (n, 3) arrays; out: its render (key k0); shape: (P, p, p, 3). With
+    flat: the batch's (n, 3) arrays; out: its render; shape: (P, p, p, 3). With
     loss.gain_map = "normalized" the enhancement parameters are composited with
-    stop-gradient density (same samples, same key, as for L_ca), so the enhancement losses
-    train the enhancement field alone.
+    stop-gradient weights (render.frozen_density_gain, as for L_ca), so the enhancement
+    losses train the enhancement field alone.
     """
-    g_out = out
+    gain, acc = out["gain"], out["acc"]
     if cfg.loss.gain_map == "normalized":
-        g_out = _frozen_density_render(structure, params, flat, cfg, near_t, far_t, k0)
-    terms = llnerf.loss_terms(out["rgb_low"], g_out["gain"], g_out["acc"], flat["target"],
+        gain, acc = render.frozen_density_gain(out)
+    terms = llnerf.loss_terms(out["rgb_low"], gain, acc, flat["target"],
                               flat["mask"], shape, cfg.loss.exposure_level,
                               cfg.loss.exposure_pool, cfg.loss.llnerf_data)
     terms["enhance_tv"] = llnerf.enhancement_tv(structure, params["log_gain"], sample_key=k1,

@@ -323,3 +323,33 @@ def test_backdrop_fills_what_the_grid_leaves_and_matches_the_reference():
     for k in KEYS:
         np.testing.assert_allclose(out[k], ref[k], atol=2e-5 * max(1.0, np.abs(ref[k]).max()),
                                    err_msg=k)
+
+
+def test_frozen_density_gain_is_a_second_render_with_frozen_density():
+    """render.frozen_density_gain equals rendering the rays again with stop-gradient density
+    (the same samples: same key), in value and in gradient: a loss on it moves the gains as
+    that render would and never the density."""
+    structure, params = random_scene(seed=3)
+    o, d = (jnp.asarray(a) for a in random_rays(seed=4))
+    key = jax.random.PRNGKey(7)
+
+    def new(p):
+        out = render.render_rays(structure, p, o, d, 0.2, 3.0, CFG, key=key)
+        gain, acc = render.frozen_density_gain(out)
+        return jnp.sum(jnp.sin(gain)) + jnp.sum(acc**2), (gain, acc)
+
+    def old(p):
+        frozen = {**p, "density": jax.lax.stop_gradient(p["density"])}
+        out = render.render_rays(structure, frozen, o, d, 0.2, 3.0, CFG, key=key)
+        return jnp.sum(jnp.sin(out["gain"])) + jnp.sum(out["acc"] ** 2), (out["gain"],
+                                                                         out["acc"])
+
+    (_, (g_new, a_new)), grads_new = jax.value_and_grad(new, has_aux=True)(params)
+    (_, (g_old, a_old)), grads_old = jax.value_and_grad(old, has_aux=True)(params)
+    assert float(a_new.max()) > 0.5  # rays that hit something
+    np.testing.assert_allclose(g_new, g_old, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(a_new, a_old, rtol=1e-6, atol=1e-7)
+    assert not np.any(np.asarray(grads_new["density"]))
+    for k in params:
+        np.testing.assert_allclose(grads_new[k], grads_old[k], rtol=1e-5, atol=1e-6)
+    assert np.abs(np.asarray(grads_new["log_gain"])).max() > 0  # the gains do move
