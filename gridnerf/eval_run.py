@@ -266,6 +266,9 @@ def evaluate_run(run: Path) -> dict:
 
 
 def reference_linear(scene, name: str, h: int, w: int):
+    """(h, w, 3) float32 linear-sRGB reference of view `name` (gt/<name>.exr, box-downscaled
+    to the render size), or None where the scene has none; SceneError for a size that is
+    not a whole multiple of (h, w)."""
     path = scene.gt_linear_paths.get(name)
     if path is None:
         return None
