@@ -75,13 +75,17 @@ def markdown(record: dict) -> str:
 
 
 def plot(record: dict, path: Path) -> None:
+    """One panel per scene, one curve per preset; the presets share their first stages, so
+    each curve has its own line style and the earlier ones are drawn wider, on top."""
     plt = pyplot()
     n = len(record)
     fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.2), squeeze=False)
     for ax, (scene, per_preset) in zip(axes[0], record.items(), strict=True):
-        for preset, c in per_preset.items():
+        styles = ("-", "--", ":", "-.")
+        for k, (preset, c) in enumerate(per_preset.items()):
             ax.plot([p["wall_s"] for p in c["points"]], [p["psnr"] for p in c["points"]],
-                    marker=".", label=preset)
+                    marker="o.x+"[k % 4], markersize=6 - k, linestyle=styles[k % 4],
+                    linewidth=3.0 - 0.8 * k if k < 3 else 0.8, zorder=10 - k, label=preset)
         ax.set_title(scene)
         ax.set_xlabel("training wall time (s)")
         ax.set_ylabel("test PSNR (dB)")
