@@ -6,6 +6,10 @@ matrix, each at the same mean luminance as the run's own output on that view (so
 colour differs from `ours`):
 
 - `ours`: the run's output (its gain field; eval_run.outputs' "gridnerf"),
+- `field_global`: the gain field collapsed to one gain, the white it balances on average
+  over the training render (eval_run.field_neutral): the same estimate of the light
+  without the spatial variation, so `ours - field_global` is what the field's variation
+  adds,
 - `global_gw`: one grey-world gain for the scene (eval_run.global_gains),
 - `true_global`: one gain from the true white of the view (the mean of the per-pixel truth),
 - `true_local`: per-pixel gains from the true white of each pixel: for mixed-light scenes
@@ -35,19 +39,23 @@ from gridnerf import color, eval_run, evaluate, exposure, illuminant
 from gridnerf.sim import MIXED
 from illuminant_maps import true_map
 
-ROWS = ("ours", "global_gw", "true_global", "true_local")
+ROWS = ("ours", "field_global", "global_gw", "true_global", "true_local")
 
 
-def view_rows(out: dict, shown: dict, matrix: np.ndarray, truth: np.ndarray) -> dict:
+def view_rows(out: dict, shown: dict, matrix: np.ndarray, truth: np.ndarray,
+              field_white: np.ndarray) -> dict:
     """rgb_linear (H, W, 3) of each row for one rendered view; truth: (H, W, 3) true white
-    per pixel (green = 1)."""
+    per pixel (green = 1); field_white: (3,) the white the run's gains balance on average
+    (eval_run.field_neutral of its training render)."""
     ours, _ = shown["gridnerf"].show(out)
     target = float(np.mean(color.luminance(ours)))
     low = np.asarray(out["rgb_low"], np.float64)
     local = np.asarray(illuminant.gains_from_illuminant(truth))
     one = np.asarray(illuminant.gains_from_illuminant(truth.reshape(-1, 3).mean(0)))
     rows = {"ours": ours}
-    for name, rgb_cam in (("global_gw", low * shown["global_grey_world"].gains),
+    field_one = np.asarray(illuminant.gains_from_illuminant(field_white))
+    for name, rgb_cam in (("field_global", low * field_one),
+                          ("global_gw", low * shown["global_grey_world"].gains),
                           ("true_global", low * one), ("true_local", low * local)):
         rgb = rgb_cam @ matrix.T
         rows[name] = (exposure.alpha_for_luminance(rgb, target) * rgb).astype(np.float32)
@@ -69,7 +77,10 @@ def main() -> None:
             continue
         sim = json.loads((folder / "sim.json").read_text())
         cfg, scene, structure, params, _ = eval_run.load_run(run)
-        shown = eval_run.outputs(structure, params, scene, cfg)
+        train_out = eval_run.training_render(structure, params, scene, cfg)
+        shown = eval_run.outputs(structure, params, scene, cfg, train_out)
+        field_white = (eval_run.field_neutral(train_out) if cfg.loss.use_gains
+                       else np.asarray(illuminant.grey_world(np.asarray(train_out["rgb_low"]))))
         matrix = exposure.display_matrix(scene.xyz_to_cam, cfg.output.use_color_matrix)
         cams = scene.cameras
         per_view = {r: [] for r in ROWS}
@@ -80,21 +91,25 @@ def main() -> None:
                                        cams.height, cams.width)
             gt_linear = eval_run.reference_linear(scene, view, cams.height, cams.width)
             truth = true_map(folder, sim, view, (cams.height, cams.width))
-            for r, rgb_linear in view_rows(out, shown, matrix, truth).items():
+            for r, rgb_linear in view_rows(out, shown, matrix, truth, field_white).items():
                 per_view[r].append(evaluate.image_metrics(rgb_linear, gt_linear))
         summary = {r: evaluate.summarize(dict(enumerate(v))) for r, v in per_view.items()}
         record[name] = {"run": str(run), "mixed_light": name in MIXED, **summary}
         table.append([name, *(f"{fmt(summary[r]['psnr'])} / {fmt(summary[r]['delta_e'])}"
                               for r in ROWS),
                       fmt(summary["true_local"]["psnr"] - summary["true_global"]["psnr"]),
-                      fmt(summary["true_local"]["psnr"] - summary["ours"]["psnr"])])
+                      fmt(summary["true_local"]["psnr"] - summary["ours"]["psnr"]),
+                      fmt(summary["ours"]["psnr"] - summary["field_global"]["psnr"])])
         print(name, table[-1][1:], flush=True)
     md = ("# Colour ceiling: the run's render shown with the true white\n\n"
           f"`python experiments/colour_ceiling.py --scenes {args.scenes} --variant "
           f"{args.variant}`. PSNR / CIEDE2000 on the test views, every row at the run's own "
           "mean luminance per view. `field room`: true_local - true_global (what a perfect "
-          "gain field adds over a perfect single gain); `colour cost`: true_local - ours.\n\n"
-          + markdown_table(["scene", *ROWS, "field room", "colour cost"], table))
+          "gain field adds over a perfect single gain); `colour cost`: true_local - ours; "
+          "`field variation`: ours - field_global (what the field adds over its own mean "
+          "gain).\n\n"
+          + markdown_table(["scene", *ROWS, "field room", "colour cost", "field variation"],
+                         table))
     write_report(args.out, md, record)
 
 

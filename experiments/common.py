@@ -42,6 +42,19 @@ def quick_sets(cfg: cfgmod.Config) -> list[str]:
             "train.log_every=10"]
 
 
+def stale_run(run: Path, preset: str, quick: bool = False) -> bool:
+    """Whether the run's saved config differs from what `preset` trains today
+    (quick_sets on top in quick mode): an old default's run is not this default's row. A
+    run without config.json is taken as it is."""
+    path = Path(run) / "config.json"
+    if not path.is_file():
+        return False
+    want = cfgmod.preset(preset)
+    if quick:
+        want = cfgmod.override(want, quick_sets(want))
+    return cfgmod.effective(cfgmod.load(path)) != cfgmod.effective(want)
+
+
 def simulated_folders(spec: str):
     """(name, folder) of the simulated scenes named by `spec` ('all': nine + held-out +
     tuning + mixed, or comma-separated names) that exist under data/sim; says which are skipped."""

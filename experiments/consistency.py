@@ -8,6 +8,11 @@ disagreement of its images alone: 2D methods process each frame on its own (thei
 exposure and white balance per frame, their own noise), the grid renders one model. The
 references' row (the clean renders of the simulator) is the floor of the metric: what
 the grid's geometry error and view-dependent shading leave even for perfect images.
+The other 3D rows of the report (RawNeRF + ISP: runs/<scene>/nogain with one grey-world
+gain; 2D + NeRF: runs/<scene>/processed; LLNeRF-style: runs/<scene>/llnerf) render their
+own images of both views, still compared through the default run's geometry; a row whose
+run has not finished (or was trained by another preset than today's) is left out
+(`n/a`), not trained.
 
 Reads (or trains, with the default preset) runs/<scene>/default.
 
@@ -21,17 +26,28 @@ from pathlib import Path
 
 import numpy as np
 
-from common import markdown_table, run_variant, simulated_folders, write_report
+from common import (
+    markdown_table,
+    run_variant,
+    scene_dir,
+    simulated_folders,
+    stale_run,
+    write_report,
+)
 from gridnerf import baseline, color, consistency, raw
 from gridnerf.eval_run import load_run, outputs, reference_linear, render_view
 from gridnerf.sim import HELDOUT, SCENES
 
-ROWS = ("gridnerf", "baseline_denoised", "baseline_dark_frame", "reference")
+# the report's other 3D rows: row -> (run folder, shown output of eval_run.outputs)
+RUN_ROWS = {"rawnerf_isp": ("nogain", "global_grey_world"), "2d_nerf": ("processed", "gridnerf"),
+            "llnerf": ("llnerf", "llnerf")}
+ROWS = ("gridnerf", *RUN_ROWS, "baseline_denoised", "baseline_dark_frame", "reference")
 
 
-def _views(scene, cfg, structure, params, shown, i: int) -> dict:
+def _views(scene, cfg, structure, params, shown, others, i: int) -> dict:
     """The shown images (sRGB) of frame i per row (ours through `shown`, the run's
-    eval_run.Output), and the grid's render with points."""
+    eval_run.Output; `others`: {row: (cfg, structure, params, output)} of the other runs),
+    and the grid's render with points."""
     cams = scene.cameras
     ds = cfg.data.eval_downscale
     h, w = cams.height // ds, cams.width // ds
@@ -39,6 +55,9 @@ def _views(scene, cfg, structure, params, shown, i: int) -> dict:
     out = render_view(structure, params, scene, cfg, cams.c2w[i], intr, h, w, points=True)
     raw_i = scene.raw_normalized(i)
     images = {"gridnerf": shown.show(out)[1]}
+    for row, (o_cfg, o_structure, o_params, o_shown) in others.items():
+        o_out = render_view(o_structure, o_params, scene, o_cfg, cams.c2w[i], intr, h, w)
+        images[row] = o_shown.show(o_out)[1]
     for name, fn in (("baseline_denoised", baseline.process_denoised_frame),
                      ("baseline_dark_frame", baseline.process_dark_frame)):
         linear = fn(raw_i, scene.cfa, scene.xyz_to_cam)
@@ -49,17 +68,26 @@ def _views(scene, cfg, structure, params, shown, i: int) -> dict:
     return {"out": out, "images": images, "c2w": cams.c2w[i], "intr": intr}
 
 
-def scene_rows(scene_name: str) -> dict:
-    """{row: {"mae": mean over test views, "coverage": ...}} for one scene."""
-    run_variant(scene_name, "default", "default", [])
-    cfg, scene, structure, params, _ = load_run(Path("runs") / scene_name / "default")
+def scene_rows(scene_name: str, runs: Path = Path("runs"), quick: bool = False) -> dict:
+    """{row: {"mae": mean over test views, "coverage": ...}} for one scene (quick: the
+    small scene's runs, common.run_variant)."""
+    run_variant(scene_name, "default", "default", [], runs, quick)
+    folder = Path(runs) / scene_dir(scene_name, quick).name
+    cfg, scene, structure, params, _ = load_run(folder / "default")
     n = len(scene.names)
     shown = outputs(structure, params, scene, cfg)["gridnerf"]  # exposed once per run
+    others = {}
+    for row, (run_folder, key) in RUN_ROWS.items():
+        run = folder / run_folder
+        if (run / "summary.json").is_file() and not stale_run(run, run_folder, quick):
+            o_cfg, o_scene, o_structure, o_params, _ = load_run(run)
+            o_shown = outputs(o_structure, o_params, o_scene, o_cfg)[key]
+            others[row] = (o_cfg, o_structure, o_params, o_shown)
     per_row: dict[str, list] = {r: [] for r in ROWS}
     for i in scene.test_idx:
         j = int(i) + 1 if int(i) + 1 < n else int(i) - 1
-        a = _views(scene, cfg, structure, params, shown, int(i))
-        b = _views(scene, cfg, structure, params, shown, j)
+        a = _views(scene, cfg, structure, params, shown, others, int(i))
+        b = _views(scene, cfg, structure, params, shown, others, j)
         for row in ROWS:
             if row in a["images"] and row in b["images"]:
                 per_row[row].append(consistency.warp_disagreement(
@@ -71,14 +99,9 @@ def scene_rows(scene_name: str) -> dict:
             for row, v in per_row.items() if v}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="all")
-    ap.add_argument("--out", default="reports/consistency")
-    args = ap.parse_args()
-    spec = {"all": ",".join([*SCENES, *HELDOUT]), "nine": ",".join(SCENES),
-            "heldout": ",".join(HELDOUT)}.get(args.scenes, args.scenes)
-    record = {name: scene_rows(name) for name, _ in simulated_folders(spec)}
+def markdown(record: dict, command: str) -> str:
+    """The table of build's record: per scene, then the means over the nine and the held-out
+    scenes (a mean over fewer scenes than the others says n=)."""
     header = ["scene", *[f"{r} (x255)" for r in ROWS], "coverage"]
     lines = []
     for name, rows in record.items():
@@ -86,18 +109,42 @@ def main() -> None:
                               for r in ROWS], f"{rows['gridnerf']['coverage']:.2f}"])
     for label, names in (("mean, nine", SCENES), ("mean, held out", HELDOUT)):
         got = [record[s] for s in names if s in record]
-        if got:
-            lines.append([label, *[f"{255 * np.mean([g[r]['mae'] for g in got if r in g]):.2f}"
-                                   for r in ROWS], ""])
-    md = ("# Multi-view consistency\n\nMean absolute sRGB difference (0-255) between a test "
-          "view and its neighbouring frame at the same surface points (the grid's geometry "
-          "for every row; occluded and transparent pixels left out; `coverage`: share of "
-          "the test view compared). Lower is more consistent; `reference` is the floor "
-          "the geometry leaves.\n\n"
-          f"Command: `python experiments/consistency.py --scenes {args.scenes}`\n\n"
-          + markdown_table(header, lines) + "\n")
-    write_report(args.out, md, record)
-    print(md)
+        if not got:
+            continue
+        cells = []
+        for r in ROWS:
+            vals = [g[r]["mae"] for g in got if r in g]
+            cells.append("n/a" if not vals else f"{255 * np.mean(vals):.2f}" + (
+                f" (n={len(vals)})" if len(vals) < len(got) else ""))
+        lines.append([f"**{label}**", *cells, ""])
+    return ("# Multi-view consistency\n\nMean absolute sRGB difference (0-255) between a test "
+            "view and its neighbouring frame at the same surface points (the grid's geometry "
+            "for every row; occluded and transparent pixels left out; `coverage`: share of "
+            "the test view compared). Lower is more consistent; `reference` is the floor "
+            "the geometry leaves. Rows as in the report's table (`gridnerf`: ours); `n/a`: "
+            "that run has not finished.\n\n"
+            f"Command: `{command}`\n\n" + markdown_table(header, lines) + "\n")
+
+
+def build(scenes: list[str], runs: Path, out, quick: bool, command: str) -> str:
+    """Score every scene (training its default run if missing), write <out>.md and
+    <out>.json; returns the markdown."""
+    record = {name: scene_rows(name, runs, quick) for name in scenes}
+    text = markdown(record, command)
+    write_report(out, text, record)
+    return text
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default="all")
+    ap.add_argument("--out", default="reports/consistency")
+    args = ap.parse_args()
+    spec = {"all": ",".join([*SCENES, *HELDOUT]), "nine": ",".join(SCENES),
+            "heldout": ",".join(HELDOUT)}.get(args.scenes, args.scenes)
+    names = [name for name, _ in simulated_folders(spec)]
+    print(build(names, Path("runs"), args.out, False,
+                f"python experiments/consistency.py --scenes {args.scenes}"))
 
 
 if __name__ == "__main__":

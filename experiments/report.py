@@ -32,12 +32,11 @@ from common import (
     fmt,
     markdown_table,
     pyplot,
-    quick_sets,
     run_variant,
     save_figure,
+    stale_run,
     write_report,
 )
-from gridnerf import config as cfgmod
 from gridnerf.sim import HELDOUT, SCENES
 
 # (row, label, run variant, key in that run's eval summary)
@@ -81,16 +80,9 @@ METRICS = ("psnr", "ssim", "delta_e", "psnr_aligned", "ssim_aligned", "delta_e_a
 
 
 def stale(run: Path, variant: str, quick: bool = False) -> bool:
-    """Whether the run's saved config differs from what its variant's preset trains today
-    (common.quick_sets on top in quick mode): an old default's run is not this default's
-    row. A run without config.json is taken as it is."""
-    path = run / "config.json"
-    if not path.is_file() or variant not in RUN_PRESETS:
-        return False
-    want = cfgmod.preset(RUN_PRESETS[variant])
-    if quick:
-        want = cfgmod.override(want, quick_sets(want))
-    return cfgmod.effective(cfgmod.load(path)) != cfgmod.effective(want)
+    """Whether a row's run was trained by another config than its variant's preset today
+    (common.stale_run); a variant outside RUN_PRESETS is taken as it is."""
+    return variant in RUN_PRESETS and stale_run(run, RUN_PRESETS[variant], quick)
 
 
 def assemble(runs: Path, scenes: list[str], quick: bool = False) -> dict:
@@ -252,6 +244,7 @@ def figure(runs: Path, scenes: list[str], path: Path, quick: bool = False,
 def build_quick(runs: Path, folder: Path) -> None:
     """Every run and study of the report, small (module docstring)."""
     import ablate
+    import consistency
     import speed
     import sweep
 
@@ -263,6 +256,8 @@ def build_quick(runs: Path, folder: Path) -> None:
                 quick=True)
     speed.build(QUICK_SCENES[:1], ["fast", "default"], 200, runs, folder / "speed",
                 quick=True)
+    consistency.build(QUICK_SCENES[:1], runs, folder / "consistency", True,
+                      "python experiments/report.py --quick")
 
 
 def main() -> None:

@@ -1,4 +1,5 @@
-"""The report's studies (experiments/ablate.py, sweep.py, speed.py, colour_ceiling.py):
+"""The report's studies (experiments/ablate.py, sweep.py, speed.py, colour_ceiling.py,
+consistency.py):
 their tables, means and plots from given results, and how the report picks them up. No
 training here."""
 
@@ -19,6 +20,7 @@ sys.path.insert(0, str(REPO / "experiments"))
 
 import ablate  # noqa: E402
 import colour_ceiling  # noqa: E402
+import consistency  # noqa: E402
 import speed  # noqa: E402
 import sweep  # noqa: E402
 
@@ -52,6 +54,26 @@ def test_sweep_table_and_plot(tmp_path):
     assert (tmp_path / "sweep.png").stat().st_size > 1000
     assert sweep.variant("default", 1.0) == "default"
     assert sweep.variant("llnerf", 0.3) == "llnerf_gamma0.3"
+
+
+def test_consistency_table_marks_missing_runs_and_partial_means():
+    def rows(ours, llnerf=None):
+        r = {"gridnerf": {"mae": ours / 255, "coverage": 0.9},
+             "reference": {"mae": 3.0 / 255, "coverage": 0.9}}
+        return r | ({"llnerf": {"mae": llnerf / 255, "coverage": 0.9}} if llnerf else {})
+
+    record = {"bucket": rows(2.0, llnerf=9.0), "deer": rows(4.0), "held_arc_brick": rows(5.0)}
+    text = consistency.markdown(record, "cmd")
+    line = {ln.split(" | ")[0]: ln for ln in text.splitlines() if ln.startswith("| ")}
+    cols = text.splitlines()[[i for i, ln in enumerate(text.splitlines())
+                              if ln.startswith("| scene")][0]].split(" | ")
+    deer = line["| deer"].split(" | ")
+    assert deer[cols.index("llnerf (x255)")] == "n/a"
+    nine = line["| **mean, nine**"].split(" | ")
+    assert nine[cols.index("gridnerf (x255)")] == "3.00"
+    assert nine[cols.index("llnerf (x255)")] == "9.00 (n=1)"
+    held = line["| **mean, held out**"].split(" | ")
+    assert held[cols.index("llnerf (x255)")] == "n/a"
 
 
 def test_speed_time_to_quality():
@@ -117,7 +139,7 @@ def test_colour_ceiling_rows_share_luminance_and_undo_the_true_white():
     out = {"rgb_low": 0.05 * truth}  # a grey wall (albedo 0.05) under the two lights
     shown = {"gridnerf": eval_run.Output("rgb_low", np.ones(3), np.eye(3), alpha=3.0),
              "global_grey_world": eval_run.Output("rgb_low", np.ones(3), np.eye(3))}
-    rows = colour_ceiling.view_rows(out, shown, np.eye(3), truth)
+    rows = colour_ceiling.view_rows(out, shown, np.eye(3), truth, warm)
     target = color.luminance(rows["ours"]).mean()
     for name, rgb_linear in rows.items():
         assert color.luminance(rgb_linear).mean() == pytest.approx(target, rel=1e-5), name
@@ -125,6 +147,10 @@ def test_colour_ceiling_rows_share_luminance_and_undo_the_true_white():
     assert np.allclose(local, local[..., 1:2], rtol=1e-5)  # neutral everywhere
     one = rows["true_global"]
     assert abs(one[0, 0, 0] - one[0, 0, 2]) > 0.1 * one[0, 0, 1]  # a cast remains
+    field = rows["field_global"]  # the field's mean white, here the warm light: that half
+    assert np.allclose(field[:, :5], field[:, :5, 1:2], rtol=1e-5)  # neutral, the other not
+    assert abs(field[0, 9, 0] - field[0, 9, 2]) > 0.1 * field[0, 9, 1]
     uniform = np.broadcast_to(warm, truth.shape)
-    same = colour_ceiling.view_rows({"rgb_low": 0.05 * uniform}, shown, np.eye(3), uniform)
+    same = colour_ceiling.view_rows({"rgb_low": 0.05 * uniform}, shown, np.eye(3), uniform,
+                                    warm)
     assert np.allclose(same["true_local"], same["true_global"], rtol=1e-5)
