@@ -156,6 +156,8 @@ def markdown(record: dict, scenes: list[str], folder: Path, views: str | None) -
             continue
         body = md.read_text().split("\n", 1)[1] if md.read_text().startswith("# ") \
             else md.read_text()
+        # the study's own headings sit one level under its title
+        body = "\n".join("#" + ln if ln.startswith("#") else ln for ln in body.split("\n"))
         text += f"\n## {title}\n\n" + body.strip("\n") + "\n"
         if (folder / f"{stem}.png").is_file():
             text += f"\n![{title}]({stem}.png)\n"

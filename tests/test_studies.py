@@ -100,7 +100,7 @@ def test_report_appends_the_studies_it_finds(tmp_path, with_png):
     (run / "metrics.json").write_text(json.dumps({"summary": {"gridnerf": m}}))
     out = tmp_path / "out"
     out.mkdir()
-    (out / "sweep.md").write_text("# Darkness sweep\n\nthe sweep table\n")
+    (out / "sweep.md").write_text("# Darkness sweep\n\nthe sweep table\n\n## Extreme\n\nx\n")
     (out / "noise.md").write_text("Sensor noise fitted from the frames\n\n| a table |\n")
     if with_png:
         (out / "sweep.png").write_bytes(b"not checked")
@@ -110,6 +110,7 @@ def test_report_appends_the_studies_it_finds(tmp_path, with_png):
     assert proc.returncode == 0, proc.stderr
     text = (out / "report.md").read_text()
     assert "## Darkness sweep\n\nthe sweep table" in text
+    assert "\n### Extreme\n" in text  # the study's own headings one level down
     assert ("![Darkness sweep](sweep.png)" in text) == with_png
     assert "## Ablation\n\nNot built yet: `python experiments/ablation.py`" not in text
     assert "Not built yet: `python experiments/ablate.py`" in text
