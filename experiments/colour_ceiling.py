@@ -36,10 +36,11 @@ import numpy as np
 
 from common import fmt, markdown_table, simulated_folders, write_report
 from gridnerf import color, eval_run, evaluate, exposure, illuminant
-from gridnerf.sim import MIXED
+from gridnerf.sim import DEV, HELDOUT, MIXED, SCENES
 from illuminant_maps import true_map
 
 ROWS = ("ours", "field_global", "global_gw", "true_global", "true_local")
+GROUPS = (("nine", SCENES), ("tuning", DEV), ("held out", HELDOUT), ("mixed light", MIXED))
 
 
 def view_rows(out: dict, shown: dict, matrix: np.ndarray, truth: np.ndarray,
@@ -60,6 +61,14 @@ def view_rows(out: dict, shown: dict, matrix: np.ndarray, truth: np.ndarray,
         rgb = rgb_cam @ matrix.T
         rows[name] = (exposure.alpha_for_luminance(rgb, target) * rgb).astype(np.float32)
     return rows
+
+
+def table_row(name: str, summary: dict) -> list[str]:
+    """One line of the table: PSNR / CIEDE2000 of each row, then the three differences."""
+    return [name, *(f"{fmt(summary[r]['psnr'])} / {fmt(summary[r]['delta_e'])}" for r in ROWS),
+            fmt(summary["true_local"]["psnr"] - summary["true_global"]["psnr"]),
+            fmt(summary["true_local"]["psnr"] - summary["ours"]["psnr"]),
+            fmt(summary["ours"]["psnr"] - summary["field_global"]["psnr"])]
 
 
 def main() -> None:
@@ -95,12 +104,14 @@ def main() -> None:
                 per_view[r].append(evaluate.image_metrics(rgb_linear, gt_linear))
         summary = {r: evaluate.summarize(dict(enumerate(v))) for r, v in per_view.items()}
         record[name] = {"run": str(run), "mixed_light": name in MIXED, **summary}
-        table.append([name, *(f"{fmt(summary[r]['psnr'])} / {fmt(summary[r]['delta_e'])}"
-                              for r in ROWS),
-                      fmt(summary["true_local"]["psnr"] - summary["true_global"]["psnr"]),
-                      fmt(summary["true_local"]["psnr"] - summary["ours"]["psnr"]),
-                      fmt(summary["ours"]["psnr"] - summary["field_global"]["psnr"])])
+        table.append(table_row(name, summary))
         print(name, table[-1][1:], flush=True)
+    for label, group in GROUPS:
+        got = [record[n] for n in group if n in record]
+        if got:
+            mean = {r: {m: float(np.mean([g[r][m] for g in got])) for m in ("psnr", "delta_e")}
+                    for r in ROWS}
+            table.append(table_row(f"**mean, {label}** ({len(got)})", mean))
     md = ("# Colour ceiling: the run's render shown with the true white\n\n"
           f"`python experiments/colour_ceiling.py --scenes {args.scenes} --variant "
           f"{args.variant}`. PSNR / CIEDE2000 on the test views, every row at the run's own "
