@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -42,6 +43,19 @@ def quick_sets(cfg: cfgmod.Config) -> list[str]:
             "train.log_every=10"]
 
 
+def preset_config(preset: str, quick: bool = False) -> cfgmod.Config:
+    """What `preset` trains today (quick_sets on top in quick mode)."""
+    want = cfgmod.preset(preset)
+    return cfgmod.override(want, quick_sets(want)) if quick else want
+
+
+def fingerprint(cfg: cfgmod.Config) -> str:
+    """A short hash of what a config trains (config.effective): two runs with the same
+    fingerprint were trained alike. The report stores it beside each number it reuses."""
+    blob = json.dumps(cfgmod.to_dict(cfgmod.effective(cfg)), sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
 def stale_run(run: Path, preset: str, quick: bool = False) -> bool:
     """Whether the run's saved config differs from what `preset` trains today
     (quick_sets on top in quick mode): an old default's run is not this default's row. A
@@ -49,10 +63,7 @@ def stale_run(run: Path, preset: str, quick: bool = False) -> bool:
     path = Path(run) / "config.json"
     if not path.is_file():
         return False
-    want = cfgmod.preset(preset)
-    if quick:
-        want = cfgmod.override(want, quick_sets(want))
-    return cfgmod.effective(cfgmod.load(path)) != cfgmod.effective(want)
+    return cfgmod.effective(cfgmod.load(path)) != cfgmod.effective(preset_config(preset, quick))
 
 
 def simulated_folders(spec: str):

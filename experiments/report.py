@@ -11,6 +11,11 @@ each from experiments/<script>.py), with their plots,
 and a figure of one test view per scene side by side (dark input, each method,
 reference) is written as <out>_views.png.
 
+Run folders are not in git: a cell whose run is not on this machine is taken from the
+previous <out>.json when the config fingerprint stored beside it is its preset's today
+(assemble), so a fresh machine rebuilds the report from what it trains plus what was
+measured before; the views figure is kept rather than redrawn with grey tiles.
+
 Nothing is trained unless asked: --run-missing a,b|all trains every row's run of those
 scenes first. --quick builds the whole report small (160x90 scenes, presets shrunk by
 common.quick_sets, runs under runs_quick/, report under reports/quick/): every run and
@@ -29,8 +34,10 @@ from pathlib import Path
 import numpy as np
 
 from common import (
+    fingerprint,
     fmt,
     markdown_table,
+    preset_config,
     pyplot,
     run_variant,
     save_figure,
@@ -85,24 +92,38 @@ def stale(run: Path, variant: str, quick: bool = False) -> bool:
     return variant in RUN_PRESETS and stale_run(run, RUN_PRESETS[variant], quick)
 
 
-def assemble(runs: Path, scenes: list[str], quick: bool = False) -> dict:
-    """{row: {"label", "scenes": {scene: metrics}, "stale": [scene], "mean_nine",
-    "mean_heldout"}} from the evaluated runs under `runs` whose config is their preset's
-    today (others are listed as stale, not used); a mean covers the scenes the row has
-    (with their count)."""
+def assemble(runs: Path, scenes: list[str], quick: bool = False,
+             previous: dict | None = None) -> dict:
+    """{row: {"label", "scenes": {scene: metrics}, "fingerprints": {scene: str}, "stale":
+    [scene], "cached": [scene], "mean_nine", "mean_heldout"}} from the evaluated runs under
+    `runs` whose config is their preset's today (others are listed as stale, not used); a
+    mean covers the scenes the row has (with their count).
+
+    Run folders are not kept in git, so a fresh machine has none: a cell whose run is
+    absent is taken from `previous` (the last report's record) when the fingerprint stored
+    beside it (common.fingerprint) is that of the row's preset today, and listed as cached."""
     record = {}
     for row, label, variant, key in ROWS:
-        per_scene, old = {}, []
+        per_scene, prints, old, cached = {}, {}, [], []
+        today = fingerprint(preset_config(RUN_PRESETS[variant], quick))
+        before = (previous or {}).get(row) or {}
         for scene in scenes:
-            path = runs / scene / variant / "eval" / "metrics.json"
-            if path.is_file() and stale(path.parent.parent, variant, quick):
+            run = runs / scene / variant
+            path = run / "eval" / "metrics.json"
+            if path.is_file() and stale(run, variant, quick):
                 old.append(scene)
             elif path.is_file():
                 summary = json.loads(path.read_text())["summary"].get(key)
                 if summary:
                     per_scene[scene] = {k: float(summary[k]) for k in METRICS}
+                    prints[scene] = today
+            elif (scene in before.get("scenes", {})
+                  and before.get("fingerprints", {}).get(scene) == today):
+                per_scene[scene] = before["scenes"][scene]
+                prints[scene] = today
+                cached.append(scene)
         entry = {"label": label, "variant": variant, "key": key, "scenes": per_scene,
-                 "stale": old}
+                 "fingerprints": prints, "stale": old, "cached": cached}
         for name, group in (("mean_nine", SCENES), ("mean_heldout", HELDOUT)):
             got = [per_scene[s] for s in group if s in per_scene]
             entry[name] = ({k: float(np.mean([g[k] for g in got])) for k in METRICS}
@@ -136,6 +157,8 @@ def markdown(record: dict, scenes: list[str], folder: Path, views: str | None) -
     missing = [r for r in record if not record[r]["scenes"]]
     stale_runs = sorted({f"runs/{s}/{record[r]['variant']}" for r in record
                          for s in record[r]["stale"]})
+    cached = "; ".join(f"{r}: {', '.join(record[r]['cached'])}" for r in record
+                       if record[r].get("cached"))
     text = ("# gridnerf report\n\nEach cell: PSNR / SSIM / CIEDE2000 (sRGB, 16-pixel border "
             "crop). Held-out scenes (no default tuned on them) are averaged separately.\n\n"
             f"{legend}\n"
@@ -143,6 +166,9 @@ def markdown(record: dict, scenes: list[str], folder: Path, views: str | None) -
             + "".join(f"- {k}: n/a ({v})\n" for k, v in NOT_AVAILABLE.items())
             + (f"- left out, trained with another config than their preset's today: "
                f"{', '.join(stale_runs)}\n" if stale_runs else "")
+            + (f"- taken from the previous report (run folders not on this machine; "
+               f"trained by the preset of today, their config fingerprints match): "
+               f"{cached}\n" if cached else "")
             + "\n## Test views\n\n" + markdown_table(header, lines)
             + "\n\n## Aligned (per-channel affine fit in linear space first)\n\n"
             + markdown_table(header, aligned) + "\n")
@@ -182,15 +208,18 @@ def figure(runs: Path, scenes: list[str], path: Path, quick: bool = False,
            tile: tuple[int, int] = (160, 90)) -> bool:
     """One test view per scene (its middle test frame), FIGURE_COLUMNS side by side, tiles
     of `tile` (w, h) pixels; missing runs, and runs of another config than their preset's
-    today (stale), leave a grey tile. False when no scene has one."""
+    today (stale), leave a grey tile. An existing figure is kept rather than replaced by
+    one with grey tiles (a fresh machine has no runs; the report reuses its numbers).
+    False when there is no figure."""
     from skimage.transform import resize
 
     from gridnerf import baseline, color, eval_run, image_io
 
-    rows = []
+    rows, missing = [], 0
     for scene in scenes:
         ours = runs / scene / "default"
         if not (ours / "eval" / "metrics.json").is_file():
+            missing += 1
             continue
         views = json.loads((ours / "eval" / "metrics.json").read_text()).get("test_views", [])
         if not views:
@@ -218,10 +247,14 @@ def figure(runs: Path, scenes: list[str], path: Path, quick: bool = False,
                 png = runs / scene / parts[0] / "eval" / f"{name}_{parts[1]}.png"
                 if png.is_file() and not stale(runs / scene / parts[0], parts[0], quick):
                     img = image_io.read_png(png)
+            missing += img is None
             tiles.append(np.full((tile[1], tile[0], 3), 0.5) if img is None else
                          resize(np.clip(np.asarray(img, np.float64), 0, 1), (tile[1], tile[0]),
                                 anti_aliasing=True))
         rows.append((scene, name, tiles))
+    if missing and path.is_file():
+        print(f"kept {path}: {missing} of its scenes or tiles have no run on this machine")
+        return True
     if not rows:
         return False
     n_cols = len(FIGURE_COLUMNS)
@@ -281,7 +314,9 @@ def main() -> None:
     for scene in todo:
         for variant, preset in RUN_PRESETS.items():
             run_variant(scene, variant, preset, [], runs)
-    record = assemble(runs, scenes, args.quick)
+    previous = out.with_suffix(".json")
+    record = assemble(runs, scenes, args.quick, None if args.quick or not previous.is_file()
+                      else json.loads(previous.read_text()))
     if not any(r["scenes"] for r in record.values()):
         raise SystemExit(f"no evaluated runs under {runs}/: run `make train SCENE=<name>` "
                          "or `make recon` first")

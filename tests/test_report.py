@@ -69,3 +69,30 @@ def test_report_leaves_out_runs_of_another_config(tmp_path):
     assert set(record["ours"]["scenes"]) == {"deer"} and record["ours"]["stale"] == ["bucket"]
     assert "another config than their preset's today: runs/bucket/default" in (
         tmp_path / "out" / "report.md").read_text()
+
+
+def test_report_reuses_previous_numbers_only_with_todays_fingerprint(tmp_path):
+    """A fresh machine has no run folders: the previous report's cells come back when the
+    config fingerprint beside them is the preset's today, and never otherwise."""
+    sys.path.insert(0, str(REPO / "experiments"))
+    from common import fingerprint, preset_config
+
+    runs = tmp_path / "runs"
+    _write(runs, "deer", "default", _metrics(18.0))
+    m = {k: 20.0 for k in ("psnr", "ssim", "delta_e", "psnr_aligned", "ssim_aligned",
+                           "delta_e_aligned")}
+    today = fingerprint(preset_config("default"))
+    other = fingerprint(preset_config("nogain"))
+    assert today != other
+    previous = {"ours": {"scenes": {"bucket": m, "box": m, "deer": {**m, "psnr": 1.0}},
+                         "fingerprints": {"bucket": today, "box": other, "deer": today}}}
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "report.json").write_text(json.dumps(previous))
+    proc = _report(tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    ours = json.loads((tmp_path / "out" / "report.json").read_text())["ours"]
+    assert ours["scenes"]["bucket"]["psnr"] == 20.0 and ours["cached"] == ["bucket"]
+    assert "box" not in ours["scenes"]  # trained by another config: not reused
+    assert ours["scenes"]["deer"]["psnr"] == 18.0  # a run on this machine wins
+    assert ours["fingerprints"] == {"bucket": today, "deer": today}
+    assert "taken from the previous report" in (tmp_path / "out" / "report.md").read_text()
