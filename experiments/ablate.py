@@ -91,7 +91,8 @@ def means(record: dict, group, variants=VARIANTS) -> dict:
     return out
 
 
-def markdown(record: dict, mean_nine: dict, mean_held: dict, variants=VARIANTS) -> str:
+def markdown(record: dict, mean_nine: dict, mean_held: dict, variants=VARIANTS,
+             command: str = "") -> str:
     labels = {key: label for key, label, *_ in variants}
 
     def rows(scene: str, per: dict) -> list[list[str]]:
@@ -100,10 +101,13 @@ def markdown(record: dict, mean_nine: dict, mean_held: dict, variants=VARIANTS) 
                 for key, outs in per.items() for name, m in outs.items()]
 
     lines = [r for scene, per in record.items() for r in rows(scene, per)]
-    lines += rows("**mean, nine**", mean_nine) + rows("**mean, held out**", mean_held)
+    for label, mean in (("nine", mean_nine), ("held out", mean_held)):
+        n = max((m["n"] for outs in mean.values() for m in outs.values()), default=0)
+        lines += rows(f"**mean, {label}** (n={n})", mean)
     return ("# Ablation\n\nTest views, PSNR / SSIM / CIEDE2000 and aligned PSNR. Outputs: "
             "`matrix` (the colour matrix, shown by default), `matrix_free` (the paper's), "
             "`global_gain` (the no-gain grid with one grey-world gain for the scene).\n\n"
+            + (f"Command: `{command}`\n\n" if command else "")
             + markdown_table(["scene", "variant", "output", "PSNR", "SSIM", "CIEDE2000",
                               "PSNR al."], lines) + "\n")
 
@@ -125,12 +129,19 @@ def main() -> None:
                 STUDIES[args.study]))
 
 
-def build(scenes: list[str], runs: Path, out, quick: bool, variants=VARIANTS) -> str:
-    """Train what is missing, write <out>.md and <out>.json; returns the markdown."""
+def build(scenes: list[str], runs: Path, out, quick: bool, variants=VARIANTS,
+          command: str | None = None) -> str:
+    """Train what is missing, write <out>.md and <out>.json; returns the markdown. The
+    command shown defaults to this script's call for these scenes and variants."""
+    study = next(k for k, v in STUDIES.items() if v is variants) if any(
+        v is variants for v in STUDIES.values()) else "parts"
+    command = command or (f"python experiments/ablate.py --scenes {','.join(scenes)}"
+                          + (f" --study {study}" if study != "parts" else "")
+                          + (" --quick" if quick else ""))
     record = ablate(scenes, runs, quick, variants)
     mean_nine = means(record, SCENES, variants)
     mean_held = means(record, HELDOUT, variants)
-    text = markdown(record, mean_nine, mean_held, variants)
+    text = markdown(record, mean_nine, mean_held, variants, command)
     write_report(out, text, {"quick": quick, "scenes": record, "mean_nine": mean_nine,
                              "mean_heldout": mean_held})
     return text

@@ -47,7 +47,7 @@ def sweep(scenes: list[str], methods: list[str], gammas: list[float], runs: Path
     return record
 
 
-def markdown(record: dict, gammas: list[float]) -> str:
+def markdown(record: dict, gammas: list[float], command: str = "") -> str:
     lines = []
     for method, per_scene in record.items():
         for scene, by_gamma in per_scene.items():
@@ -56,6 +56,7 @@ def markdown(record: dict, gammas: list[float]) -> str:
                 if f"{g:g}" in by_gamma else "-" for g in gammas]])
     return ("# Darkness sweep\n\nRaw scaled by gamma after black-level removal (the paper's "
             "protocol); each cell: test-view PSNR / CIEDE2000.\n\n"
+            + (f"Command: `{command}`\n\n" if command else "")
             + markdown_table(["method", "scene", *[f"gamma {g:g}" for g in gammas]], lines)
             + "\n")
 
@@ -103,7 +104,10 @@ def build(scenes: list[str], methods: list[str], gammas: list[float], runs: Path
           quick: bool) -> str:
     """Train what is missing, write <out>.md, .json and .png; returns the markdown."""
     record = sweep(scenes, methods, gammas, runs, quick)
-    text = markdown(record, gammas)
+    command = (f"python experiments/sweep.py --scenes {','.join(scenes)} --methods "
+               f"{','.join(methods)} --gammas {','.join(f'{g:g}' for g in gammas)}"
+               + (" --quick" if quick else ""))
+    text = markdown(record, gammas, command)
     write_report(out, text, {"gammas": gammas, "quick": quick, "results": record})
     plot(record, gammas, Path(out).with_suffix(".png"))
     return text

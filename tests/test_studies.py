@@ -42,7 +42,8 @@ def test_ablation_means_keep_nine_and_held_out_apart():
     assert nine["no_cr"]["global_gain"]["n"] == 1  # only where the output exists
     assert held["full_tv"]["matrix"]["psnr"] == 15.0 and "no_cr" not in held
     text = ablate.markdown(record, nine, held)
-    assert "**mean, held out**" in text and "global_gain" in text
+    assert "**mean, held out** (n=1)" in text and "global_gain" in text
+    assert "**mean, nine** (n=2)" in text
 
 
 def test_sweep_table_and_plot(tmp_path):
