@@ -78,12 +78,45 @@ def simulated_folders(spec: str):
         yield name, folder
 
 
+# Run folders are not kept in git and a fresh machine has none, so each evaluated run's
+# summary is also kept here (committed beside the reports), keyed by <scene>/<run> with the
+# fingerprint of the config that trained it: a study that finds a run's numbers here under
+# its config of today reuses them instead of training again. Keyed by config only: a change
+# of the simulator or of the metrics calls for deleting the entries it touches.
+RESULTS = Path("reports/results.json")
+
+
+def cached_result(scene: str, name: str, cfg: cfgmod.Config,
+                  path: Path = RESULTS) -> dict | None:
+    """{"summary": ...} of <scene>/<name> from `path` when its fingerprint is cfg's."""
+    if not Path(path).is_file():
+        return None
+    entry = json.loads(Path(path).read_text()).get(f"{scene}/{name}")
+    if entry and entry.get("fingerprint") == fingerprint(cfg):
+        return {"summary": entry["summary"], "cached": True}
+    return None
+
+
+def record_result(scene: str, name: str, cfg: cfgmod.Config, metrics: dict,
+                  path: Path = RESULTS) -> None:
+    """Keep an evaluated run's summary in `path` under its config's fingerprint."""
+    path = Path(path)
+    results = json.loads(path.read_text()) if path.is_file() else {}
+    results[f"{scene}/{name}"] = {"fingerprint": fingerprint(cfg),
+                                  "summary": metrics["summary"]}
+    atomic.write_text(path, json.dumps(results, indent=1, sort_keys=True) + "\n")
+
+
 def run_variant(scene: str, name: str, preset: str, overrides: list[str],
-                runs: Path = Path("runs"), quick: bool = False) -> dict:
+                runs: Path = Path("runs"), quick: bool = False,
+                need_run: bool = False) -> dict:
     """Train (resuming if possible) and evaluate <runs>/<scene>/<name>; returns eval metrics.
-    quick: the small scene and quick_sets on top of the preset and overrides."""
-    sdir = scene_dir(scene, quick)
-    run = Path(runs) / sdir.name / name
+    quick: the small scene and quick_sets on top of the preset and overrides. Without the
+    run folder, a result of the same config in RESULTS is returned instead of training
+    ({"summary", "cached": True}), unless the caller needs the run itself (`need_run`:
+    its renders or files); every result evaluated here is kept there (not in quick mode)."""
+    scene_name = Path(scene).name  # scene_dir's folder name, without simulating it yet
+    run = Path(runs) / scene_name / name
     cfg = cfgmod.override(cfgmod.preset(preset), overrides)
     if quick:
         cfg = cfgmod.override(cfg, quick_sets(cfg))
@@ -91,11 +124,16 @@ def run_variant(scene: str, name: str, preset: str, overrides: list[str],
                                            != cfgmod.effective(cfg)):
         raise SystemExit(f"{run} holds a different config; delete it to re-run this variant")
     if not (run / "summary.json").exists():
-        train(sdir, run, cfg)
+        hit = None if quick or need_run else cached_result(scene_name, name, cfg)
+        if hit:
+            return hit
+        train(scene_dir(scene, quick), run, cfg)
     metrics_path = run / "eval" / "metrics.json"
-    if metrics_path.exists():
-        return json.loads(metrics_path.read_text())
-    return evaluate_run(run)
+    metrics = (json.loads(metrics_path.read_text()) if metrics_path.exists()
+               else evaluate_run(run))
+    if not quick:
+        record_result(scene_name, name, cfg, metrics)
+    return metrics
 
 
 def write_report(out, markdown: str, record) -> None:

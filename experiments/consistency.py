@@ -71,7 +71,7 @@ def _views(scene, cfg, structure, params, shown, others, i: int) -> dict:
 def scene_rows(scene_name: str, runs: Path = Path("runs"), quick: bool = False) -> dict:
     """{row: {"mae": mean over test views, "coverage": ...}} for one scene (quick: the
     small scene's runs, common.run_variant)."""
-    run_variant(scene_name, "default", "default", [], runs, quick)
+    run_variant(scene_name, "default", "default", [], runs, quick, need_run=True)
     folder = Path(runs) / scene_dir(scene_name, quick).name
     cfg, scene, structure, params, _ = load_run(folder / "default")
     n = len(scene.names)

@@ -42,7 +42,7 @@ def scene_list(spec: str) -> list[str]:
 
 
 def row_for(scene: str, oracle: bool) -> dict:
-    ours = run_variant(scene, "default", "default", [])
+    ours = run_variant(scene, "default", "default", [], need_run=True)
     s = ours["summary"]
     summary = json.loads((Path(ours["run"]) / "summary.json").read_text())
     row = {
@@ -66,7 +66,7 @@ def row_for(scene: str, oracle: bool) -> dict:
     if bounds.is_file():
         row["bounds"] = json.loads(bounds.read_text())
     if oracle:
-        o = run_variant(scene, "oracle", "oracle", [])
+        o = run_variant(scene, "oracle", "oracle", [], need_run=True)
         row["oracle_psnr"] = o["summary"]["gridnerf"]["psnr"]
         row["oracle_ssim"] = o["summary"]["gridnerf"]["ssim"]
     return row

@@ -11,10 +11,11 @@ each from experiments/<script>.py), with their plots,
 and a figure of one test view per scene side by side (dark input, each method,
 reference) is written as <out>_views.png.
 
-Run folders are not in git: a cell whose run is not on this machine is taken from the
-previous <out>.json when the config fingerprint stored beside it is its preset's today
-(assemble), so a fresh machine rebuilds the report from what it trains plus what was
-measured before; the views figure is kept rather than redrawn with grey tiles.
+Run folders are not in git: a cell whose run is not on this machine is taken from
+reports/results.json (common.RESULTS: every evaluated run's summary under the fingerprint
+of its config) when the fingerprint is its preset's today, so a fresh machine rebuilds the
+report from what it trains plus what was measured before; the views figure is kept rather
+than redrawn with grey tiles.
 
 Nothing is trained unless asked: --run-missing a,b|all trains every row's run of those
 scenes first. --quick builds the whole report small (160x90 scenes, presets shrunk by
@@ -34,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from common import (
-    fingerprint,
+    cached_result,
     fmt,
     markdown_table,
     preset_config,
@@ -92,38 +93,34 @@ def stale(run: Path, variant: str, quick: bool = False) -> bool:
     return variant in RUN_PRESETS and stale_run(run, RUN_PRESETS[variant], quick)
 
 
-def assemble(runs: Path, scenes: list[str], quick: bool = False,
-             previous: dict | None = None) -> dict:
-    """{row: {"label", "scenes": {scene: metrics}, "fingerprints": {scene: str}, "stale":
-    [scene], "cached": [scene], "mean_nine", "mean_heldout"}} from the evaluated runs under
-    `runs` whose config is their preset's today (others are listed as stale, not used); a
-    mean covers the scenes the row has (with their count).
-
-    Run folders are not kept in git, so a fresh machine has none: a cell whose run is
-    absent is taken from `previous` (the last report's record) when the fingerprint stored
-    beside it (common.fingerprint) is that of the row's preset today, and listed as cached."""
+def assemble(runs: Path, scenes: list[str], quick: bool = False) -> dict:
+    """{row: {"label", "scenes": {scene: metrics}, "stale": [scene], "cached": [scene],
+    "mean_nine", "mean_heldout"}} from the evaluated runs under `runs` whose config is
+    their preset's today (others are listed as stale, not used); a mean covers the scenes
+    the row has (with their count). A run not on this machine is taken from
+    common.RESULTS when it holds the run under its preset's config of today (listed as
+    cached): run folders are not in git, the results are."""
     record = {}
     for row, label, variant, key in ROWS:
-        per_scene, prints, old, cached = {}, {}, [], []
-        today = fingerprint(preset_config(RUN_PRESETS[variant], quick))
-        before = (previous or {}).get(row) or {}
+        per_scene, old, cached = {}, [], []
         for scene in scenes:
             run = runs / scene / variant
             path = run / "eval" / "metrics.json"
             if path.is_file() and stale(run, variant, quick):
                 old.append(scene)
-            elif path.is_file():
-                summary = json.loads(path.read_text())["summary"].get(key)
-                if summary:
-                    per_scene[scene] = {k: float(summary[k]) for k in METRICS}
-                    prints[scene] = today
-            elif (scene in before.get("scenes", {})
-                  and before.get("fingerprints", {}).get(scene) == today):
-                per_scene[scene] = before["scenes"][scene]
-                prints[scene] = today
-                cached.append(scene)
+                continue
+            if path.is_file():
+                summary = json.loads(path.read_text())["summary"]
+            else:
+                hit = None if quick else cached_result(
+                    scene, variant, preset_config(RUN_PRESETS[variant]))
+                summary = hit["summary"] if hit else {}
+            if summary.get(key):
+                per_scene[scene] = {k: float(summary[key][k]) for k in METRICS}
+                if not path.is_file():
+                    cached.append(scene)
         entry = {"label": label, "variant": variant, "key": key, "scenes": per_scene,
-                 "fingerprints": prints, "stale": old, "cached": cached}
+                 "stale": old, "cached": cached}
         for name, group in (("mean_nine", SCENES), ("mean_heldout", HELDOUT)):
             got = [per_scene[s] for s in group if s in per_scene]
             entry[name] = ({k: float(np.mean([g[k] for g in got])) for k in METRICS}
@@ -166,8 +163,8 @@ def markdown(record: dict, scenes: list[str], folder: Path, views: str | None) -
             + "".join(f"- {k}: n/a ({v})\n" for k, v in NOT_AVAILABLE.items())
             + (f"- left out, trained with another config than their preset's today: "
                f"{', '.join(stale_runs)}\n" if stale_runs else "")
-            + (f"- taken from the previous report (run folders not on this machine; "
-               f"trained by the preset of today, their config fingerprints match): "
+            + (f"- taken from reports/results.json (trained by the preset of today, by "
+               f"config fingerprint, on an earlier machine; run folders are not in git): "
                f"{cached}\n" if cached else "")
             + "\n## Test views\n\n" + markdown_table(header, lines)
             + "\n\n## Aligned (per-channel affine fit in linear space first)\n\n"
@@ -314,9 +311,7 @@ def main() -> None:
     for scene in todo:
         for variant, preset in RUN_PRESETS.items():
             run_variant(scene, variant, preset, [], runs)
-    previous = out.with_suffix(".json")
-    record = assemble(runs, scenes, args.quick, None if args.quick or not previous.is_file()
-                      else json.loads(previous.read_text()))
+    record = assemble(runs, scenes, args.quick)
     if not any(r["scenes"] for r in record.values()):
         raise SystemExit(f"no evaluated runs under {runs}/: run `make train SCENE=<name>` "
                          "or `make recon` first")

@@ -71,28 +71,50 @@ def test_report_leaves_out_runs_of_another_config(tmp_path):
         tmp_path / "out" / "report.md").read_text()
 
 
-def test_report_reuses_previous_numbers_only_with_todays_fingerprint(tmp_path):
-    """A fresh machine has no run folders: the previous report's cells come back when the
-    config fingerprint beside them is the preset's today, and never otherwise."""
+def test_report_reuses_results_only_with_todays_fingerprint(tmp_path):
+    """A fresh machine has no run folders: reports/results.json gives their numbers back
+    when the config fingerprint beside them is the preset's today, and never otherwise."""
     sys.path.insert(0, str(REPO / "experiments"))
     from common import fingerprint, preset_config
 
     runs = tmp_path / "runs"
     _write(runs, "deer", "default", _metrics(18.0))
-    m = {k: 20.0 for k in ("psnr", "ssim", "delta_e", "psnr_aligned", "ssim_aligned",
-                           "delta_e_aligned")}
     today = fingerprint(preset_config("default"))
     other = fingerprint(preset_config("nogain"))
     assert today != other
-    previous = {"ours": {"scenes": {"bucket": m, "box": m, "deer": {**m, "psnr": 1.0}},
-                         "fingerprints": {"bucket": today, "box": other, "deer": today}}}
-    (tmp_path / "out").mkdir()
-    (tmp_path / "out" / "report.json").write_text(json.dumps(previous))
+    results = {f"{scene}/default": {"fingerprint": fp, "summary": _metrics(psnr)["summary"]}
+               for scene, fp, psnr in (("bucket", today, 20.0), ("box", other, 21.0),
+                                       ("deer", today, 1.0))}
+    (tmp_path / "reports").mkdir()
+    (tmp_path / "reports" / "results.json").write_text(json.dumps(results))
     proc = _report(tmp_path)
     assert proc.returncode == 0, proc.stderr
     ours = json.loads((tmp_path / "out" / "report.json").read_text())["ours"]
     assert ours["scenes"]["bucket"]["psnr"] == 20.0 and ours["cached"] == ["bucket"]
     assert "box" not in ours["scenes"]  # trained by another config: not reused
     assert ours["scenes"]["deer"]["psnr"] == 18.0  # a run on this machine wins
-    assert ours["fingerprints"] == {"bucket": today, "deer": today}
-    assert "taken from the previous report" in (tmp_path / "out" / "report.md").read_text()
+    assert "taken from reports/results.json" in (tmp_path / "out" / "report.md").read_text()
+
+
+def test_run_variant_keeps_and_reuses_results(tmp_path, monkeypatch):
+    """run_variant returns a result of the same config without training, and trains (not
+    reuses) when the config differs or the caller needs the run folder."""
+    sys.path.insert(0, str(REPO / "experiments"))
+    import common
+
+    monkeypatch.chdir(tmp_path)
+    trained = []
+    monkeypatch.setattr(common, "train", lambda sdir, run, cfg: trained.append(run))
+    monkeypatch.setattr(common, "scene_dir", lambda scene, quick=False: tmp_path / scene)
+    monkeypatch.setattr(common, "evaluate_run", lambda run: _metrics(19.0))
+    cfg = common.preset_config("default")
+    common.record_result("bucket", "default", cfg, _metrics(20.0))
+    got = common.run_variant("bucket", "default", "default", [], tmp_path / "runs")
+    assert got["cached"] and got["summary"]["gridnerf"]["psnr"] == 20.0 and not trained
+    got = common.run_variant("bucket", "default", "default", ["loss.w_smooth=0.0"],
+                             tmp_path / "runs")
+    assert len(trained) == 1 and got["summary"]["gridnerf"]["psnr"] == 19.0
+    common.run_variant("bucket", "default", "default", [], tmp_path / "runs", need_run=True)
+    assert len(trained) == 2
+    kept = json.loads((tmp_path / "reports" / "results.json").read_text())
+    assert kept["bucket/default"]["summary"]["gridnerf"]["psnr"] == 19.0  # the newest
