@@ -101,7 +101,8 @@ def scene_rows(scene_name: str, runs: Path = Path("runs"), quick: bool = False) 
 
 def markdown(record: dict, command: str) -> str:
     """The table of build's record: per scene, then the means over the nine and the held-out
-    scenes (a mean over fewer scenes than the others says n=)."""
+    scenes, each saying how many of its group it covers (a row's mean over fewer scenes
+    than the others says n=)."""
     header = ["scene", *[f"{r} (x255)" for r in ROWS], "coverage"]
     lines = []
     for name, rows in record.items():
@@ -116,7 +117,7 @@ def markdown(record: dict, command: str) -> str:
             vals = [g[r]["mae"] for g in got if r in g]
             cells.append("n/a" if not vals else f"{255 * np.mean(vals):.2f}" + (
                 f" (n={len(vals)})" if len(vals) < len(got) else ""))
-        lines.append([f"**{label}**", *cells, ""])
+        lines.append([f"**{label}** ({len(got)} of {len(names)})", *cells, ""])
     return ("# Multi-view consistency\n\nMean absolute sRGB difference (0-255) between a test "
             "view and its neighbouring frame at the same surface points (the grid's geometry "
             "for every row; occluded and transparent pixels left out; `coverage`: share of "

@@ -70,10 +70,10 @@ def test_consistency_table_marks_missing_runs_and_partial_means():
                               if ln.startswith("| scene")][0]].split(" | ")
     deer = line["| deer"].split(" | ")
     assert deer[cols.index("llnerf (x255)")] == "n/a"
-    nine = line["| **mean, nine**"].split(" | ")
+    nine = line["| **mean, nine** (2 of 9)"].split(" | ")
     assert nine[cols.index("gridnerf (x255)")] == "3.00"
     assert nine[cols.index("llnerf (x255)")] == "9.00 (n=1)"
-    held = line["| **mean, held out**"].split(" | ")
+    held = line["| **mean, held out** (1 of 4)"].split(" | ")
     assert held[cols.index("llnerf (x255)")] == "n/a"
 
 
