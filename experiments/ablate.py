@@ -133,8 +133,7 @@ def build(scenes: list[str], runs: Path, out, quick: bool, variants=VARIANTS,
           command: str | None = None) -> str:
     """Train what is missing, write <out>.md and <out>.json; returns the markdown. The
     command shown defaults to this script's call for these scenes and variants."""
-    study = next(k for k, v in STUDIES.items() if v is variants) if any(
-        v is variants for v in STUDIES.values()) else "parts"
+    study = next((k for k, v in STUDIES.items() if v is variants), "parts")
     command = command or (f"python experiments/ablate.py --scenes {','.join(scenes)}"
                           + (f" --study {study}" if study != "parts" else "")
                           + (" --quick" if quick else ""))

@@ -51,7 +51,7 @@ def preset_config(preset: str, quick: bool = False) -> cfgmod.Config:
 
 def fingerprint(cfg: cfgmod.Config) -> str:
     """A short hash of what a config trains (config.effective): two runs with the same
-    fingerprint were trained alike. The report stores it beside each number it reuses."""
+    fingerprint were trained alike. RESULTS stores it beside each run's numbers."""
     blob = json.dumps(cfgmod.to_dict(cfgmod.effective(cfg)), sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -86,12 +86,16 @@ def simulated_folders(spec: str):
 RESULTS = Path("reports/results.json")
 
 
+def load_results(path: Path = RESULTS) -> dict:
+    """The kept results ({"<scene>/<run>": {"fingerprint", "summary"}}), {} when none."""
+    return json.loads(Path(path).read_text()) if Path(path).is_file() else {}
+
+
 def cached_result(scene: str, name: str, cfg: cfgmod.Config,
-                  path: Path = RESULTS) -> dict | None:
-    """{"summary": ...} of <scene>/<name> from `path` when its fingerprint is cfg's."""
-    if not Path(path).is_file():
-        return None
-    entry = json.loads(Path(path).read_text()).get(f"{scene}/{name}")
+                  results: dict | None = None) -> dict | None:
+    """{"summary": ...} of <scene>/<name> from `results` (default: RESULTS read now) when
+    its fingerprint is cfg's."""
+    entry = (load_results() if results is None else results).get(f"{scene}/{name}")
     if entry and entry.get("fingerprint") == fingerprint(cfg):
         return {"summary": entry["summary"], "cached": True}
     return None
@@ -99,12 +103,13 @@ def cached_result(scene: str, name: str, cfg: cfgmod.Config,
 
 def record_result(scene: str, name: str, cfg: cfgmod.Config, metrics: dict,
                   path: Path = RESULTS) -> None:
-    """Keep an evaluated run's summary in `path` under its config's fingerprint."""
-    path = Path(path)
-    results = json.loads(path.read_text()) if path.is_file() else {}
-    results[f"{scene}/{name}"] = {"fingerprint": fingerprint(cfg),
-                                  "summary": metrics["summary"]}
-    atomic.write_text(path, json.dumps(results, indent=1, sort_keys=True) + "\n")
+    """Keep an evaluated run's summary in `path` under its config's fingerprint (the file
+    is rewritten only when that changes it)."""
+    results = load_results(path)
+    entry = {"fingerprint": fingerprint(cfg), "summary": metrics["summary"]}
+    if results.get(f"{scene}/{name}") != entry:
+        results[f"{scene}/{name}"] = entry
+        atomic.write_text(path, json.dumps(results, indent=1, sort_keys=True) + "\n")
 
 
 def run_variant(scene: str, name: str, preset: str, overrides: list[str],

@@ -37,6 +37,7 @@ import numpy as np
 from common import (
     cached_result,
     fmt,
+    load_results,
     markdown_table,
     preset_config,
     pyplot,
@@ -100,9 +101,10 @@ def assemble(runs: Path, scenes: list[str], quick: bool = False) -> dict:
     the row has (with their count). A run not on this machine is taken from
     common.RESULTS when it holds the run under its preset's config of today (listed as
     cached): run folders are not in git, the results are."""
-    record = {}
+    record, results = {}, {} if quick else load_results()
     for row, label, variant, key in ROWS:
         per_scene, old, cached = {}, [], []
+        today = preset_config(RUN_PRESETS[variant])
         for scene in scenes:
             run = runs / scene / variant
             path = run / "eval" / "metrics.json"
@@ -112,8 +114,7 @@ def assemble(runs: Path, scenes: list[str], quick: bool = False) -> dict:
             if path.is_file():
                 summary = json.loads(path.read_text())["summary"]
             else:
-                hit = None if quick else cached_result(
-                    scene, variant, preset_config(RUN_PRESETS[variant]))
+                hit = cached_result(scene, variant, today, results)
                 summary = hit["summary"] if hit else {}
             if summary.get(key):
                 per_scene[scene] = {k: float(summary[key][k]) for k in METRICS}
