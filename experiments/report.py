@@ -44,6 +44,7 @@ from common import (
     run_variant,
     save_figure,
     stale_run,
+    update_readme,
     write_report,
 )
 from gridnerf.sim import HELDOUT, SCENES
@@ -136,6 +137,24 @@ def _cell(m: dict | None, suffix: str = "") -> str:
         return "-"
     return (f"{fmt(m['psnr' + suffix])} / {fmt(m['ssim' + suffix], 3)} / "
             f"{fmt(m['delta_e' + suffix])}")
+
+
+# the README's short names of the rows
+SHORT = {"ours": "ours", "rawnerf_isp": "RawNeRF + generic ISP (one grey-world gain)",
+         "global_wb": "our field, one grey-world gain", "2d_denoised":
+         "2D per image (one frame + non-local means)", "2d_nerf": "2D + NeRF",
+         "per_frame_matched": "per-frame, exposure matched to the reference",
+         "dark_frame": "one dark frame", "llnerf": "LLNeRF-style",
+         "oracle": "oracle (clean references; a bound, not a competitor)"}
+
+
+def means_table(record: dict) -> str:
+    """The rows' means over the nine and the held-out scenes (the README's table)."""
+    def cell(m):
+        return _cell(m) + (f" (n={m['n']})" if m else "")
+    return markdown_table(["row", "nine built-in", "held out"],
+                          [[SHORT[r], cell(e["mean_nine"]), cell(e["mean_heldout"])]
+                           for r, e in record.items()])
 
 
 def markdown(record: dict, scenes: list[str], folder: Path, views: str | None) -> str:
@@ -321,6 +340,8 @@ def main() -> None:
     has_views = figure(runs, fig_scenes, views, args.quick)
     text = markdown(record, scenes, out.parent, views.name if has_views else None)
     write_report(out, text, record)
+    if not args.quick and out == Path("reports/report"):
+        update_readme("report", means_table(record))
     print(text)
 
 

@@ -118,3 +118,15 @@ def test_run_variant_keeps_and_reuses_results(tmp_path, monkeypatch):
     assert len(trained) == 2
     kept = json.loads((tmp_path / "reports" / "results.json").read_text())
     assert kept["bucket/default"]["summary"]["gridnerf"]["psnr"] == 19.0  # the newest
+
+
+def test_readme_means_table_names_every_row_and_count():
+    sys.path.insert(0, str(REPO / "experiments"))
+    import report
+
+    m = {"psnr": 20.0, "ssim": 0.5, "delta_e": 10.0, "n": 3}
+    record = {r: {"mean_nine": m if r == "ours" else None, "mean_heldout": None}
+              for r in report.SHORT}
+    table = report.means_table(record)
+    assert "| ours | 20.00 / 0.500 / 10.00 (n=3) | - |" in table
+    assert len(table.splitlines()) == 2 + len(report.ROWS)
