@@ -14,7 +14,11 @@ own images of both views, still compared through the default run's geometry; a r
 run has not finished (or was trained by another preset than today's) is left out
 (`n/a`), not trained.
 
-Reads (or trains, with the default preset) runs/<scene>/default.
+Reads (or trains, with the default preset) runs/<scene>/default. The table can be built in
+parts: a call scores the scenes it names and keeps the other scenes of <out>.json whose
+runs were trained by today's presets (their config fingerprints), so scenes scored on an
+earlier machine (run folders are not in git) stay in the table with the command that
+scored them.
 
     python experiments/consistency.py [--scenes all|nine|heldout|a,b] [--out PATH]
 """
@@ -22,12 +26,15 @@ Reads (or trains, with the default preset) runs/<scene>/default.
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import numpy as np
 
 from common import (
+    fingerprint,
     markdown_table,
+    preset_config,
     run_variant,
     scene_dir,
     simulated_folders,
@@ -99,17 +106,18 @@ def scene_rows(scene_name: str, runs: Path = Path("runs"), quick: bool = False) 
             for row, v in per_row.items() if v}
 
 
-def markdown(record: dict, command: str) -> str:
-    """The table of build's record: per scene, then the means over the nine and the held-out
-    scenes, each saying how many of its group it covers (a row's mean over fewer scenes
-    than the others says n=)."""
+def markdown(record: dict) -> str:
+    """The table of build's record ({scene: {"rows", "command", ...}}): per scene, then the
+    means over the nine and the held-out scenes, each saying how many of its group it
+    covers (a row's mean over fewer scenes than the others says n=)."""
     header = ["scene", *[f"{r} (x255)" for r in ROWS], "coverage"]
     lines = []
-    for name, rows in record.items():
+    for name, entry in record.items():
+        rows = entry["rows"]
         lines.append([name, *[f"{255 * rows[r]['mae']:.2f}" if r in rows else "n/a"
                               for r in ROWS], f"{rows['gridnerf']['coverage']:.2f}"])
     for label, names in (("mean, nine", SCENES), ("mean, held out", HELDOUT)):
-        got = [record[s] for s in names if s in record]
+        got = [record[s]["rows"] for s in names if s in record]
         if not got:
             continue
         cells = []
@@ -118,21 +126,48 @@ def markdown(record: dict, command: str) -> str:
             cells.append("n/a" if not vals else f"{255 * np.mean(vals):.2f}" + (
                 f" (n={len(vals)})" if len(vals) < len(got) else ""))
         lines.append([f"**{label}** ({len(got)} of {len(names)})", *cells, ""])
+    commands = list(dict.fromkeys(e["command"] for e in record.values()))
     return ("# Multi-view consistency\n\nMean absolute sRGB difference (0-255) between a test "
             "view and its neighbouring frame at the same surface points (the grid's geometry "
             "for every row; occluded and transparent pixels left out; `coverage`: share of "
             "the test view compared). Lower is more consistent; `reference` is the floor "
             "the geometry leaves. Rows as in the report's table (`gridnerf`: ours); `n/a`: "
             "that run has not finished.\n\n"
-            f"Command: `{command}`\n\n" + markdown_table(header, lines) + "\n")
+            + ("Command" + ("s (each scored its scenes; the table keeps them all)"
+                            if len(commands) > 1 else "") + ": "
+               + "; ".join(f"`{c}`" for c in commands) + "\n\n")
+            + markdown_table(header, lines) + "\n")
+
+
+def run_fingerprints(scene_name: str, runs: Path, quick: bool) -> dict:
+    """{run folder: config fingerprint} of the runs a scene's rows were rendered from
+    (the default and those of RUN_ROWS that have finished)."""
+    folder = Path(runs) / scene_dir(scene_name, quick).name
+    names = ["default", *[f for f, _ in RUN_ROWS.values()
+                          if (folder / f / "summary.json").is_file()]]
+    return {f: fingerprint(preset_config(f, quick)) for f in names}
+
+
+def kept(out, quick: bool) -> dict:
+    """The scenes of an earlier <out>.json whose runs were trained by today's presets."""
+    path = Path(out).with_suffix(".json")
+    if quick or not path.is_file():
+        return {}
+    old = json.loads(path.read_text()).get("scenes", {})
+    return {name: e for name, e in old.items()
+            if all(fingerprint(preset_config(f)) == fp for f, fp in e["fingerprints"].items())}
 
 
 def build(scenes: list[str], runs: Path, out, quick: bool, command: str) -> str:
-    """Score every scene (training its default run if missing), write <out>.md and
-    <out>.json; returns the markdown."""
-    record = {name: scene_rows(name, runs, quick) for name in scenes}
-    text = markdown(record, command)
-    write_report(out, text, record)
+    """Score every scene given (training its default run if missing), keep the others of
+    <out>.json (`kept`), write <out>.md and <out>.json; returns the markdown."""
+    record = kept(out, quick) | {
+        name: {"rows": scene_rows(name, runs, quick), "command": command,
+               "fingerprints": run_fingerprints(name, runs, quick)} for name in scenes}
+    order = [s for s in [*SCENES, *HELDOUT] if s in record]
+    record = {s: record[s] for s in [*order, *[s for s in record if s not in order]]}
+    text = markdown(record)
+    write_report(out, text, {"quick": quick, "scenes": record})
     return text
 
 

@@ -130,3 +130,30 @@ def test_readme_means_table_names_every_row_and_count():
     table = report.means_table(record)
     assert "| ours | 20.00 / 0.500 / 10.00 (n=3) | - |" in table
     assert len(table.splitlines()) == 2 + len(report.ROWS)
+
+
+def test_consistency_table_keeps_earlier_scenes_of_todays_runs(tmp_path, monkeypatch):
+    """consistency.build scores the scenes it is given and keeps the earlier ones whose runs
+    were trained by today's presets (and only those), saying each command."""
+    sys.path.insert(0, str(REPO / "experiments"))
+    import common
+    import consistency
+
+    row = {"mae": 2.0 / 255, "coverage": 0.9}
+    monkeypatch.setattr(consistency, "scene_rows", lambda name, runs, quick: {
+        "gridnerf": row, "reference": row})
+    monkeypatch.setattr(consistency, "scene_dir", lambda scene, quick=False: tmp_path / scene)
+    today = common.fingerprint(common.preset_config("default"))
+    old = {"scenes": {
+        "deer": {"rows": {"gridnerf": row}, "command": "old call",
+                 "fingerprints": {"default": today}},
+        "box": {"rows": {"gridnerf": row}, "command": "older call",
+                "fingerprints": {"default": "0" * 16}}}}
+    out = tmp_path / "consistency"
+    out.with_suffix(".json").write_text(json.dumps(old))
+    text = consistency.build(["bucket"], tmp_path / "runs", out, False, "new call")
+    record = json.loads(out.with_suffix(".json").read_text())["scenes"]
+    # in SCENES order; box's run was trained by another config: dropped
+    assert list(record) == ["deer", "bucket"]
+    assert "`old call`; `new call`" in text and "older call" not in text
+    assert "**mean, nine** (2 of 9)" in text
