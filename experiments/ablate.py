@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from common import fmt, markdown_table, run_variant, write_report
-from gridnerf.sim import HELDOUT, MIXED, SCENES
+from common import fmt, markdown_table, run_variant, scene_names, write_report
+from gridnerf.sim import HELDOUT, SCENES
 
 # (key, label, run folder, preset, overrides)
 VARIANTS = [
@@ -56,13 +56,6 @@ STUDIES = {"parts": VARIANTS, "colour": COLOUR_VARIANTS}
 OUTPUTS = [("matrix", "gridnerf"), ("matrix_free", "gridnerf_matrix_free"),
            ("global_gain", "global_grey_world")]
 METRICS = ("psnr", "ssim", "delta_e", "psnr_aligned")
-
-
-def scene_list(spec: str) -> list[str]:
-    """Comma-separated scene names and groups: all (nine + held out), nine, heldout, mixed."""
-    named = {"all": [*SCENES, *HELDOUT], "nine": list(SCENES), "heldout": list(HELDOUT),
-             "mixed": list(MIXED)}
-    return [n for item in spec.split(",") if item for n in named.get(item, [item])]
 
 
 def ablate(scenes: list[str], runs: Path, quick: bool, variants=VARIANTS) -> dict:
@@ -125,7 +118,7 @@ def main() -> None:
     args = ap.parse_args()
     out = args.out or ("reports/ablation" if args.study == "parts"
                        else "reports/ablation_colour")
-    print(build(scene_list(args.scenes), Path(args.runs), out, args.quick,
+    print(build(scene_names(args.scenes), Path(args.runs), out, args.quick,
                 STUDIES[args.study]))
 
 

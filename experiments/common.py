@@ -9,7 +9,7 @@ from pathlib import Path
 from gridnerf import atomic
 from gridnerf import config as cfgmod
 from gridnerf.eval_run import evaluate_run
-from gridnerf.sim import ALL_SCENES, simulate_scene
+from gridnerf.sim import ALL_SCENES, DEV, HELDOUT, MIXED, SCENES, simulate_scene
 from gridnerf.train import train
 
 # Quick mode (`make report QUICK=1`): every study on 160x90, 12-frame versions of its
@@ -66,11 +66,26 @@ def stale_run(run: Path, preset: str, quick: bool = False) -> bool:
     return cfgmod.effective(cfgmod.load(path)) != cfgmod.effective(preset_config(preset, quick))
 
 
+# the scene groups a study's --scenes may name
+GROUPS = {"nine": SCENES, "heldout": HELDOUT, "dev": DEV, "mixed": MIXED}
+
+
+def scene_names(spec: str, all_groups: tuple[str, ...] = ("nine", "heldout")) -> list[str]:
+    """Scene names from a study's --scenes: comma-separated names and GROUPS, `all` being
+    the groups of `all_groups` (by default the report's: nine + held out); in order, each
+    once."""
+    out: list[str] = []
+    for item in (s for s in spec.split(",") if s):
+        group = ([n for g in all_groups for n in GROUPS[g]] if item == "all"
+                 else GROUPS.get(item, (item,)))
+        out += [n for n in group if n not in out]
+    return out
+
+
 def simulated_folders(spec: str):
-    """(name, folder) of the simulated scenes named by `spec` ('all': nine + held-out +
-    tuning + mixed, or comma-separated names) that exist under data/sim; says which are skipped."""
-    names = ALL_SCENES if spec == "all" else tuple(spec.split(","))
-    for name in names:
+    """(name, folder) of the simulated scenes named by `spec` (scene_names; 'all': every
+    group) that exist under data/sim; says which are skipped."""
+    for name in scene_names(spec, tuple(GROUPS)):
         folder = Path("data/sim") / name
         if not (folder / "sim.json").exists():
             print(f"skipping {name}: simulate it first (gridnerf simulate {name})")

@@ -37,7 +37,7 @@ from common import (
     preset_config,
     run_variant,
     scene_dir,
-    simulated_folders,
+    scene_names,
     stale_run,
     write_report,
 )
@@ -176,10 +176,7 @@ def main() -> None:
     ap.add_argument("--scenes", default="all")
     ap.add_argument("--out", default="reports/consistency")
     args = ap.parse_args()
-    spec = {"all": ",".join([*SCENES, *HELDOUT]), "nine": ",".join(SCENES),
-            "heldout": ",".join(HELDOUT)}.get(args.scenes, args.scenes)
-    names = [name for name, _ in simulated_folders(spec)]
-    print(build(names, Path("runs"), args.out, False,
+    print(build(scene_names(args.scenes), Path("runs"), args.out, False,
                 f"python experiments/consistency.py --scenes {args.scenes}"))
 
 

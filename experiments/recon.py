@@ -25,20 +25,15 @@ from pathlib import Path
 
 import numpy as np
 
-from common import fmt, markdown_table, run_variant, update_readme, write_report
-from gridnerf.sim import DEV, HELDOUT, SCENES
-
-
-def scene_list(spec: str) -> list[str]:
-    if spec == "all":
-        return [*SCENES, *DEV, *HELDOUT]
-    if spec == "nine":
-        return list(SCENES)
-    if spec == "heldout":
-        return list(HELDOUT)
-    if spec == "dev":
-        return list(DEV)
-    return [s for s in spec.split(",") if s]
+from common import (
+    fmt,
+    markdown_table,
+    run_variant,
+    scene_names,
+    update_readme,
+    write_report,
+)
+from gridnerf.sim import DEV, HELDOUT
 
 
 def row_for(scene: str, oracle: bool) -> dict:
@@ -120,7 +115,7 @@ def main() -> None:
     rows = [row_for(s, args.oracle == "all" or (args.oracle == "heldout"
                                                  and s in HELDOUT + DEV)
                     or (Path("runs") / s / "oracle" / "eval" / "metrics.json").is_file())
-            for s in scene_list(args.scenes)]
+            for s in scene_names(args.scenes, ("nine", "dev", "heldout"))]
     machine = f"{platform.machine()}, {os.cpu_count()} cores, python {sys.version.split()[0]}"
     text = ["# Reconstruction: trained from transforms.json without bounds\n",
             f"Command: `python experiments/recon.py --scenes {args.scenes} --oracle "

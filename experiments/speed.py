@@ -20,7 +20,16 @@ import os
 from pathlib import Path
 
 import bench
-from common import fmt, markdown_table, pyplot, quick_sets, save_figure, scene_dir, write_report
+from common import (
+    fmt,
+    markdown_table,
+    pyplot,
+    quick_sets,
+    save_figure,
+    scene_dir,
+    scene_names,
+    write_report,
+)
 from gridnerf import config as cfgmod
 
 PRESETS = ("fast", "default", "fine")
@@ -97,14 +106,15 @@ def plot(record: dict, path: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="bucket")
+    ap.add_argument("--scenes", default="bucket", help="names and groups: all, nine, heldout, "
+                    "dev, mixed (comma-separated)")
     ap.add_argument("--presets", default=",".join(PRESETS))
     ap.add_argument("--every", type=int, default=200, help="steps between scored checkpoints")
     ap.add_argument("--runs", default="runs")
     ap.add_argument("--out", default="reports/speed")
     ap.add_argument("--quick", action="store_true", help="small scenes, shrunk presets")
     args = ap.parse_args()
-    print(build([s for s in args.scenes.split(",") if s],
+    print(build(scene_names(args.scenes),
                 [p for p in args.presets.split(",") if p], args.every, Path(args.runs),
                 args.out, args.quick))
 

@@ -19,7 +19,15 @@ from pathlib import Path
 
 import numpy as np
 
-from common import fmt, markdown_table, pyplot, run_variant, save_figure, write_report
+from common import (
+    fmt,
+    markdown_table,
+    pyplot,
+    run_variant,
+    save_figure,
+    scene_names,
+    write_report,
+)
 
 GAMMAS = (0.3, 0.4, 0.6, 0.8, 1.0, 1.2, 1.5, 1.8)  # the paper's sweep
 EXTREME = 0.1
@@ -82,7 +90,8 @@ def plot(record: dict, gammas: list[float], path: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="bucket")
+    ap.add_argument("--scenes", default="bucket", help="names and groups: all, nine, heldout, "
+                    "dev, mixed (comma-separated)")
     ap.add_argument("--methods", default="default,llnerf")
     ap.add_argument("--gammas", default=",".join(f"{g:g}" for g in (EXTREME, *GAMMAS)))
     ap.add_argument("--runs", default="runs")
@@ -96,7 +105,7 @@ def main() -> None:
     gammas = sorted(float(g) for g in args.gammas.split(","))
     if not all(np.isfinite(g) and g > 0 for g in gammas):
         raise SystemExit("--gammas: positive numbers, e.g. 0.1,0.3,1")
-    print(build([s for s in args.scenes.split(",") if s], methods, gammas, Path(args.runs),
+    print(build(scene_names(args.scenes), methods, gammas, Path(args.runs),
                 args.out, args.quick))
 
 

@@ -14,12 +14,14 @@ import numpy as np
 import pytest
 
 from gridnerf import color, eval_run
+from gridnerf.sim import DEV, HELDOUT, MIXED, SCENES
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO / "experiments"))
 
 import ablate  # noqa: E402
 import colour_ceiling  # noqa: E402
+import common  # noqa: E402
 import consistency  # noqa: E402
 import speed  # noqa: E402
 import sweep  # noqa: E402
@@ -63,8 +65,9 @@ def test_consistency_table_marks_missing_runs_and_partial_means():
              "reference": {"mae": 3.0 / 255, "coverage": 0.9}}
         return r | ({"llnerf": {"mae": llnerf / 255, "coverage": 0.9}} if llnerf else {})
 
-    record = {"bucket": rows(2.0, llnerf=9.0), "deer": rows(4.0), "held_arc_brick": rows(5.0)}
-    text = consistency.markdown(record, "cmd")
+    record = {name: {"rows": r, "command": "cmd"} for name, r in (
+        ("bucket", rows(2.0, llnerf=9.0)), ("deer", rows(4.0)), ("held_arc_brick", rows(5.0)))}
+    text = consistency.markdown(record)
     line = {ln.split(" | ")[0]: ln for ln in text.splitlines() if ln.startswith("| ")}
     cols = text.splitlines()[[i for i, ln in enumerate(text.splitlines())
                               if ln.startswith("| scene")][0]].split(" | ")
@@ -121,9 +124,11 @@ def test_report_appends_the_studies_it_finds(tmp_path, with_png):
 
 
 def test_ablation_scene_groups_and_colour_study():
-    assert ablate.scene_list("nine,mixed") == [*ablate.SCENES, *ablate.MIXED]
-    assert ablate.scene_list("all") == [*ablate.SCENES, *ablate.HELDOUT]
-    assert ablate.scene_list("box,deer") == ["box", "deer"]
+    assert common.scene_names("nine,mixed") == [*SCENES, *MIXED]
+    assert common.scene_names("all") == [*SCENES, *HELDOUT]
+    assert common.scene_names("box,deer,nine") == ["box", "deer", *[s for s in SCENES
+                                                                   if s not in ("box", "deer")]]
+    assert common.scene_names("all", ("nine", "dev")) == [*SCENES, *DEV]
     record = {"bucket": {"grey_world": {"matrix": _m(18.0)}, "map": {"matrix": _m(19.0)}}}
     nine = ablate.means(record, ablate.SCENES, ablate.COLOUR_VARIANTS)
     assert set(nine) == {"grey_world", "map"}
