@@ -51,8 +51,14 @@ def preset_config(preset: str, quick: bool = False) -> cfgmod.Config:
 
 def fingerprint(cfg: cfgmod.Config) -> str:
     """A short hash of what a config trains (config.effective): two runs with the same
-    fingerprint were trained alike. RESULTS stores it beside each run's numbers."""
-    blob = json.dumps(cfgmod.to_dict(cfgmod.effective(cfg)), sort_keys=True, default=str)
+    fingerprint were trained alike. RESULTS stores it beside each run's numbers. Fields at
+    the value a config without them was trained with (config.LEGACY) are left out, so a
+    field added later does not change the fingerprints of runs that do not use it."""
+    fields = cfgmod.to_dict(cfgmod.effective(cfg))
+    for (section, name), value in cfgmod.LEGACY.items():
+        if fields[section].get(name) == value:
+            del fields[section][name]
+    blob = json.dumps(fields, sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 

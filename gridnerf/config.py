@@ -232,6 +232,13 @@ class RenderConfig(_Section):
 class LossConfig(_Section):
     _SECTION = "loss"
     w_data: float = 1.0  # lambda_1, RawNeRF linearised log-L2 on the raw
+    # epsilon of that term, (C - y)^2 / (sg(C) + eps)^2: RawNeRF's 1e-3 in normalised raw
+    # ("absolute"), or data_eps x the training data's mean level ("level": a raw scaled by
+    # gamma trains alike at every gamma). Absolute, it makes the fit depend on the raw's
+    # scale: on bucket (mean level 0.0023) gamma 0.1 scored 16.16 dB, and 22.02 (gamma 1's
+    # score) with eps 1e-4 (docs/report.md, darkness sweep)
+    data_eps: float = 1e-3
+    data_eps_mode: Literal["absolute", "level"] = "absolute"
     w_ca: float = 0.1  # lambda_2, chromatic adaptation loss (eq. 14)
     w_smooth: float = 0.1  # lambda_3, local smoothness of the gains (eq. 15 or grid TV)
     # "patch" (eq. 15 on ray patches), "tv" (edge-aware gain TV), "both"
@@ -313,6 +320,7 @@ class LossConfig(_Section):
                      "w_enhance_tv"):
             self._range(name, 0.0)
         self._range("tv_fraction", 0.0, 1.0, lo_open=True)
+        self._range("data_eps", 0.0, lo_open=True)
         self._require("opacity_stages", self.opacity_stages >= 0,
                       "a whole number >= 0 (0: the opacity prior in every stage)")
         self._range("ca_illuminant_p", 1.0)
@@ -605,7 +613,8 @@ def get(cfg: Config, dotted: str) -> Any:
 
 # (section, field) -> the value a saved config that lacks the field was trained with, for
 # fields added with a default that changes behaviour (a run's config.json must describe it)
-LEGACY = {("grid", "background"): "black", ("loss", "opacity_stages"): 0}
+LEGACY = {("grid", "background"): "black", ("loss", "opacity_stages"): 0,
+          ("loss", "data_eps"): 1e-3, ("loss", "data_eps_mode"): "absolute"}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

@@ -20,17 +20,19 @@ from gridnerf.grid import GridStructure
 _TINY = 1e-30
 
 
-def data_loss(rgb_low: jax.Array, target: jax.Array, mask: jax.Array) -> jax.Array:
-    """RawNeRF linearised log-L2 (eq. 16 as RawNeRF implements it).
+def data_loss(rgb_low: jax.Array, target: jax.Array, mask: jax.Array,
+              eps: float = 1e-3) -> jax.Array:
+    """RawNeRF linearised log-L2 (eq. 16 as RawNeRF implements it, eps 1e-3).
 
     rgb_low: (n, 3) rendered low-light camera RGB; target: (n, 3) normalised raw, may be
     negative (never logged, never clipped); mask: (n, 3) weights, 0 for unmeasured Bayer
-    channels and saturated pixels.
-    Returns sum m (min(C,1) - y)^2 / (sg(min(C,1)) + 1e-3)^2 / sum m, a scalar.
+    channels and saturated pixels; eps > 0 (loss.data_eps: scaling C, y and eps alike
+    scales nothing else).
+    Returns sum m (min(C,1) - y)^2 / (sg(min(C,1)) + eps)^2 / sum m, a scalar.
     """
     c = jnp.minimum(rgb_low, 1.0)
     diff = jnp.where(mask > 0, c - target, 0.0)  # masked targets may hold anything, even NaN
-    scaled = diff / (jax.lax.stop_gradient(c) + 1e-3)
+    scaled = diff / (jax.lax.stop_gradient(c) + eps)
     return jnp.sum(mask * scaled**2) / jnp.maximum(jnp.sum(mask), _TINY)
 
 

@@ -107,7 +107,8 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
     if lc.method == "llnerf":
         terms = llnerf_terms(structure, params, flat, out, shape, k1, cfg)
     else:
-        terms = {"data": losses.data_loss(out["rgb_low"], flat["target"], flat["mask"])}
+        eps = lc.data_eps * (structure.color_scale if lc.data_eps_mode == "level" else 1.0)
+        terms = {"data": losses.data_loss(out["rgb_low"], flat["target"], flat["mask"], eps)}
     if lc.use_gains and lc.method == "brightnerf":
         gain = out["gain"]
         if lc.gain_map == "normalized":

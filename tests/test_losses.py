@@ -349,3 +349,31 @@ def test_scene_target_replaces_the_batch_estimate():
 
     assert ca(light) < 1e-6 and ca(3.0 * light) < 1e-6  # the gains equal its target
     assert ca(jnp.asarray([1.0, 1.0, 1.0])) > 1e-3  # another light: another target
+
+
+@pytest.mark.parametrize("mode", ["absolute", "level"])
+def test_level_eps_makes_the_data_term_free_of_the_raw_scale(mode):
+    """The darkness sweep scales the raw by gamma (signal and noise alike). With
+    loss.data_eps_mode = "level" the data term is the same at every gamma (eps follows
+    the data's mean level, grid.color_scale); with RawNeRF's absolute eps it is not."""
+    from dataclasses import replace
+
+    from gridnerf import config as cfgmod
+    from gridnerf import train
+
+    c = cfgmod.override(cfgmod.preset("tiny"), ["render.max_samples=16",
+                                                f"loss.data_eps_mode={mode}",
+                                                "loss.data_eps=0.4", "loss.use_gains=false"])
+    structure, params, rays = _foggy_scene()
+    rays["target"] = rays["target"] * jnp.linspace(0.5, 1.5, 32).reshape(2, 4, 4, 1)
+
+    def data_term(gamma):
+        s = replace(structure, color_scale=structure.color_scale * gamma)
+        r = {**rays, "target": rays["target"] * gamma}
+        return float(train.loss_fn(params, s, r, jax.random.PRNGKey(0), c, -1.0, 1.0)[1]["data"])
+
+    ratio = data_term(0.1) / data_term(1.0)
+    if mode == "level":
+        assert ratio == pytest.approx(1.0, rel=1e-4)
+    else:
+        assert not 0.9 < ratio < 1.1
