@@ -24,7 +24,14 @@ from pathlib import Path
 
 import numpy as np
 
-from common import fmt, markdown_table, run_variant, scene_names, write_report
+from common import (
+    fmt,
+    markdown_table,
+    run_variant,
+    scene_names,
+    update_readme,
+    write_report,
+)
 from gridnerf.sim import HELDOUT, SCENES
 
 # (key, label, run folder, preset, overrides)
@@ -105,6 +112,23 @@ def markdown(record: dict, mean_nine: dict, mean_held: dict, variants=VARIANTS,
                               "PSNR al."], lines) + "\n")
 
 
+def means_table(mean_nine: dict, mean_held: dict, variants=VARIANTS) -> str:
+    """The shown output's (`matrix`) mean per variant, nine and held out (the README's
+    table), each cell saying over how many scenes."""
+    def cell(outs):
+        m = outs.get("matrix") if outs else None
+        return "-" if not m else (f"{fmt(m['psnr'])} / {fmt(m['ssim'], 3)} / "
+                                  f"{fmt(m['delta_e'])} (n={m['n']})")
+    rows = [[label, cell(mean_nine.get(key)), cell(mean_held.get(key))]
+            for key, label, *_ in variants]
+    if "no_cr" in mean_nine or "no_cr" in mean_held:  # the no-gain grid, one grey-world gain
+        rows.insert(1, ["the same grid, one grey-world gain (RawNeRF + ISP)",
+                        *[cell({"matrix": m["no_cr"]["global_gain"]}
+                               if "global_gain" in m.get("no_cr", {}) else None)
+                          for m in (mean_nine, mean_held)]])
+    return markdown_table(["variant", "nine built-in", "held out"], rows)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="all", help="names and groups: all, nine, heldout, "
@@ -136,6 +160,8 @@ def build(scenes: list[str], runs: Path, out, quick: bool, variants=VARIANTS,
     text = markdown(record, mean_nine, mean_held, variants, command)
     write_report(out, text, {"quick": quick, "scenes": record, "mean_nine": mean_nine,
                              "mean_heldout": mean_held})
+    if not quick and variants is VARIANTS and Path(out) == Path("reports/ablation"):
+        update_readme("ablation", means_table(mean_nine, mean_held))
     return text
 
 

@@ -39,6 +39,7 @@ from common import (
     scene_dir,
     scene_names,
     stale_run,
+    update_readme,
     write_report,
 )
 from gridnerf import baseline, color, consistency, raw
@@ -49,6 +50,10 @@ from gridnerf.sim import HELDOUT, SCENES
 RUN_ROWS = {"rawnerf_isp": ("nogain", "global_grey_world"), "2d_nerf": ("processed", "gridnerf"),
             "llnerf": ("llnerf", "llnerf")}
 ROWS = ("gridnerf", *RUN_ROWS, "baseline_denoised", "baseline_dark_frame", "reference")
+ROW_LABELS = {"gridnerf": "ours", "rawnerf_isp": "RawNeRF + ISP", "2d_nerf": "2D + NeRF",
+              "llnerf": "LLNeRF-style", "baseline_denoised": "2D per image (non-local means)",
+              "baseline_dark_frame": "one dark frame",
+              "reference": "clean references (the geometry's floor)"}
 
 
 def _views(scene, cfg, structure, params, shown, others, i: int) -> dict:
@@ -106,6 +111,29 @@ def scene_rows(scene_name: str, runs: Path = Path("runs"), quick: bool = False) 
             for row, v in per_row.items() if v}
 
 
+def group_means(record: dict) -> dict:
+    """{row: {"nine": (mean x255, n) or None, "held out": ...}} over the scenes of each
+    group in the record."""
+    out: dict = {}
+    for label, names in (("nine", SCENES), ("held out", HELDOUT)):
+        got = [record[s]["rows"] for s in names if s in record]
+        for r in ROWS:
+            vals = [g[r]["mae"] for g in got if r in g]
+            out.setdefault(r, {})[label] = (255 * float(np.mean(vals)), len(vals)) if vals \
+                else None
+    return out
+
+
+def means_table(record: dict) -> str:
+    """The README's table: each row's mean disagreement (x255) over the nine and the
+    held-out scenes, with the number of scenes."""
+    def cell(v):
+        return "-" if v is None else f"{v[0]:.2f} (n={v[1]})"
+    return markdown_table(["row", "nine built-in", "held out"],
+                          [[ROW_LABELS[r], cell(m["nine"]), cell(m["held out"])]
+                           for r, m in group_means(record).items()])
+
+
 def markdown(record: dict) -> str:
     """The table of build's record ({scene: {"rows", "command", ...}}): per scene, then the
     means over the nine and the held-out scenes, each saying how many of its group it
@@ -116,16 +144,15 @@ def markdown(record: dict) -> str:
         rows = entry["rows"]
         lines.append([name, *[f"{255 * rows[r]['mae']:.2f}" if r in rows else "n/a"
                               for r in ROWS], f"{rows['gridnerf']['coverage']:.2f}"])
-    for label, names in (("mean, nine", SCENES), ("mean, held out", HELDOUT)):
-        got = [record[s]["rows"] for s in names if s in record]
-        if not got:
-            continue
-        cells = []
-        for r in ROWS:
-            vals = [g[r]["mae"] for g in got if r in g]
-            cells.append("n/a" if not vals else f"{255 * np.mean(vals):.2f}" + (
-                f" (n={len(vals)})" if len(vals) < len(got) else ""))
-        lines.append([f"**{label}** ({len(got)} of {len(names)})", *cells, ""])
+    means = group_means(record)
+    for label, key, names in (("mean, nine", "nine", SCENES),
+                              ("mean, held out", "held out", HELDOUT)):
+        n = sum(s in record for s in names)
+        if n:
+            lines.append([f"**{label}** ({n} of {len(names)})", *[
+                "n/a" if means[r][key] is None else f"{means[r][key][0]:.2f}" + (
+                    f" (n={means[r][key][1]})" if means[r][key][1] < n else "")
+                for r in ROWS], ""])
     commands = list(dict.fromkeys(e["command"] for e in record.values()))
     return ("# Multi-view consistency\n\nMean absolute sRGB difference (0-255) between a test "
             "view and its neighbouring frame at the same surface points (the grid's geometry "
@@ -168,6 +195,8 @@ def build(scenes: list[str], runs: Path, out, quick: bool, command: str) -> str:
     record = {s: record[s] for s in [*order, *[s for s in record if s not in order]]}
     text = markdown(record)
     write_report(out, text, {"quick": quick, "scenes": record})
+    if not quick and Path(out) == Path("reports/consistency"):
+        update_readme("consistency", means_table(record))
     return text
 
 

@@ -78,6 +78,10 @@ def test_consistency_table_marks_missing_runs_and_partial_means():
     assert nine[cols.index("llnerf (x255)")] == "9.00 (n=1)"
     held = line["| **mean, held out** (1 of 4)"].split(" | ")
     assert held[cols.index("llnerf (x255)")] == "n/a"
+    table = consistency.means_table(record)  # the README's: every row, its scene count
+    assert "| ours | 3.00 (n=2) | 5.00 (n=1) |" in table
+    assert "| LLNeRF-style | 9.00 (n=1) | - |" in table
+    assert len(table.splitlines()) == 2 + len(consistency.ROWS)
 
 
 def test_speed_time_to_quality():
@@ -129,6 +133,13 @@ def test_ablation_scene_groups_and_colour_study():
     assert common.scene_names("box,deer,nine") == ["box", "deer", *[s for s in SCENES
                                                                    if s not in ("box", "deer")]]
     assert common.scene_names("all", ("nine", "dev")) == [*SCENES, *DEV]
+    record = {"bucket": {"no_cr": {"matrix": _m(12.0), "global_gain": _m(20.0)},
+                         "full_tv": {"matrix": _m(22.0)}},
+              "deer": {"full_tv": {"matrix": _m(20.0)}}}
+    table = ablate.means_table(ablate.means(record, SCENES), {})  # the README's
+    assert "| the same grid, one grey-world gain (RawNeRF + ISP) | 20.00 / 0.500 / 10.00 " \
+        "(n=1) | - |" in table
+    assert "| full, smoothness as grid TV (default) | 21.00 / 0.500 / 10.00 (n=2) | - |" in table
     record = {"bucket": {"grey_world": {"matrix": _m(18.0)}, "map": {"matrix": _m(19.0)}}}
     nine = ablate.means(record, ablate.SCENES, ablate.COLOUR_VARIANTS)
     assert set(nine) == {"grey_world", "map"}
