@@ -166,31 +166,39 @@ def markdown(record: dict) -> str:
             + markdown_table(header, lines) + "\n")
 
 
-def run_fingerprints(scene_name: str, runs: Path, quick: bool) -> dict:
+def todays_fingerprints(quick: bool = False) -> dict:
+    """{run folder: fingerprint of the preset of that name today} for the default run and
+    the RUN_ROWS runs (each folder is named after its preset)."""
+    return {f: fingerprint(preset_config(f, quick))
+            for f in ("default", *[f for f, _ in RUN_ROWS.values()])}
+
+
+def run_fingerprints(scene_name: str, runs: Path, quick: bool, today: dict) -> dict:
     """{run folder: config fingerprint} of the runs a scene's rows were rendered from
-    (the default and those of RUN_ROWS that have finished)."""
+    (the default and those of RUN_ROWS that have finished); today: todays_fingerprints."""
     folder = Path(runs) / scene_dir(scene_name, quick).name
-    names = ["default", *[f for f, _ in RUN_ROWS.values()
-                          if (folder / f / "summary.json").is_file()]]
-    return {f: fingerprint(preset_config(f, quick)) for f in names}
+    return {f: fp for f, fp in today.items()
+            if f == "default" or (folder / f / "summary.json").is_file()}
 
 
-def kept(out, quick: bool) -> dict:
-    """The scenes of an earlier <out>.json whose runs were trained by today's presets."""
+def kept(out, today: dict) -> dict:
+    """The scenes of an earlier <out>.json whose runs were trained by today's presets
+    (today: todays_fingerprints)."""
     path = Path(out).with_suffix(".json")
-    if quick or not path.is_file():
+    if not path.is_file():
         return {}
     old = json.loads(path.read_text()).get("scenes", {})
     return {name: e for name, e in old.items()
-            if all(fingerprint(preset_config(f)) == fp for f, fp in e["fingerprints"].items())}
+            if all(today.get(f) == fp for f, fp in e["fingerprints"].items())}
 
 
 def build(scenes: list[str], runs: Path, out, quick: bool, command: str) -> str:
     """Score every scene given (training its default run if missing), keep the others of
     <out>.json (`kept`), write <out>.md and <out>.json; returns the markdown."""
-    record = kept(out, quick) | {
+    today = todays_fingerprints(quick)
+    record = ({} if quick else kept(out, today)) | {
         name: {"rows": scene_rows(name, runs, quick), "command": command,
-               "fingerprints": run_fingerprints(name, runs, quick)} for name in scenes}
+               "fingerprints": run_fingerprints(name, runs, quick, today)} for name in scenes}
     order = [s for s in [*SCENES, *HELDOUT] if s in record]
     record = {s: record[s] for s in [*order, *[s for s in record if s not in order]]}
     text = markdown(record)
