@@ -3,12 +3,14 @@
 For every simulated scene, on the 2x2-binned raw training frames: the capture's illuminant
 as `loss.ca_target=scene` estimates it (illuminant.consensus of grey world, shades of grey
 and grey edge on the camera's Planckian locus) and the per-frame maps of
-`loss.ca_target=map` anchored to it (gridnerf.illum_map.frame_maps, on the locus), each
-scored against the true illuminant of every pixel: for mixed-light scenes the blend of the
-two lights by the first one's share of the green signal (illuminant/<frame>.png, written by
-the simulator), elsewhere the one light. Angular errors are weighted by the pixel's green
-signal and averaged over the training frames. "spread" is the 90th percentile of the map's
-angle from the capture estimate: near 0 where the map stays flat.
+`loss.ca_target=map` anchored to it (gridnerf.illum_map.frame_maps, on the locus) or to
+the lights of the maps' warm and cool halves (`loss.ca_map_anchor=regions`,
+illum_map.regional_anchor, the same consensus on each half), each scored against the true
+illuminant of every pixel: for mixed-light scenes the blend of the two lights by the first
+one's share of the green signal (illuminant/<frame>.png, written by the simulator),
+elsewhere the one light. Angular errors are weighted by the pixel's green signal and
+averaged over the training frames. "spread" is the 90th percentile of the map's angle from
+the capture estimate: near 0 where the map stays flat.
 
     python experiments/illuminant_maps.py [--scenes all] [--block 16] [--tau 0.1]
 
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -28,8 +31,10 @@ from common import markdown_table, simulated_folders, write_report
 from gridnerf import illum_map, raw
 from gridnerf import illuminant as il
 from gridnerf.scene import raw_files
-from gridnerf.sim import HELDOUT, MIXED, SCENES
+from gridnerf.sim import DEV, HELDOUT, MIXED, SCENES
 from illuminants import raw_images
+
+KEYS = ("capture", "map", "map_regions", "spread_p90")
 
 
 def true_map(folder: Path, sim: dict, name: str, hw: tuple[int, int]) -> np.ndarray:
@@ -43,6 +48,11 @@ def true_map(folder: Path, sim: dict, name: str, hw: tuple[int, int]) -> np.ndar
     share = share[: hw[0], : hw[1], None]
     first, second = (np.asarray(e["neutral_cam"], np.float64) for e in sim["illuminants"][:2])
     return share * first / first[1] + (1.0 - share) * second / second[1]
+
+
+def capture_estimate(images, masks, locus) -> np.ndarray:
+    """(3,) what `loss.ca_target=scene` trains towards: the consensus on the locus."""
+    return il.consensus([il.frames_estimate(k, images, masks) for k in il.CONSENSUS], locus)
 
 
 def weighted_error(estimate, truth, rgb_cam) -> float:
@@ -64,38 +74,46 @@ def main() -> None:
         test = set(sim.get("test_frames", []))
         names = [n for n in raw_files(folder) if n not in test]
         locus = il.planckian_locus(sim["xyz_to_cam"])
-        capture = il.consensus([il.frames_estimate(k, images, masks) for k in il.CONSENSUS],
-                               locus)
-        maps = illum_map.frame_maps(images, masks, capture, locus, args.block, args.tau)
-        err_c, err_m, spread = [], [], []
-        for img, fmap, frame in zip(images, maps, names, strict=True):
+        estimate = partial(capture_estimate, locus=locus)
+        capture = estimate(images, masks)
+        rel = illum_map.relative_maps(images, masks, args.block, args.tau)
+        regional = illum_map.regional_anchor(images, masks, rel, estimate, locus, args.block)
+        maps, maps_r = (illum_map.frame_maps(images, masks, a, locus, args.block, args.tau,
+                                             rel=rel) for a in (capture, regional))
+        err_c, err_m, err_r, spread = [], [], [], []
+        for img, fmap, fmap_r, frame in zip(images, maps, maps_r, names, strict=True):
             hb, wb = fmap.shape[:2]
             crop = img[: hb * args.block, : wb * args.block]
             truth = true_map(folder, sim, frame, crop.shape[:2])
-            full = np.repeat(np.repeat(fmap, args.block, 0), args.block, 1)
             err_c.append(weighted_error(np.broadcast_to(capture, truth.shape), truth, crop))
-            err_m.append(weighted_error(full, truth, crop))
+            for m, errs in ((fmap, err_m), (fmap_r, err_r)):
+                full = np.repeat(np.repeat(m, args.block, 0), args.block, 1)
+                errs.append(weighted_error(full, truth, crop))
             spread.append(float(np.percentile(il.angular_error_deg(fmap, capture), 90)))
         rec = {"capture": float(np.mean(err_c)), "map": float(np.mean(err_m)),
-               "spread_p90": float(np.mean(spread)), "mixed_light": bool(sim.get("mixed_light"))}
+               "map_regions": float(np.mean(err_r)), "spread_p90": float(np.mean(spread)),
+               "mixed_light": bool(sim.get("mixed_light"))}
         record[name] = rec
-        rows.append([name, "yes" if rec["mixed_light"] else "no", f"{rec['capture']:.2f}",
-                     f"{rec['map']:.2f}", f"{rec['spread_p90']:.2f}"])
+        rows.append([name, "yes" if rec["mixed_light"] else "no",
+                     *(f"{rec[k]:.2f}" for k in KEYS)])
         print(" | ".join(rows[-1]), flush=True)
-    for group, members in (("nine built-in", SCENES), ("held-out", HELDOUT),
-                           ("mixed light", MIXED)):
+    for group, members in (("nine built-in", SCENES), ("tuning", DEV),
+                           ("held-out", HELDOUT), ("mixed light", MIXED)):
         vals = [record[n] for n in members if n in record]
         if vals:
             rows.append([f"**mean, {group}** ({len(vals)})", "",
-                         *(f"{np.mean([v[k] for v in vals]):.2f}"
-                           for k in ("capture", "map", "spread_p90"))])
+                         *(f"{np.mean([v[k] for v in vals]):.2f}" for k in KEYS)])
     table = markdown_table(["scene", "mixed light", "capture estimate (deg)",
-                            "per-frame map (deg)", "map spread p90 (deg)"], rows)
+                            "map, anchored to it (deg)", "map, regional anchor (deg)",
+                            "map spread p90 (deg)"], rows)
     write_report(args.out,
                  "Per-pixel angular error of the L_ca illuminant (green-weighted, binned raw "
                  "training frames): one estimate for the capture (`loss.ca_target=scene`) "
                  "against per-frame Retinex maps (`loss.ca_target=map`, block "
-                 f"{args.block}, tau {args.tau}), `python experiments/illuminant_maps.py`.\n\n"
+                 f"{args.block}, tau {args.tau}) anchored to that estimate "
+                 "(`loss.ca_map_anchor=capture`) or to the lights of the maps' warm and cool "
+                 "halves (`regions`, illum_map.regional_anchor), `python "
+                 "experiments/illuminant_maps.py`.\n\n"
                  + table + "\n", record)
     print(table)
 

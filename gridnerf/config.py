@@ -294,6 +294,11 @@ class LossConfig(_Section):
     ca_target: Literal["batch", "scene", "map"] = "scene"
     ca_map_block: int = 16  # "map": block side in training pixels (noise averages down)
     ca_map_tau: float = 0.1  # "map": log-chromaticity step above which blocks differ in paint
+    # "map": what the maps are anchored to. "capture": the capture's estimate
+    # (ca_illuminant on all pixels); "regions": the same estimator on the map's warm and
+    # cool halves apart, each less its mean map value (illum_map.regional_anchor): two
+    # lights no longer pull one estimate towards the brighter one
+    ca_map_anchor: Literal["capture", "regions"] = "capture"
     # "brightnerf" (the method: gains, L_ca and smoothness on the raw) or "llnerf" (the
     # LLNeRF-style comparison row, gridnerf.llnerf: the dark sRGB frames of
     # data.target=dark_srgb, the colour split into lighting max_k c_k and reflectance, the
@@ -583,7 +588,8 @@ def diff(a: Config, b: Config) -> list[str]:
 
 # loss fields that only act through the gains: inert when loss.use_gains is false
 GAIN_FIELDS = ("w_ca", "w_smooth", "smooth_mode", "ca_stop_grad", "gain_map", "ca_illuminant",
-               "ca_illuminant_p", "ca_locus", "ca_target", "ca_map_block", "ca_map_tau")
+               "ca_illuminant_p", "ca_locus", "ca_target", "ca_map_block", "ca_map_tau",
+               "ca_map_anchor")
 # loss fields of loss.method = "llnerf" alone: inert in the other runs
 LLNERF_FIELDS = ("w_exposure", "exposure_level", "exposure_pool", "w_color_constancy",
                  "w_enhance_tv", "llnerf_data")
@@ -614,7 +620,8 @@ def get(cfg: Config, dotted: str) -> Any:
 # (section, field) -> the value a saved config that lacks the field was trained with, for
 # fields added with a default that changes behaviour (a run's config.json must describe it)
 LEGACY = {("grid", "background"): "black", ("loss", "opacity_stages"): 0,
-          ("loss", "data_eps"): 1e-3, ("loss", "data_eps_mode"): "absolute"}
+          ("loss", "data_eps"): 1e-3, ("loss", "data_eps_mode"): "absolute",
+          ("loss", "ca_map_anchor"): "capture"}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

@@ -19,12 +19,22 @@ the other need a different one on each side. This module finds out which, from t
   bucket 5.12 -> 5.14, scoreboard 3.15 -> 3.15 (box, block 8: 2.76 -> 2.75).
 - `frame_maps` anchors each map to the capture's illuminant (its weighted geometric mean is
   that illuminant) and, given the camera's Planckian locus, projects every block onto it.
+- The anchor. One estimate for the whole capture is pulled towards the light that
+  dominates the bright pixels and the edges when two lights mix (shades of grey and grey
+  edge weigh them; mixed_desk_daylight: the capture's consensus is 8.8 deg from the
+  per-pixel truth, grey world 2.7). `regional_anchor` splits the blocks at the map's
+  weighted median along the locus (the warm and the cool half), estimates each half's
+  light with the capture's own estimator on its pixels alone, takes off each half's mean
+  map value and averages the two anchors so found (weighted by signal). One light leaves
+  both halves with the same light up to noise: the anchor stays the capture's estimate.
 
 Shapes: rgb_cam (h, w, 3) linear camera RGB, mask (h, w) or (h, w, 3); maps (hb, wb, ...)
 with hb = h // block, wb = w // block (edge pixels that do not fill a block are dropped).
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 from scipy.sparse import coo_matrix, identity, vstack
@@ -90,18 +100,83 @@ def log_chroma_map(rgb_cam, mask=None, block: int = 16, tau: float = 0.1,
     return f.reshape(hb, wb, 2)
 
 
-def frame_maps(images, masks, anchor, locus=None, block: int = 16, tau: float = 0.1
-               ) -> np.ndarray:
+def relative_maps(images, masks, block: int = 16, tau: float = 0.1) -> np.ndarray:
+    """(N, hb, wb, 2) log_chroma_map of each frame (images, masks as in frame_maps)."""
+    return np.stack([log_chroma_map(img, m, block, tau)
+                     for img, m in zip(images, masks, strict=True)])
+
+
+def _log_chroma(e) -> np.ndarray:
+    e = np.maximum(np.asarray(e, np.float64), _TINY)
+    return np.stack([np.log(e[..., 0] / e[..., 1]), np.log(e[..., 2] / e[..., 1])], -1)
+
+
+def _axis(rel: np.ndarray, weight: np.ndarray, locus=None) -> np.ndarray:
+    """(2,) unit direction in log chromaticity along which lights differ: the locus's
+    principal direction (blackbodies of 1500-20000 K) or, without one, the maps'."""
+    if locus is not None:
+        pts = _log_chroma(locus)
+    else:
+        pts = rel.reshape(-1, 2) * np.sqrt(weight.reshape(-1, 1))
+    return np.linalg.svd(pts - pts.mean(0), full_matrices=False)[2][0]
+
+
+def regional_anchor(images, masks, rel: np.ndarray, estimate: Callable, locus=None,
+                    block: int = 16) -> np.ndarray:
+    """(3,) unit anchor of the maps from the lights of their warm and cool halves.
+
+    rel: (N, hb, wb, 2) relative_maps of the frames; estimate(images, masks) -> (3,) the
+    capture-level estimator (e.g. the consensus) run on a subset of pixels. The blocks are
+    split at the signal-weighted median of their map value along `_axis`; each half's
+    light is estimated on its own pixels (the frames cropped to whole blocks, the other
+    half masked out) and less the half's weighted mean map value gives an anchor; the
+    result is their signal-weighted mean in log chromaticity, on the locus when given.
+    """
+    weight = np.stack([block_chroma(img, m, block)[1] for img, m in zip(images, masks,
+                                                                       strict=True)])
+    proj = rel @ _axis(rel, weight, locus)  # (N, hb, wb)
+    order = np.argsort(proj.ravel())
+    cum = np.cumsum(weight.ravel()[order])
+    if cum[-1] <= _TINY:
+        return illuminant.unit(np.asarray(estimate(images, masks), np.float64))
+    split = proj.ravel()[order][min(np.searchsorted(cum, cum[-1] / 2), len(order) - 1)]
+    total, acc = 0.0, np.zeros(2)
+    for half in (proj <= split, proj > split):
+        w = float(weight[half].sum())
+        if w <= _TINY:
+            continue
+        crops, keep = [], []
+        for img, m, sel in zip(images, masks, half, strict=True):
+            hb, wb = sel.shape
+            crops.append(np.asarray(img)[: hb * block, : wb * block])
+            ok = np.repeat(np.repeat(sel, block, 0), block, 1)
+            if m is not None:
+                mm = np.asarray(m, bool)
+                ok = ok & (mm.all(-1) if mm.ndim == 3 else mm)[: hb * block, : wb * block]
+            keep.append(ok)
+        light = _log_chroma(estimate(crops, keep))
+        mean_rel = (rel[half] * weight[half][:, None]).sum(0) / w
+        acc += w * (light - mean_rel)
+        total += w
+    c = acc / max(total, _TINY)
+    a = illuminant.unit(np.array([np.exp(c[0]), 1.0, np.exp(c[1])]))
+    return np.asarray(illuminant.to_locus(a, locus)) if locus is not None else a
+
+
+def frame_maps(images, masks, anchor, locus=None, block: int = 16, tau: float = 0.1,
+               rel: np.ndarray | None = None) -> np.ndarray:
     """(N, hb, wb, 3) unit camera-RGB illuminant per block of each frame.
 
     images: N (h, w, 3) camera RGB of one size; masks: N (h, w) or (h, w, 3) or None;
-    anchor: (3,) the capture's illuminant (e.g. illuminant.consensus of the frames); locus:
-    (n, 3) the camera's Planckian locus (illuminant.planckian_locus) or None.
+    anchor: (3,) the capture's illuminant (e.g. illuminant.consensus of the frames, or
+    regional_anchor); locus: (n, 3) the camera's Planckian locus
+    (illuminant.planckian_locus) or None; rel: the frames' relative_maps when the caller
+    has them already.
     """
     a = np.maximum(np.asarray(anchor, np.float64), _TINY)
+    rel = relative_maps(images, masks, block, tau) if rel is None else rel
     out = []
-    for img, m in zip(images, masks, strict=True):
-        f = log_chroma_map(img, m, block, tau)
+    for f in rel:
         e = np.stack([a[0] / a[1] * np.exp(f[..., 0]), np.ones(f.shape[:2]),
                       a[2] / a[1] * np.exp(f[..., 1])], -1)
         e = illuminant.unit(e)

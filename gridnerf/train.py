@@ -306,16 +306,24 @@ def scene_illuminant(data: dataset.RayData, scene, cfg: Config, frames=None) -> 
 
 
 def with_illuminant_map(data: dataset.RayData, scene, cfg: Config, anchor: np.ndarray,
-                        frames=None) -> dataset.RayData:
-    """data with its per-frame L_ca illuminant map (loss.ca_target = "map"): each training
-    frame's Retinex map (gridnerf.illum_map, blocks of loss.ca_map_block binned pixels)
-    anchored to the capture's illuminant `anchor` (3,), on the locus when loss.ca_locus;
-    frames as in scene_illuminant."""
+                        frames=None) -> tuple[dataset.RayData, np.ndarray]:
+    """(data with its per-frame L_ca illuminant map, the maps' anchor (3,)) for
+    loss.ca_target = "map": each training frame's Retinex map (gridnerf.illum_map, blocks
+    of loss.ca_map_block binned pixels) anchored to the capture's illuminant `anchor` (3,)
+    or, with loss.ca_map_anchor = "regions", to the lights of the maps' warm and cool
+    halves (illum_map.regional_anchor, each by loss.ca_illuminant); on the locus when
+    loss.ca_locus; frames as in scene_illuminant."""
     images, masks = _estimate_frames(data, scene) if frames is None else frames
     lc = cfg.loss
     locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
-    maps = illum_map.frame_maps(images, masks, anchor, locus, lc.ca_map_block, lc.ca_map_tau)
-    return dataclasses.replace(data, illuminant_map=jnp.asarray(maps, jnp.float32))
+    rel = illum_map.relative_maps(images, masks, lc.ca_map_block, lc.ca_map_tau)
+    if lc.ca_map_anchor == "regions":
+        anchor = illum_map.regional_anchor(
+            images, masks, rel, lambda ims, mks: scene_illuminant(data, scene, cfg, (ims, mks)),
+            locus, lc.ca_map_block)
+    maps = illum_map.frame_maps(images, masks, anchor, locus, lc.ca_map_block, lc.ca_map_tau,
+                                rel=rel)
+    return dataclasses.replace(data, illuminant_map=jnp.asarray(maps, jnp.float32)), anchor
 
 
 def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> tuple[dataset.RayData, dict]:
@@ -332,7 +340,7 @@ def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> tuple[dataset.Ra
         frames = _estimate_frames(data, scene)  # binned once for both estimates
         anchor = scene_illuminant(data, scene, cfg, frames)
         if cfg.loss.ca_target == "map":
-            data = with_illuminant_map(data, scene, cfg, anchor, frames)
+            data, anchor = with_illuminant_map(data, scene, cfg, anchor, frames)
         return data, {"scene_ill": jnp.asarray(anchor, jnp.float32)}
     if cfg.loss.ca_locus:
         return data, {"locus": jnp.asarray(illuminant.planckian_locus(scene.xyz_to_cam),

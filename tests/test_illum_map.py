@@ -85,3 +85,44 @@ def test_to_locus_projects_every_entry_of_a_map():
     for i in range(4):
         for j in range(5):
             np.testing.assert_array_equal(out[i, j], illuminant.to_locus(e[i, j], locus))
+
+
+ONES = np.ones((H, W), bool)
+
+
+def _estimate(name):
+    return lambda images, masks: illuminant.frames_estimate(name, images, masks)
+
+
+def test_regional_anchor_keeps_one_light():
+    """One light: both halves see it, so the anchor is the capture's estimate (to noise)."""
+    rgb_cam = _noisy(_paint(3) * WARM, 20.0)
+    rel = illum_map.relative_maps([rgb_cam], [None], block=8)
+    capture = illuminant.frames_estimate("grey_world", [rgb_cam], [ONES])
+    anchor = illum_map.regional_anchor([rgb_cam], [None], rel, _estimate("grey_world"),
+                                       block=8)
+    assert np.linalg.norm(anchor) == pytest.approx(1.0)
+    assert float(illuminant.angular_error_deg(anchor, capture)) < 1.0
+
+
+def test_regional_anchor_is_not_pulled_to_the_brighter_light():
+    """Warm light on the left, four times brighter than the cool light on the right: an
+    estimator that weighs bright pixels (shades of grey) sees mostly the warm one; the
+    anchor made from each half apart brings the maps closer to the per-block truth."""
+    t = np.linspace(0.0, 1.0, W)[None, :, None]
+    light = (1 - t) * 4.0 * WARM + t * COOL
+    light = np.broadcast_to(light, (H, W, 3))
+    rgb_cam = _noisy(_paint(5) * light / 4.0, 80.0)
+    rel = illum_map.relative_maps([rgb_cam], [None], block=8)
+    sog = _estimate("shades_of_grey")
+    capture = sog([rgb_cam], [ONES])
+    regional = illum_map.regional_anchor([rgb_cam], [None], rel, sog, block=8)
+    truth = illuminant.unit(raw_blocks(light, 8))
+    err = {name: float(illuminant.angular_error_deg(
+        illum_map.frame_maps([rgb_cam], [None], a, block=8, rel=rel)[0], truth).mean())
+        for name, a in (("capture", capture), ("regional", regional))}
+    assert err["regional"] < 0.9 * err["capture"], err
+    # the same maps with or without precomputed relative maps
+    np.testing.assert_array_equal(illum_map.frame_maps([rgb_cam], [None], capture, block=8),
+                                  illum_map.frame_maps([rgb_cam], [None], capture, block=8,
+                                                       rel=rel))

@@ -402,9 +402,13 @@ def test_illuminant_map_target_trains(small_scene, tmp_path):
     scene = load_scene(small_scene, near_far=(1.0, 10.0))
     data = dataset.build(scene, scene.train_idx, True)
     anchor = train.scene_illuminant(data, scene, cfg)
-    mapped = train.with_illuminant_map(data, scene, cfg, anchor)
+    mapped, kept = train.with_illuminant_map(data, scene, cfg, anchor)
+    np.testing.assert_array_equal(kept, anchor)  # "capture": the anchor given
     h, w = data.image_hw
     assert mapped.illuminant_map.shape == (len(scene.train_idx), h // 4, w // 4, 3)
+    regional = cfgmod.override(cfg, ["loss.ca_map_anchor=regions"])
+    _, found = train.with_illuminant_map(data, scene, regional, anchor)
+    assert found.shape == (3,) and np.all(np.isfinite(found))
     rays = dataset.batch(mapped, jax.random.PRNGKey(0), 4, 8)
     assert rays["illuminant"].shape == (4, 8, 8, 3)
     summary = train.train(small_scene, tmp_path / "run", cfg)
