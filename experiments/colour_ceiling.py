@@ -36,11 +36,12 @@ import numpy as np
 
 from common import fmt, markdown_table, simulated_folders, write_report
 from gridnerf import color, eval_run, evaluate, exposure, illuminant
-from gridnerf.sim import DEV, HELDOUT, MIXED, SCENES
+from gridnerf.sim import DEV, HELDOUT, HELDOUT_MIXED, MIXED, SCENES
 from illuminant_maps import true_map
 
 ROWS = ("ours", "field_global", "global_gw", "true_global", "true_local")
-GROUPS = (("nine", SCENES), ("tuning", DEV), ("held out", HELDOUT), ("mixed light", MIXED))
+GROUPS = (("nine", SCENES), ("tuning", DEV), ("held out", HELDOUT), ("mixed light", MIXED),
+          ("held-out mixed light", HELDOUT_MIXED))
 
 
 def view_rows(out: dict, shown: dict, matrix: np.ndarray, truth: np.ndarray,
@@ -103,7 +104,8 @@ def main() -> None:
             for r, rgb_linear in view_rows(out, shown, matrix, truth, field_white).items():
                 per_view[r].append(evaluate.image_metrics(rgb_linear, gt_linear))
         summary = {r: evaluate.summarize(dict(enumerate(v))) for r, v in per_view.items()}
-        record[name] = {"run": str(run), "mixed_light": name in MIXED, **summary}
+        record[name] = {"run": str(run), "mixed_light": name in MIXED + HELDOUT_MIXED,
+                        **summary}
         table.append(table_row(name, summary))
         print(name, table[-1][1:], flush=True)
     for label, group in GROUPS:

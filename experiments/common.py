@@ -9,7 +9,7 @@ from pathlib import Path
 from gridnerf import atomic
 from gridnerf import config as cfgmod
 from gridnerf.eval_run import evaluate_run
-from gridnerf.sim import ALL_SCENES, DEV, HELDOUT, MIXED, SCENES, simulate_scene
+from gridnerf.sim import ALL_SCENES, DEV, HELDOUT, HELDOUT_MIXED, MIXED, SCENES, simulate_scene
 from gridnerf.train import train
 
 # Quick mode (`make report QUICK=1`): every study on 160x90, 12-frame versions of its
@@ -73,7 +73,8 @@ def stale_run(run: Path, preset: str, quick: bool = False) -> bool:
 
 
 # the scene groups a study's --scenes may name
-GROUPS = {"nine": SCENES, "heldout": HELDOUT, "dev": DEV, "mixed": MIXED}
+GROUPS = {"nine": SCENES, "heldout": HELDOUT, "dev": DEV, "mixed": MIXED,
+          "heldmixed": HELDOUT_MIXED}
 
 
 def scene_names(spec: str, all_groups: tuple[str, ...] = ("nine", "heldout")) -> list[str]:

@@ -31,7 +31,7 @@ from common import markdown_table, simulated_folders, write_report
 from gridnerf import illum_map, raw
 from gridnerf import illuminant as il
 from gridnerf.scene import raw_files
-from gridnerf.sim import DEV, HELDOUT, MIXED, SCENES
+from gridnerf.sim import DEV, HELDOUT, HELDOUT_MIXED, MIXED, SCENES
 from illuminants import raw_images
 
 KEYS = ("capture", "map", "map_regions", "spread_p90")
@@ -98,7 +98,8 @@ def main() -> None:
                      *(f"{rec[k]:.2f}" for k in KEYS)])
         print(" | ".join(rows[-1]), flush=True)
     for group, members in (("nine built-in", SCENES), ("tuning", DEV),
-                           ("held-out", HELDOUT), ("mixed light", MIXED)):
+                           ("held-out", HELDOUT), ("mixed light", MIXED),
+                           ("held-out mixed light", HELDOUT_MIXED)):
         vals = [record[n] for n in members if n in record]
         if vals:
             rows.append([f"**mean, {group}** ({len(vals)})", "",

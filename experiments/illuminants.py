@@ -33,7 +33,7 @@ from common import simulated_folders, write_report
 from gridnerf import illuminant as il
 from gridnerf import raw
 from gridnerf.scene import raw_files
-from gridnerf.sim import HELDOUT, MIXED, SCENES
+from gridnerf.sim import HELDOUT, HELDOUT_MIXED, MIXED, SCENES
 
 ORDER = ("grey_world", "shades_of_grey", "grey_edge", "weighted_grey")
 
@@ -121,6 +121,7 @@ def main() -> None:
             + "---|" * len(columns))
     means = []
     groups = {"nine built-in": SCENES, "held-out": HELDOUT, "mixed light": MIXED,
+              "held-out mixed light": HELDOUT_MIXED,
               "all": tuple(record)}
     for source in ("raw", "render"):
         for group, names in groups.items():

@@ -15,14 +15,15 @@ from gridnerf.errors import GridNerfError
 
 
 def _simulate(args) -> None:
-    from gridnerf.sim import ALL_SCENES, DEV, HELDOUT, MIXED, SCENES, simulate_scene
+    from gridnerf.sim import ALL_SCENES, DEV, HELDOUT, HELDOUT_MIXED, MIXED, SCENES, simulate_scene
 
-    groups = {"all": SCENES, "heldout": HELDOUT, "dev": DEV, "mixed": MIXED}
+    groups = {"all": SCENES, "heldout": HELDOUT, "dev": DEV, "mixed": MIXED,
+              "heldmixed": HELDOUT_MIXED}
     names = groups.get(args.name, (args.name,))
     for name in names:
         if name not in ALL_SCENES:
             fix = (f"choose one of {', '.join(ALL_SCENES)}, 'all', "
-                   "'heldout', 'dev' or 'mixed'")
+                   "'heldout', 'dev', 'mixed' or 'heldmixed'")
             raise GridNerfError(None, f"unknown scene {name!r}", fix)
         out = Path(args.out) if args.out and len(names) == 1 else Path("data/sim") / name
         path = simulate_scene(
@@ -121,7 +122,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("simulate", help="write a simulated low-light RAW scene")
     s.add_argument("name", help="scene name (bucket, held_arc_brick, mixed_lamp_window, ...), "
                    "'all' (the nine scenes), 'heldout' (the held-out scenes), 'dev' (the tuning "
-                   "scenes with an arc and a slide rig) or 'mixed' (the mixed-light scenes)")
+                   "scenes with an arc and a slide rig), 'mixed' (the mixed-light scenes) or "
+                   "'heldmixed' (the held-out mixed-light scene)")
     s.add_argument("--out", help="scene folder (default data/sim/<name>)")
     s.add_argument("--width", type=_positive_int, default=480)
     s.add_argument("--height", type=_positive_int, default=270)

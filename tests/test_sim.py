@@ -14,7 +14,7 @@ from gridnerf import cli
 from gridnerf.color import CAMERA_XYZ_TO_CAM, luminance, srgb_encode
 from gridnerf.errors import SceneError
 from gridnerf.raw import bin2x2
-from gridnerf.sim import DEV, HELDOUT, MIXED, SCENES, simulate_scene, writer
+from gridnerf.sim import DEV, HELDOUT, HELDOUT_MIXED, MIXED, SCENES, simulate_scene, writer
 from gridnerf.sim import scenes as sc
 from gridnerf.sim import sensor as sn
 from gridnerf.sim import textures as tx
@@ -446,6 +446,23 @@ def test_mixed_scenes_have_two_illuminants_and_the_others_one():
     for name in SCENES + HELDOUT:  # the single-light path, unchanged (byte-identical files)
         spec = sc.build_scene(name)
         assert not spec.layered and spec.kelvins == (spec.sensor.kelvin,)
+
+
+def test_held_out_mixed_scene_differs_from_the_mixed_ones(tmp_path):
+    """HELDOUT_MIXED: two lights of different colour, another rig, sensor and lights than
+    MIXED (nothing of the mixed-light path is chosen on it), marked held out."""
+    assert HELDOUT_MIXED and not set(HELDOUT_MIXED) & set(SCENES + HELDOUT + DEV + MIXED)
+    tuned = [sc.build_scene(name) for name in MIXED]
+    for name in HELDOUT_MIXED:
+        spec = sc.build_scene(name)
+        assert spec.layered and len(spec.kelvins) == 2
+        assert max(spec.kelvins) - min(spec.kelvins) >= 1500
+        assert spec.rig not in {t.rig for t in tuned}
+        assert spec.sensor.cfa_pattern not in {t.sensor.cfa_pattern for t in tuned}
+        assert set(spec.kelvins).isdisjoint(k for t in tuned for k in t.kelvins)
+    out = simulate_scene(HELDOUT_MIXED[0], tmp_path / "s", width=64, height=36, n_frames=2)
+    record = _manifest(out)
+    assert record["held_out"] is True and record["mixed_light"] is True
 
 
 def test_layers_add_up_to_the_single_light_render():

@@ -46,8 +46,11 @@ DEV: tuple[str, ...] = ("dev_arc_shop", "dev_slide_bench")
 # Lit by two illuminants of different colour temperature (a lamp and daylight), each
 # dominating its own part of the scene: a global white balance cannot be right everywhere.
 MIXED: tuple[str, ...] = ("mixed_lamp_window", "mixed_desk_daylight")
+# Mixed light, held out: other rig (a converging arc), lights, sensor and content than
+# MIXED; no default of the mixed-light path is chosen on it.
+HELDOUT_MIXED: tuple[str, ...] = ("held_mixed_arc",)
 # every scene name the simulator knows
-ALL_SCENES: tuple[str, ...] = SCENES + HELDOUT + DEV + MIXED
+ALL_SCENES: tuple[str, ...] = SCENES + HELDOUT + DEV + MIXED + HELDOUT_MIXED
 RIGS: tuple[str, ...] = ("tripod", "arc", "slide")
 
 
@@ -161,6 +164,7 @@ _SENSORS = {
     # mixed light: kelvin is the lamp's; each scene names its lights' own temperatures
     "mixed_lamp_window": (2700, "Sony ILCE-7SM2", "RGGB", 12.0, 0.024, 5.0),
     "mixed_desk_daylight": (2400, "Canon EOS 5D Mark IV", "RGGB", 16.0, 0.03, 4.5),
+    "held_mixed_arc": (3000, "Nikon D850", "GRBG", 10.0, 0.02, 5.5),
 }
 
 
@@ -717,11 +721,53 @@ def _mixed_desk_daylight() -> SceneSpec:
                      ambient_kelvin=5600.0)
 
 
-_MIX = {"mixed_lamp_window": _mixed_lamp_window, "mixed_desk_daylight": _mixed_desk_daylight}
+def _held_mixed_arc() -> SceneSpec:
+    """Held out, mixed light (nothing is tuned on it). A converging handheld arc around a
+    reading corner: an armchair with a striped cushion, a side table with books and a
+    globe, a potted plant, a rug on a plank floor, a poster on a brick wall. A 3000 K
+    floor lamp stands high at the back left (a point light over the chair), 5000 K light
+    falls from a skylight above the right (directional, with its ambient fill). Subject
+    ~2.2 m away."""
+    wall = _b([0, 3.0, -2.4], [12.0, 7.0, 0.5],
+              _real_bricks(24.0, 14.0, colors=[(0.78, 0.74, 0.68), (0.7, 0.66, 0.6)],
+                           seed=61))
+    floor = _floor(tx.wood((0.6, 0.45, 0.3), (0.42, 0.3, 0.2), rings=5, planks=40,
+                           repeat=(12.0, 1.0), seed=62))
+    fabric = tx.noise((0.3, 0.45, 0.35), (0.2, 0.32, 0.25), cells=40, seed=63)
+    cushion = tx.stripes([(0.85, 0.8, 0.2), (0.9, 0.88, 0.82), (0.2, 0.3, 0.6)], 9,
+                         angle_deg=30)
+    top = tx.wood((0.5, 0.32, 0.2), (0.35, 0.2, 0.12), rings=8, planks=2, seed=64)
+    leaf = tx.dots((0.2, 0.5, 0.18), [(0.35, 0.65, 0.2), (0.1, 0.3, 0.1)], n=9, radius=0.3)
+    props = [
+        _b([-0.55, 0.22, -0.3], [0.4, 0.22, 0.35], fabric, yaw=0.25),  # seat
+        _b([-0.62, 0.62, -0.62], [0.4, 0.3, 0.08], fabric, yaw=0.25),  # back
+        _e([-0.5, 0.56, -0.3], [0.2, 0.12, 0.06], cushion, yaw=0.25, pitch=-0.4),
+        _b([0.45, 0.28, -0.2], [0.22, 0.28, 0.22], top, yaw=-0.2),  # side table
+        _book(0.35, 0.56, -0.25, 0.03, 0.11, 0.08, (0.6, 0.1, 0.1), 65, yaw=-0.2),
+        _book(0.42, 0.56, -0.25, 0.03, 0.1, 0.08, (0.1, 0.25, 0.5), 66, yaw=-0.2),
+        _e([0.55, 0.68, -0.15], [0.1] * 3, tx.image("hubble_deep_field", (2, 1), size=512)),
+        _f([1.0, 0.18, -0.7], 0.14, 0.18, 0.18, tx.solid((0.7, 0.35, 0.2))),  # pot
+        _e([1.0, 0.6, -0.7], [0.28, 0.3, 0.28], leaf),
+        _b([0.0, 0.004, 0.35], [0.8, 0.004, 0.5], tx.checker((0.6, 0.15, 0.15),
+                                                               (0.85, 0.75, 0.55), (10, 6))),
+        _board([0.2, 1.5, -1.88], [0.35, 0.45, 0.01], tx.image("coffee", size=512),
+               tx.solid((0.15, 0.15, 0.15))),
+    ]
+    lights = (PointLight((-1.1, 1.7, -0.4), 2.2, radius=0.08, kelvin=3000.0),
+              Light((0.45, 0.85, 0.25), 0.55, kelvin=5000.0))
+    return SceneSpec(name="held_mixed_arc", room=(wall, floor), props=tuple(props),
+                     sensor=_sensor("held_mixed_arc"), lights=lights, ambient=0.1,
+                     ambient_kelvin=5000.0, target=(0.0, 0.45, -0.3), distance=2.2,
+                     height=0.5, rig="arc", yaw_spread_deg=20.0)
+
+
+_MIX = {"mixed_lamp_window": _mixed_lamp_window, "mixed_desk_daylight": _mixed_desk_daylight,
+        "held_mixed_arc": _held_mixed_arc}
 
 
 def build_scene(name: str) -> SceneSpec:
-    """The SceneSpec for one of SCENES, HELDOUT, DEV or MIXED (ValueError for other names)."""
+    """The SceneSpec for one of SCENES, HELDOUT, DEV, MIXED or HELDOUT_MIXED (ValueError
+    for other names)."""
     if name in _HELD:
         return _HELD[name]()
     if name in _MIX:

@@ -47,7 +47,7 @@ from gridnerf.sim.capture import (
     render_view,
     render_view_layers,
 )
-from gridnerf.sim.scenes import ALL_SCENES, HELDOUT, build_scene
+from gridnerf.sim.scenes import ALL_SCENES, HELDOUT, HELDOUT_MIXED, build_scene
 
 # Scene-folder format version, part of the cache key: bump it whenever the written
 # files change so that folders written before are rebuilt. 2: camera rigs, held-out
@@ -228,7 +228,7 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
         main = max(lights, key=lambda e: e["share_of_green_signal"])
     _write_json(folder / "sim.json", {
         **_key(name, width, height, n_frames, seed),
-        "held_out": name in HELDOUT, "rig": spec.rig,
+        "held_out": name in HELDOUT + HELDOUT_MIXED, "rig": spec.rig,
         **({"mixed_light": True} if spec.layered else {}),
         "frames": names, "test_frames": [names[i] for i in test],
         "illuminant_kelvin": main["kelvin"] if spec.layered else params.kelvin,
