@@ -595,18 +595,30 @@ LLNERF_FIELDS = ("w_exposure", "exposure_level", "exposure_pool", "w_color_const
                  "w_enhance_tv", "llnerf_data")
 
 
+# loss fields read only with loss.ca_target = "map"
+MAP_FIELDS = ("ca_map_block", "ca_map_tau", "ca_map_anchor")
+# What `effective` resets inert fields to: fixed values (the defaults before the colour
+# default became the anchored illuminant map), not today's defaults, so that changing a
+# default does not change what a run that never reads the field compares equal to (the
+# cached results of experiments are keyed by it).
+INERT_REFERENCE = LossConfig(ca_target="scene", ca_map_anchor="capture")
+
+
 def effective(cfg: Config) -> Config:
-    """cfg with the fields that cannot change its training reset to their defaults (the
-    GAIN_FIELDS of a run without gains), so that two configs that train alike compare equal
-    (cached experiment runs, e.g. the oracle, survive a change of the colour defaults), and
-    the LLNERF_FIELDS of a run that is not loss.method = "llnerf"; a loss.method = "llnerf"
-    run reads only gain_map of the GAIN_FIELDS (train.llnerf_terms replace L_ca and the
-    smoothness)."""
-    base = LossConfig()
+    """cfg with the fields that cannot change its training reset to INERT_REFERENCE's
+    values: the GAIN_FIELDS of a run without gains, so that two configs that train alike
+    compare equal (cached experiment runs, e.g. the oracle, survive a change of the colour
+    defaults), the LLNERF_FIELDS of a run that is not loss.method = "llnerf" (a
+    loss.method = "llnerf" run reads only gain_map of the GAIN_FIELDS: train.llnerf_terms
+    replace L_ca and the smoothness), and the MAP_FIELDS of a run whose L_ca target is not
+    the illuminant map."""
+    base = INERT_REFERENCE
     llnerf = cfg.loss.method == "llnerf"
     gain_inert = (GAIN_FIELDS if not cfg.loss.use_gains
                   else tuple(f for f in GAIN_FIELDS if f != "gain_map") if llnerf else ())
     inert = gain_inert + (() if llnerf else LLNERF_FIELDS)
+    if not gain_inert and cfg.loss.ca_target != "map":
+        inert += MAP_FIELDS
     if not inert:
         return cfg
     return replace(cfg, loss=replace(cfg.loss, **{k: getattr(base, k) for k in inert}))

@@ -364,6 +364,21 @@ def test_effective_config_ignores_gain_fields_without_gains():
     assert cfgmod.effective(o) != cfgmod.effective(tweaked)
 
 
+def test_effective_config_ignores_map_fields_without_the_map_target():
+    """The illuminant map's block, threshold and anchor matter only with ca_target = map,
+    and the values inert fields compare at are fixed, not today's defaults."""
+    scene = cfgmod.override(cfgmod.preset("default"), ["loss.ca_target=scene"])
+    for item in ("loss.ca_map_tau=0.3", "loss.ca_map_block=8", "loss.ca_map_anchor=regions",
+                 "loss.ca_map_anchor=capture"):
+        assert cfgmod.effective(cfgmod.override(scene, [item])) == cfgmod.effective(scene)
+    mapped = cfgmod.override(scene, ["loss.ca_target=map"])
+    assert cfgmod.effective(cfgmod.override(mapped, ["loss.ca_map_tau=0.3"])) != (
+        cfgmod.effective(mapped))
+    inert = cfgmod.effective(cfgmod.preset("nogain")).loss
+    assert (inert.ca_target, inert.ca_map_anchor) == (
+        cfgmod.INERT_REFERENCE.ca_target, cfgmod.INERT_REFERENCE.ca_map_anchor)
+
+
 def test_opacity_prior_only_in_its_stages():
     """loss.opacity_stages = n: stages < n train with the prior, later ones without; 0 keeps
     it everywhere; a negative count is refused."""
