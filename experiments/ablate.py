@@ -42,19 +42,23 @@ VARIANTS = [
     ("full_patch", "full, smoothness as eq. 15 on ray patches", "patch", "patch", []),
 ]
 # --study colour (issue 8's rows): no white balance, one global grey-world gain (both the
-# no-gain run), the field with each L_ca illuminant estimate, the per-frame illuminant map
-# target, and the default with the black offsets fitted from the noise
+# no-gain run), the default (the illuminant map, anchored by region) with each L_ca
+# illuminant estimate, the map anchored to the capture's estimate, one target for the
+# capture (no map), and the default with the black offsets fitted from the noise
 COLOUR_VARIANTS = [
     ("no_cr", "no white balance / one grey-world gain (no gains)", "nogain", "nogain", []),
-    ("grey_world", "field, L_ca target grey world", "ca_grey_world", "default",
+    ("grey_world", "field, estimator grey world", "ca_grey_world", "default",
      ["loss.ca_illuminant=grey_world"]),
-    ("shades_of_grey", "field, L_ca target shades of grey (p = 6)", "ca_shades_of_grey",
+    ("shades_of_grey", "field, estimator shades of grey (p = 6)", "ca_shades_of_grey",
      "default", ["loss.ca_illuminant=shades_of_grey"]),
-    ("grey_edge", "field, L_ca target grey edge", "ca_grey_edge", "default",
+    ("grey_edge", "field, estimator grey edge", "ca_grey_edge", "default",
      ["loss.ca_illuminant=grey_edge"]),
-    ("consensus", "field, L_ca target consensus (default)", "default", "default", []),
-    ("map", "field, L_ca target per-frame illuminant map", "ca_map", "default",
-     ["loss.ca_target=map"]),
+    ("scene", "field, one consensus target for the capture (no map)", "ca_scene", "default",
+     ["loss.ca_target=scene"]),
+    ("map_capture", "field, illuminant map anchored to the capture's consensus", "ca_map",
+     "default", ["loss.ca_map_anchor=capture"]),
+    ("map_regions", "field, illuminant map anchored by region, consensus (default)",
+     "default", "default", []),
     ("black_fit", "default + black offsets fitted from the noise", "black_fit", "default",
      ["data.black_offset=fit"]),
 ]

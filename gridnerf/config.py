@@ -283,22 +283,23 @@ class LossConfig(_Section):
     # raw file's ColorMatrix): removes the green-magenta part of the estimator's error
     # (fluorescent/LED light lies up to |Duv| ~0.01 off the locus: set false for such light)
     ca_locus: bool = True
-    # where the L_ca illuminant is estimated: "scene" (once, before training, from every
-    # training frame's binned raw: all pixels instead of one batch's 4096 rays, so the
-    # target does not wander from step to step, and its angular error is the one
-    # reports/illuminants.md measures on the raw frames) or "batch" (the paper: from each
-    # batch's rendered low-light colour); "map": the scene's illuminant, varied over each
-    # training frame where smooth chromaticity gradients show lights of different colour
-    # mixing (gridnerf.illum_map: Retinex; one light gives a flat map, i.e. "scene";
-    # mixed_lamp_window 21.22 -> 21.67 dB, not yet above one global grey-world gain)
-    ca_target: Literal["batch", "scene", "map"] = "scene"
+    # where the L_ca illuminant is estimated: "map" (default): the capture's illuminant,
+    # varied over each training frame where smooth chromaticity gradients show lights of
+    # different colour mixing (gridnerf.illum_map: Retinex; one light gives a flat map, so
+    # the data, not a flag, decide between one gain and a field; docs/colour.md, session
+    # 15: the mixed-light scenes +0.2 to +2.0 dB over "scene", the nine within 0.2 dB of
+    # it); "scene": one estimate, once, before training, from every training frame's binned
+    # raw (all pixels instead of one batch's 4096 rays, so the target does not wander from
+    # step to step; reports/illuminants.md scores it on the raw frames); "batch" (the
+    # paper): from each batch's rendered low-light colour
+    ca_target: Literal["batch", "scene", "map"] = "map"
     ca_map_block: int = 16  # "map": block side in training pixels (noise averages down)
     ca_map_tau: float = 0.1  # "map": log-chromaticity step above which blocks differ in paint
-    # "map": what the maps are anchored to. "capture": the capture's estimate
-    # (ca_illuminant on all pixels); "regions": the same estimator on the map's warm and
-    # cool halves apart, each less its mean map value (illum_map.regional_anchor): two
-    # lights no longer pull one estimate towards the brighter one
-    ca_map_anchor: Literal["capture", "regions"] = "capture"
+    # "map": what the maps are anchored to. "regions" (default): ca_illuminant on the map's
+    # warm and cool halves apart, each less its mean map value (illum_map.regional_anchor):
+    # two lights no longer pull one estimate towards the brighter one (mixed_desk_daylight:
+    # 8.1 -> 6.1 deg per pixel, 21.64 -> 23.26 dB); "capture": ca_illuminant on all pixels
+    ca_map_anchor: Literal["capture", "regions"] = "regions"
     # "brightnerf" (the method: gains, L_ca and smoothness on the raw) or "llnerf" (the
     # LLNeRF-style comparison row, gridnerf.llnerf: the dark sRGB frames of
     # data.target=dark_srgb, the colour split into lighting max_k c_k and reflectance, the

@@ -140,11 +140,12 @@ def test_ablation_scene_groups_and_colour_study():
     assert "| the same grid, one grey-world gain (RawNeRF + ISP) | 20.00 / 0.500 / 10.00 " \
         "(n=1) | - |" in table
     assert "| full, smoothness as grid TV (default) | 21.00 / 0.500 / 10.00 (n=2) | - |" in table
-    record = {"bucket": {"grey_world": {"matrix": _m(18.0)}, "map": {"matrix": _m(19.0)}}}
+    record = {"bucket": {"grey_world": {"matrix": _m(18.0)},
+                         "map_regions": {"matrix": _m(19.0)}}}
     nine = ablate.means(record, ablate.SCENES, ablate.COLOUR_VARIANTS)
-    assert set(nine) == {"grey_world", "map"}
-    assert "per-frame illuminant map" in ablate.markdown(record, nine, {},
-                                                         ablate.COLOUR_VARIANTS)
+    assert set(nine) == {"grey_world", "map_regions"}
+    assert "illuminant map anchored by region, consensus (default)" in ablate.markdown(
+        record, nine, {}, ablate.COLOUR_VARIANTS)
 
 
 def test_colour_ceiling_rows_share_luminance_and_undo_the_true_white():
