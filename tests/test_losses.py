@@ -257,7 +257,8 @@ def _colour_prior_grads(gain_map: str, smooth_mode: str, illuminant: str = "grey
                 loss=replace(c.loss, w_data=0.0, tv_density=0.0, tv_rgb=0.0, sparsity=0.0,
                              opacity=0.0,
                              w_ca=1.0, w_smooth=1.0, smooth_mode=smooth_mode,
-                             gain_map=gain_map, ca_illuminant=illuminant))
+                             gain_map=gain_map, ca_illuminant=illuminant,
+                             ca_target="batch"))  # each batch's own estimate: no frames
     structure, params, rays = _foggy_scene()
     loss = jax.jit(lambda p: train.loss_fn(p, structure, rays, jax.random.PRNGKey(0), c,
                                            -1.0, 1.0)[0])
