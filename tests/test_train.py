@@ -400,7 +400,8 @@ def test_consensus_needs_the_scene_target():
     from gridnerf.errors import ConfigError
 
     cfg = cfgmod.preset("default")
-    assert cfg.loss.ca_illuminant == "consensus" and cfg.loss.ca_target == "scene"
+    assert cfg.loss.ca_illuminant == "consensus" and cfg.loss.ca_target == "map"
+    assert cfgmod.override(cfg, ["loss.ca_target=scene"]).loss.ca_target == "scene"
     with pytest.raises(ConfigError, match="loss.ca_illuminant"):
         cfgmod.override(cfg, ["loss.ca_target=batch"])
 
@@ -414,15 +415,16 @@ def test_illuminant_map_target_trains(small_scene, tmp_path):
     from gridnerf.scene import load_scene
 
     cfg = cfgmod.override(cfgmod.preset("tiny"), ["loss.ca_target=map", "loss.ca_map_block=4"])
+    assert cfg.loss.ca_map_anchor == "regions"  # the default
     scene = load_scene(small_scene, near_far=(1.0, 10.0))
     data = dataset.build(scene, scene.train_idx, True)
     anchor = train.scene_illuminant(data, scene, cfg)
-    mapped, kept = train.with_illuminant_map(data, scene, cfg, anchor)
+    capture = cfgmod.override(cfg, ["loss.ca_map_anchor=capture"])
+    mapped, kept = train.with_illuminant_map(data, scene, capture, anchor)
     np.testing.assert_array_equal(kept, anchor)  # "capture": the anchor given
     h, w = data.image_hw
     assert mapped.illuminant_map.shape == (len(scene.train_idx), h // 4, w // 4, 3)
-    regional = cfgmod.override(cfg, ["loss.ca_map_anchor=regions"])
-    _, found = train.with_illuminant_map(data, scene, regional, anchor)
+    _, found = train.with_illuminant_map(data, scene, cfg, anchor)
     assert found.shape == (3,) and np.all(np.isfinite(found))
     rays = dataset.batch(mapped, jax.random.PRNGKey(0), 4, 8)
     assert rays["illuminant"].shape == (4, 8, 8, 3)
