@@ -50,11 +50,6 @@ def true_map(folder: Path, sim: dict, name: str, hw: tuple[int, int]) -> np.ndar
     return share * first / first[1] + (1.0 - share) * second / second[1]
 
 
-def capture_estimate(images, masks, locus) -> np.ndarray:
-    """(3,) what `loss.ca_target=scene` trains towards: the consensus on the locus."""
-    return il.consensus([il.frames_estimate(k, images, masks) for k in il.CONSENSUS], locus)
-
-
 def weighted_error(estimate, truth, rgb_cam) -> float:
     w = np.clip(rgb_cam[..., 1], 0.0, None) + 1e-12
     return float((il.angular_error_deg(estimate, truth) * w).sum() / w.sum())
@@ -74,7 +69,7 @@ def main() -> None:
         test = set(sim.get("test_frames", []))
         names = [n for n in raw_files(folder) if n not in test]
         locus = il.planckian_locus(sim["xyz_to_cam"])
-        estimate = partial(capture_estimate, locus=locus)
+        estimate = partial(il.capture_estimate, "consensus", locus=locus)
         capture = estimate(images, masks)
         rel = illum_map.relative_maps(images, masks, args.block, args.tau)
         regional = illum_map.regional_anchor(images, masks, rel, estimate, locus, args.block)

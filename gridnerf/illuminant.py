@@ -276,6 +276,19 @@ def frames_estimate(name: str, images, masks, p: float | None = None,
     return np.asarray(estimate(name, pixels, mask=valid, p=p))
 
 
+def capture_estimate(name: str, images, masks, locus=None, p: float | None = None
+                     ) -> np.ndarray:
+    """(3,) unit: the illuminant of a capture by `name` (an ESTIMATORS entry or
+    "consensus", the per-channel median of CONSENSUS's), each on all frames pooled
+    (frames_estimate; p: shades of grey's Minkowski p), projected onto `locus` when given."""
+    names = CONSENSUS if name == "consensus" else (name,)
+    est = [frames_estimate(n, images, masks, p=p if n == "shades_of_grey" else None)
+           for n in names]
+    if name == "consensus":
+        return consensus(est, locus)
+    return np.asarray(est[0] if locus is None else to_locus(est[0], locus), np.float64)
+
+
 def planckian_locus(xyz_to_cam, kelvin=None) -> np.ndarray:
     """Camera-RGB colours of blackbody illuminants: (n, 3) float64 unit vectors.
 

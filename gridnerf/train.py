@@ -294,15 +294,10 @@ def scene_illuminant(data: dataset.RayData, scene, cfg: Config, frames=None) -> 
     caller has them already.
     """
     images, masks = _estimate_frames(data, scene) if frames is None else frames
-    name, lc = cfg.loss.ca_illuminant, cfg.loss
+    lc = cfg.loss
     locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
-    names = illuminant.CONSENSUS if name == "consensus" else (name,)
-    est = [illuminant.frames_estimate(n, images, masks, p=lc.ca_illuminant_p
-                                      if n == "shades_of_grey" else None) for n in names]
-    if name == "consensus":
-        return illuminant.consensus(est, locus)
-    return np.asarray(est[0] if locus is None else illuminant.to_locus(est[0], locus),
-                      np.float64)
+    return illuminant.capture_estimate(lc.ca_illuminant, images, masks, locus,
+                                       lc.ca_illuminant_p)
 
 
 def with_illuminant_map(data: dataset.RayData, scene, cfg: Config, anchor: np.ndarray,

@@ -208,6 +208,10 @@ def test_frames_estimate_recovers_a_light_on_several_frames():
         assert float(il.angular_error_deg(est, light)) < 0.5, name
         scaled = il.frames_estimate(name, [9.0 * x for x in images], masks)
         np.testing.assert_allclose(scaled, est, rtol=1e-9, atol=1e-12)
+        np.testing.assert_array_equal(il.capture_estimate(name, images, masks), est)
+    three = [il.frames_estimate(n, images, masks) for n in il.CONSENSUS]
+    np.testing.assert_array_equal(il.capture_estimate("consensus", images, masks),
+                                  il.consensus(three))
 
 
 def test_consensus_outvotes_one_estimator():
