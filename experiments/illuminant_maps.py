@@ -71,8 +71,9 @@ def main() -> None:
         locus = il.planckian_locus(sim["xyz_to_cam"])
         estimate = partial(il.capture_estimate, "consensus", locus=locus)
         capture = estimate(images, masks)
-        rel = illum_map.relative_maps(images, masks, args.block, args.tau)
-        regional = illum_map.regional_anchor(images, masks, rel, estimate, locus, args.block)
+        rel, weight = illum_map.relative_maps(images, masks, args.block, args.tau)
+        regional = illum_map.regional_anchor(images, masks, rel, weight, estimate, locus,
+                                             args.block)
         maps, maps_r = (illum_map.frame_maps(images, masks, a, locus, args.block, args.tau,
                                              rel=rel) for a in (capture, regional))
         err_c, err_m, err_r, spread = [], [], [], []

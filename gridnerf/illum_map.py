@@ -70,6 +70,12 @@ def log_chroma_map(rgb_cam, mask=None, block: int = 16, tau: float = 0.1,
     edges was tried and dropped: on the binned raw of mixed_lamp_window 2.67 deg against
     2.55, box 3.31 against 2.75 (its noise wanders further).
     """
+    return _map_and_weight(rgb_cam, mask, block, tau, tie)[0]
+
+
+def _map_and_weight(rgb_cam, mask, block: int, tau: float, tie: float = 0.05
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """(log_chroma_map (hb, wb, 2), the blocks' weights (hb, wb) of block_chroma)."""
     chroma, weight = block_chroma(rgb_cam, mask, block)
     hb, wb = weight.shape
     idx = np.arange(hb * wb).reshape(hb, wb)
@@ -88,7 +94,7 @@ def log_chroma_map(rgb_cam, mask=None, block: int = 16, tau: float = 0.1,
         rhs.append(w[:, None] * np.where(edge[:, None], 0.0, diff))
         n += len(a)
     if n == 0:
-        return np.zeros((hb, wb, 2))
+        return np.zeros((hb, wb, 2)), weight
     a_mat = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                        shape=(n, hb * wb))
     a_mat = vstack([a_mat, 1e-3 * identity(hb * wb)]).tocsr()  # fixes the constant
@@ -97,13 +103,15 @@ def log_chroma_map(rgb_cam, mask=None, block: int = 16, tau: float = 0.1,
                  -1)
     total = max(float(flat_w.sum()), _TINY)
     f = f - (f * flat_w[:, None]).sum(0) / total
-    return f.reshape(hb, wb, 2)
+    return f.reshape(hb, wb, 2), weight
 
 
-def relative_maps(images, masks, block: int = 16, tau: float = 0.1) -> np.ndarray:
-    """(N, hb, wb, 2) log_chroma_map of each frame (images, masks as in frame_maps)."""
-    return np.stack([log_chroma_map(img, m, block, tau)
-                     for img, m in zip(images, masks, strict=True)])
+def relative_maps(images, masks, block: int = 16, tau: float = 0.1
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """((N, hb, wb, 2) log_chroma_map of each frame, (N, hb, wb) its blocks' weights of
+    block_chroma); images, masks as in frame_maps."""
+    pairs = [_map_and_weight(img, m, block, tau) for img, m in zip(images, masks, strict=True)]
+    return np.stack([p[0] for p in pairs]), np.stack([p[1] for p in pairs])
 
 
 def _log_chroma(e) -> np.ndarray:
@@ -121,19 +129,18 @@ def _axis(rel: np.ndarray, weight: np.ndarray, locus=None) -> np.ndarray:
     return np.linalg.svd(pts - pts.mean(0), full_matrices=False)[2][0]
 
 
-def regional_anchor(images, masks, rel: np.ndarray, estimate: Callable, locus=None,
-                    block: int = 16) -> np.ndarray:
+def regional_anchor(images, masks, rel: np.ndarray, weight: np.ndarray, estimate: Callable,
+                    locus=None, block: int = 16) -> np.ndarray:
     """(3,) unit anchor of the maps from the lights of their warm and cool halves.
 
-    rel: (N, hb, wb, 2) relative_maps of the frames; estimate(images, masks) -> (3,) the
+    rel, weight: (N, hb, wb, 2), (N, hb, wb) relative_maps of the frames (the blocks'
+    weights: their signal); estimate(images, masks) -> (3,) the
     capture-level estimator (e.g. the consensus) run on a subset of pixels. The blocks are
     split at the signal-weighted median of their map value along `_axis`; each half's
     light is estimated on its own pixels (the frames cropped to whole blocks, the other
     half masked out) and less the half's weighted mean map value gives an anchor; the
     result is their signal-weighted mean in log chromaticity, on the locus when given.
     """
-    weight = np.stack([block_chroma(img, m, block)[1] for img, m in zip(images, masks,
-                                                                       strict=True)])
     proj = rel @ _axis(rel, weight, locus)  # (N, hb, wb)
     order = np.argsort(proj.ravel())
     cum = np.cumsum(weight.ravel()[order])
@@ -171,10 +178,10 @@ def frame_maps(images, masks, anchor, locus=None, block: int = 16, tau: float = 
     anchor: (3,) the capture's illuminant (e.g. illuminant.consensus of the frames, or
     regional_anchor); locus: (n, 3) the camera's Planckian locus
     (illuminant.planckian_locus) or None; rel: the frames' relative_maps when the caller
-    has them already.
+    has them already (its first part).
     """
     a = np.maximum(np.asarray(anchor, np.float64), _TINY)
-    rel = relative_maps(images, masks, block, tau) if rel is None else rel
+    rel = relative_maps(images, masks, block, tau)[0] if rel is None else rel
     out = []
     for f in rel:
         e = np.stack([a[0] / a[1] * np.exp(f[..., 0]), np.ones(f.shape[:2]),

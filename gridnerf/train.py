@@ -300,22 +300,26 @@ def scene_illuminant(data: dataset.RayData, scene, cfg: Config, frames=None) -> 
                                        lc.ca_illuminant_p)
 
 
-def with_illuminant_map(data: dataset.RayData, scene, cfg: Config, anchor: np.ndarray,
-                        frames=None) -> tuple[dataset.RayData, np.ndarray]:
+def with_illuminant_map(data: dataset.RayData, scene, cfg: Config,
+                        anchor: np.ndarray | None = None, frames=None
+                        ) -> tuple[dataset.RayData, np.ndarray]:
     """(data with its per-frame L_ca illuminant map, the maps' anchor (3,)) for
     loss.ca_target = "map": each training frame's Retinex map (gridnerf.illum_map, blocks
-    of loss.ca_map_block binned pixels) anchored to the capture's illuminant `anchor` (3,)
-    or, with loss.ca_map_anchor = "regions", to the lights of the maps' warm and cool
-    halves (illum_map.regional_anchor, each by loss.ca_illuminant); on the locus when
-    loss.ca_locus; frames as in scene_illuminant."""
+    of loss.ca_map_block binned pixels) anchored, with loss.ca_map_anchor = "regions", to
+    the lights of the maps' warm and cool halves (illum_map.regional_anchor, each by
+    loss.ca_illuminant; `anchor` is not used) or, with "capture", to `anchor` (3,) (default:
+    scene_illuminant); on the locus when loss.ca_locus; frames as in scene_illuminant."""
     images, masks = _estimate_frames(data, scene) if frames is None else frames
     lc = cfg.loss
     locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
-    rel = illum_map.relative_maps(images, masks, lc.ca_map_block, lc.ca_map_tau)
+    rel, weight = illum_map.relative_maps(images, masks, lc.ca_map_block, lc.ca_map_tau)
     if lc.ca_map_anchor == "regions":
         anchor = illum_map.regional_anchor(
-            images, masks, rel, lambda ims, mks: scene_illuminant(data, scene, cfg, (ims, mks)),
-            locus, lc.ca_map_block)
+            images, masks, rel, weight,
+            lambda ims, mks: scene_illuminant(data, scene, cfg, (ims, mks)), locus,
+            lc.ca_map_block)
+    elif anchor is None:
+        anchor = scene_illuminant(data, scene, cfg, (images, masks))
     maps = illum_map.frame_maps(images, masks, anchor, locus, lc.ca_map_block, lc.ca_map_tau,
                                 rel=rel)
     return dataclasses.replace(data, illuminant_map=jnp.asarray(maps, jnp.float32)), anchor
@@ -332,10 +336,11 @@ def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> tuple[dataset.Ra
     if not cfg.loss.use_gains or cfg.loss.method == "llnerf":
         return data, {}
     if cfg.loss.ca_target in ("scene", "map"):
-        frames = _estimate_frames(data, scene)  # binned once for both estimates
-        anchor = scene_illuminant(data, scene, cfg, frames)
-        if cfg.loss.ca_target == "map":
-            data, anchor = with_illuminant_map(data, scene, cfg, anchor, frames)
+        frames = _estimate_frames(data, scene)  # binned once for every estimate
+        if cfg.loss.ca_target == "map":  # its own anchor: of the whole capture or by region
+            data, anchor = with_illuminant_map(data, scene, cfg, frames=frames)
+        else:
+            anchor = scene_illuminant(data, scene, cfg, frames)
         return data, {"scene_ill": jnp.asarray(anchor, jnp.float32)}
     if cfg.loss.ca_locus:
         return data, {"locus": jnp.asarray(illuminant.planckian_locus(scene.xyz_to_cam),

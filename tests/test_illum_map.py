@@ -97,9 +97,9 @@ def _estimate(name):
 def test_regional_anchor_keeps_one_light():
     """One light: both halves see it, so the anchor is the capture's estimate (to noise)."""
     rgb_cam = _noisy(_paint(3) * WARM, 20.0)
-    rel = illum_map.relative_maps([rgb_cam], [None], block=8)
+    rel, weight = illum_map.relative_maps([rgb_cam], [None], block=8)
     capture = illuminant.frames_estimate("grey_world", [rgb_cam], [ONES])
-    anchor = illum_map.regional_anchor([rgb_cam], [None], rel, _estimate("grey_world"),
+    anchor = illum_map.regional_anchor([rgb_cam], [None], rel, weight, _estimate("grey_world"),
                                        block=8)
     assert np.linalg.norm(anchor) == pytest.approx(1.0)
     assert float(illuminant.angular_error_deg(anchor, capture)) < 1.0
@@ -113,10 +113,10 @@ def test_regional_anchor_is_not_pulled_to_the_brighter_light():
     light = (1 - t) * 4.0 * WARM + t * COOL
     light = np.broadcast_to(light, (H, W, 3))
     rgb_cam = _noisy(_paint(5) * light / 4.0, 80.0)
-    rel = illum_map.relative_maps([rgb_cam], [None], block=8)
+    rel, weight = illum_map.relative_maps([rgb_cam], [None], block=8)
     sog = _estimate("shades_of_grey")
     capture = sog([rgb_cam], [ONES])
-    regional = illum_map.regional_anchor([rgb_cam], [None], rel, sog, block=8)
+    regional = illum_map.regional_anchor([rgb_cam], [None], rel, weight, sog, block=8)
     truth = illuminant.unit(raw_blocks(light, 8))
     err = {name: float(illuminant.angular_error_deg(
         illum_map.frame_maps([rgb_cam], [None], a, block=8, rel=rel)[0], truth).mean())
