@@ -64,6 +64,46 @@ def view_rows(out: dict, shown: dict, matrix: np.ndarray, truth: np.ndarray,
     return rows
 
 
+def white_errors(out: dict, truth: np.ndarray, whites: dict) -> dict:
+    """Angular error (deg) of each white against the true white of the view's pixels:
+    'field' the gain field's own (opacity / composited gain, per pixel), the others (3,)
+    whites of one gain; over the pixels the grid renders (opacity > 0.5), weighted by
+    their rendered green signal."""
+    acc = np.asarray(out["acc"], np.float64)
+    w = np.clip(np.asarray(out["rgb_low"], np.float64)[..., 1], 0.0, None) * (acc > 0.5)
+    if w.sum() <= 0:
+        return {}
+    field = acc[..., None] / np.maximum(np.asarray(out["gain"], np.float64), 1e-12)
+    res = {}
+    for name, white in {"field": field, **whites}.items():
+        err = np.asarray(illuminant.angular_error_deg(np.broadcast_to(white, truth.shape), truth))
+        res[name] = float((err * w).sum() / w.sum())
+    return res
+
+
+WHITES = ("field", "field_global", "global_gw")
+
+
+def white_table(record: dict) -> str:
+    """Markdown: white_error_deg of each scene and group mean ('' when no run has it)."""
+    rows = [[n, *(fmt(r["white_error_deg"][k]) for k in WHITES)]
+            for n, r in record.items() if "white_error_deg" in r]
+    for label, group in GROUPS:
+        got = [record[n]["white_error_deg"] for n in group
+               if "white_error_deg" in record.get(n, {})]
+        if got:
+            rows.append([f"**mean, {label}** ({len(got)})",
+                         *(fmt(float(np.mean([g[k] for g in got]))) for k in WHITES)])
+    if not rows:
+        return ""
+    return ("\n\n## The whites against the true white\n\nAngular error (deg) on the test "
+            "views against the true white of each pixel, over the pixels the grid renders "
+            "(opacity > 0.5) weighted by their green signal: `field` the gain field's own "
+            "white per pixel (opacity / composited gain), `field_global` its mean over the "
+            "training render, `global_gw` the white of one grey-world gain.\n\n"
+            + markdown_table(["scene", *WHITES], rows))
+
+
 def table_row(name: str, summary: dict) -> list[str]:
     """One line of the table: PSNR / CIEDE2000 of each row, then the three differences."""
     return [name, *(f"{fmt(summary[r]['psnr'])} / {fmt(summary[r]['delta_e'])}" for r in ROWS),
@@ -94,6 +134,9 @@ def main() -> None:
         matrix = exposure.display_matrix(scene.xyz_to_cam, cfg.output.use_color_matrix)
         cams = scene.cameras
         per_view = {r: [] for r in ROWS}
+        whites = {"field_global": field_white,
+                  "global_gw": 1.0 / shown["global_grey_world"].gains}
+        white_err = []
         for i in scene.test_idx:
             view = scene.names[i]
             intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]])
@@ -103,9 +146,14 @@ def main() -> None:
             truth = true_map(folder, sim, view, (cams.height, cams.width))
             for r, rgb_linear in view_rows(out, shown, matrix, truth, field_white).items():
                 per_view[r].append(evaluate.image_metrics(rgb_linear, gt_linear))
+            if cfg.loss.use_gains:
+                white_err.append(white_errors(out, truth, whites))
         summary = {r: evaluate.summarize(dict(enumerate(v))) for r, v in per_view.items()}
         record[name] = {"run": str(run), "mixed_light": name in MIXED + HELDOUT_MIXED,
                         **summary}
+        if white_err and all(white_err):
+            record[name]["white_error_deg"] = {k: float(np.mean([e[k] for e in white_err]))
+                                               for k in white_err[0]}
         table.append(table_row(name, summary))
         print(name, table[-1][1:], flush=True)
     for label, group in GROUPS:
@@ -114,6 +162,7 @@ def main() -> None:
             mean = {r: {m: float(np.mean([g[r][m] for g in got])) for m in ("psnr", "delta_e")}
                     for r in ROWS}
             table.append(table_row(f"**mean, {label}** ({len(got)})", mean))
+    md_white = white_table(record)
     md = ("# Colour ceiling: the run's render shown with the true white\n\n"
           f"`python experiments/colour_ceiling.py --scenes {args.scenes} --variant "
           f"{args.variant}`. PSNR / CIEDE2000 on the test views, every row at the run's own "
@@ -122,7 +171,8 @@ def main() -> None:
           "`field variation`: ours - field_global (what the field adds over its own mean "
           "gain).\n\n"
           + markdown_table(["scene", *ROWS, "field room", "colour cost", "field variation"],
-                         table))
+                         table)
+          + md_white)
     write_report(args.out, md, record)
 
 
