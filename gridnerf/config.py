@@ -641,7 +641,7 @@ def get(cfg: Config, dotted: str) -> Any:
 # fields added with a default that changes behaviour (a run's config.json must describe it)
 LEGACY = {("grid", "background"): "black", ("loss", "opacity_stages"): 0,
           ("loss", "data_eps"): 1e-3, ("loss", "data_eps_mode"): "absolute",
-          ("loss", "ca_map_anchor"): "capture"}
+          ("loss", "ca_map_anchor"): "capture", ("loss", "ca_on"): "rays"}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

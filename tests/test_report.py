@@ -157,3 +157,22 @@ def test_consistency_table_keeps_earlier_scenes_of_todays_runs(tmp_path, monkeyp
     assert list(record) == ["deer", "bucket"]
     assert "`old call`; `new call`" in text and "older call" not in text
     assert "**mean, nine** (2 of 9)" in text
+
+
+def test_committed_results_of_colour_free_presets_keep_their_fingerprints():
+    """The kept results of the presets that read no colour default (oracle, nogain,
+    processed, llnerf) carry today's fingerprint of their preset: a config field added
+    without its config.LEGACY value (or an inert field not reset by config.effective)
+    would change every fingerprint and throw away every cached result."""
+    sys.path.insert(0, str(REPO / "experiments"))
+    from common import fingerprint, load_results, preset_config
+
+    results = load_results(REPO / "reports" / "results.json")
+    stale = []
+    for preset in ("oracle", "nogain", "processed", "llnerf"):
+        today = fingerprint(preset_config(preset))
+        keys = [k for k in results if k.split("/")[1] == preset]
+        stale += [k for k in keys if results[k]["fingerprint"] != today]
+    assert not stale, (f"{len(stale)} kept results no longer match their preset (e.g. "
+                       f"{stale[:3]}): give a new config field its LEGACY value, or delete "
+                       "the entries a deliberate change of the preset made stale")
