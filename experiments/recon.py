@@ -26,8 +26,10 @@ from pathlib import Path
 import numpy as np
 
 from common import (
+    cached_result,
     fmt,
     markdown_table,
+    preset_config,
     run_variant,
     scene_names,
     update_readme,
@@ -110,11 +112,12 @@ def main() -> None:
     ap.add_argument("--scenes", default="all")
     ap.add_argument("--oracle", default="all", choices=["all", "heldout", "none"],
                     help="which scenes also train the oracle preset ('heldout': the held-out and "
-                    "the tuning scenes; cached runs are read)")
+                    "the tuning scenes; its run folders and kept results are read in any case)")
     args = ap.parse_args()
     rows = [row_for(s, args.oracle == "all" or (args.oracle == "heldout"
                                                  and s in HELDOUT + DEV)
-                    or (Path("runs") / s / "oracle" / "eval" / "metrics.json").is_file())
+                    or (Path("runs") / s / "oracle" / "eval" / "metrics.json").is_file()
+                    or cached_result(s, "oracle", preset_config("oracle")) is not None)
             for s in scene_names(args.scenes, ("nine", "dev", "heldout"))]
     machine = f"{platform.machine()}, {os.cpu_count()} cores, python {sys.version.split()[0]}"
     text = ["# Reconstruction: trained from transforms.json without bounds\n",
