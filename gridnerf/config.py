@@ -266,10 +266,6 @@ class LossConfig(_Section):
     # gain map of L_ca and the patch smoothness: "normalized" = S / acc composited with
     # stop-gradient weights (the colour prior never moves density); "raw" = S as rendered
     gain_map: Literal["normalized", "raw"] = "normalized"
-    # what L_ca compares with the target: "rays" (the paper: each ray's composited gain,
-    # S / acc with gain_map normalized) or "samples" (each sample's gain, weighted by its
-    # constant rendering weight: the per-ray loss plus the gains' variance along the ray)
-    ca_on: Literal["rays", "samples"] = "rays"
     # The L_ca target K_avg / C_k comes from an illuminant estimate C. Default: once per
     # capture ("scene") from every training frame's binned raw, the per-channel median of
     # grey world, shades of grey (p = 6) and grey edge, each projected onto the camera's
@@ -338,9 +334,6 @@ class LossConfig(_Section):
                       or self.ca_target != "batch", "one of 'grey_world', 'shades_of_grey', "
                       "'grey_edge', 'weighted_grey' with loss.ca_target=batch ('consensus' "
                       "needs loss.ca_target=scene or map)")
-        self._require("ca_on", self.ca_on == "rays" or self.gain_map == "normalized",
-                      "'rays' with loss.gain_map=raw (per sample, the gains are the voxels' "
-                      "own: there is no opacity to divide by)")
         self._require("ca_map_block", self.ca_map_block >= 2, "a whole number >= 2")
         self._range("ca_map_tau", 0.0, lo_open=True)
         self._range("exposure_level", 0.0, 1.0, lo_open=True, hi_open=True)
@@ -597,7 +590,7 @@ def diff(a: Config, b: Config) -> list[str]:
 # loss fields that only act through the gains: inert when loss.use_gains is false
 GAIN_FIELDS = ("w_ca", "w_smooth", "smooth_mode", "ca_stop_grad", "gain_map", "ca_illuminant",
                "ca_illuminant_p", "ca_locus", "ca_target", "ca_map_block", "ca_map_tau",
-               "ca_map_anchor", "ca_on")
+               "ca_map_anchor")
 # loss fields of loss.method = "llnerf" alone: inert in the other runs
 LLNERF_FIELDS = ("w_exposure", "exposure_level", "exposure_pool", "w_color_constancy",
                  "w_enhance_tv", "llnerf_data")
@@ -641,7 +634,7 @@ def get(cfg: Config, dotted: str) -> Any:
 # fields added with a default that changes behaviour (a run's config.json must describe it)
 LEGACY = {("grid", "background"): "black", ("loss", "opacity_stages"): 0,
           ("loss", "data_eps"): 1e-3, ("loss", "data_eps_mode"): "absolute",
-          ("loss", "ca_map_anchor"): "capture", ("loss", "ca_on"): "rays"}
+          ("loss", "ca_map_anchor"): "capture"}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

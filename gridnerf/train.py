@@ -127,13 +127,8 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
                                             shape, lc.ca_illuminant_p)
             if locus is not None:
                 c_ill = illuminant.to_locus(c_ill, locus)
-        if lc.ca_on == "samples":  # each sample's gain, not only their blend
-            terms["ca"] = losses.ca_loss(out["rgb_low"], out["gain_samples"],
-                                         stop_grad_mean=lc.ca_stop_grad, illuminant=c_ill,
-                                         weights=out["weights"])
-        else:
-            terms["ca"] = losses.ca_loss(out["rgb_low"], gain, stop_grad_mean=lc.ca_stop_grad,
-                                         illuminant=c_ill)
+        terms["ca"] = losses.ca_loss(out["rgb_low"], gain, stop_grad_mean=lc.ca_stop_grad,
+                                     illuminant=c_ill)
         smooth = 0.0
         if lc.smooth_mode in ("patch", "both"):
             smooth = smooth + losses.smooth_loss_patch(
