@@ -10,7 +10,9 @@ illuminant of every pixel: for mixed-light scenes the blend of the two lights by
 one's share of the green signal (illuminant/<frame>.png, written by the simulator),
 elsewhere the one light. Angular errors are weighted by the pixel's green signal and
 averaged over the training frames. "spread" is the 90th percentile of the map's angle from
-the capture estimate: near 0 where the map stays flat.
+the capture estimate: near 0 where the map stays flat. "true level": the regional map with
+each frame's level (its green-weighted mean log chromaticity) set to the truth's, which
+splits the map's error into its level (the anchor: colour constancy) and its shape.
 
     python experiments/illuminant_maps.py [--scenes all] [--block 16] [--tau 0.1]
 
@@ -34,7 +36,7 @@ from gridnerf.scene import raw_files
 from gridnerf.sim import DEV, HELDOUT, HELDOUT_MIXED, MIXED, SCENES
 from illuminants import raw_images
 
-KEYS = ("capture", "map", "map_regions", "spread_p90")
+KEYS = ("capture", "map", "map_regions", "map_true_level", "spread_p90")
 
 
 def true_map(folder: Path, sim: dict, name: str, hw: tuple[int, int]) -> np.ndarray:
@@ -48,6 +50,15 @@ def true_map(folder: Path, sim: dict, name: str, hw: tuple[int, int]) -> np.ndar
     share = share[: hw[0], : hw[1], None]
     first, second = (np.asarray(e["neutral_cam"], np.float64) for e in sim["illuminants"][:2])
     return share * first / first[1] + (1.0 - share) * second / second[1]
+
+
+def with_true_level(estimate, truth, rgb_cam) -> np.ndarray:
+    """estimate (h, w, 3) scaled per channel (R and B against G) so that its green-weighted
+    mean log chromaticity is the truth's: its shape kept, its level made right."""
+    w = np.clip(rgb_cam[..., 1], 0.0, None)[..., None] + 1e-12
+    est, tru = np.maximum(estimate, 1e-12), np.maximum(truth, 1e-12)
+    shift = (np.log(tru / tru[..., 1:2] * est[..., 1:2] / est) * w).sum((0, 1)) / w.sum()
+    return est * np.exp(shift)
 
 
 def weighted_error(estimate, truth, rgb_cam) -> float:
@@ -76,7 +87,7 @@ def main() -> None:
                                              args.block)
         maps, maps_r = (illum_map.frame_maps(images, masks, a, locus, args.block, args.tau,
                                              rel=rel) for a in (capture, regional))
-        err_c, err_m, err_r, spread = [], [], [], []
+        err_c, err_m, err_r, err_l, spread = [], [], [], [], []
         for img, fmap, fmap_r, frame in zip(images, maps, maps_r, names, strict=True):
             hb, wb = fmap.shape[:2]
             crop = img[: hb * args.block, : wb * args.block]
@@ -85,9 +96,11 @@ def main() -> None:
             for m, errs in ((fmap, err_m), (fmap_r, err_r)):
                 full = np.repeat(np.repeat(m, args.block, 0), args.block, 1)
                 errs.append(weighted_error(full, truth, crop))
+            err_l.append(weighted_error(with_true_level(full, truth, crop), truth, crop))
             spread.append(float(np.percentile(il.angular_error_deg(fmap, capture), 90)))
         rec = {"capture": float(np.mean(err_c)), "map": float(np.mean(err_m)),
-               "map_regions": float(np.mean(err_r)), "spread_p90": float(np.mean(spread)),
+               "map_regions": float(np.mean(err_r)), "map_true_level": float(np.mean(err_l)),
+               "spread_p90": float(np.mean(spread)),
                "mixed_light": bool(sim.get("mixed_light"))}
         record[name] = rec
         rows.append([name, "yes" if rec["mixed_light"] else "no",
@@ -102,6 +115,7 @@ def main() -> None:
                          *(f"{np.mean([v[k] for v in vals]):.2f}" for k in KEYS)])
     table = markdown_table(["scene", "mixed light", "capture estimate (deg)",
                             "map, anchored to it (deg)", "map, regional anchor (deg)",
+                            "regional map, true level (deg)",
                             "map spread p90 (deg)"], rows)
     write_report(args.out,
                  "Per-pixel angular error of the L_ca illuminant (green-weighted, binned raw "
@@ -109,7 +123,8 @@ def main() -> None:
                  "against per-frame Retinex maps (`loss.ca_target=map`, block "
                  f"{args.block}, tau {args.tau}) anchored to that estimate "
                  "(`loss.ca_map_anchor=capture`) or to the lights of the maps' warm and cool "
-                 "halves (`regions`, illum_map.regional_anchor), `python "
+                 "halves (`regions`, illum_map.regional_anchor), the regional map with "
+                 "each frame's level set to the truth's (its shape alone), `python "
                  "experiments/illuminant_maps.py`.\n\n"
                  + table + "\n", record)
     print(table)

@@ -23,6 +23,7 @@ import ablate  # noqa: E402
 import colour_ceiling  # noqa: E402
 import common  # noqa: E402
 import consistency  # noqa: E402
+import illuminant_maps  # noqa: E402
 import speed  # noqa: E402
 import sweep  # noqa: E402
 
@@ -173,3 +174,38 @@ def test_colour_ceiling_rows_share_luminance_and_undo_the_true_white():
     same = colour_ceiling.view_rows({"rgb_low": 0.05 * uniform}, shown, np.eye(3), uniform,
                                     warm)
     assert np.allclose(same["true_local"], same["true_global"], rtol=1e-5)
+
+
+def test_white_errors_score_the_field_and_single_whites_against_the_truth():
+    """colour_ceiling.white_errors: a gain field that undoes the per-pixel truth scores 0
+    deg, one white scores its angle from each pixel's truth; transparent pixels (opacity
+    <= 0.5) do not count."""
+    from gridnerf import illuminant
+
+    warm, cool = np.array([0.6, 1.0, 0.35]), np.array([0.37, 1.0, 0.72])
+    truth = np.empty((6, 8, 3))
+    truth[:, :4], truth[:, 4:] = warm, cool
+    acc = np.full((6, 8), 0.9)
+    acc[0] = 0.1  # transparent: its (wrong) gain must not count
+    gain = acc[..., None] * np.asarray(illuminant.gains_from_illuminant(truth))
+    gain[0] = 5.0
+    out = {"acc": acc, "gain": gain, "rgb_low": 0.05 * truth}
+    errs = colour_ceiling.white_errors(out, truth, {"warm": warm})
+    assert errs["field"] == pytest.approx(0.0, abs=1e-6)
+    w = truth[1:, :, 1]  # the green signal of the opaque rows
+    angle = float(illuminant.angular_error_deg(warm, cool))
+    assert errs["warm"] == pytest.approx(angle * w[:, 4:].sum() / w.sum(), rel=1e-6)
+
+
+def test_true_level_keeps_the_maps_shape_and_takes_the_truths_level():
+    """illuminant_maps.with_true_level: a map that is the truth times one per-channel
+    factor (right shape, wrong level) becomes the truth; a flat map stays flat."""
+    warm, cool = np.array([0.6, 1.0, 0.35]), np.array([0.37, 1.0, 0.72])
+    truth = np.empty((6, 8, 3))
+    truth[:, :4], truth[:, 4:] = warm, cool
+    rgb_cam = 0.05 * truth
+    off = truth * np.array([1.3, 1.0, 0.8])
+    np.testing.assert_allclose(illuminant_maps.with_true_level(off, truth, rgb_cam)
+                               / truth, 1.0, rtol=1e-6)
+    flat = illuminant_maps.with_true_level(np.broadcast_to(warm, truth.shape), truth, rgb_cam)
+    np.testing.assert_allclose(flat / flat[0, 0], 1.0, rtol=1e-9)
