@@ -37,7 +37,7 @@ import numpy as np
 from common import fmt, markdown_table, simulated_folders, write_report
 from gridnerf import color, eval_run, evaluate, exposure, illuminant
 from gridnerf.sim import DEV, HELDOUT, HELDOUT_MIXED, MIXED, SCENES
-from illuminant_maps import true_map
+from illuminant_maps import true_map, weighted_error
 
 ROWS = ("ours", "field_global", "global_gw", "true_global", "true_local")
 GROUPS = (("nine", SCENES), ("tuning", DEV), ("held out", HELDOUT), ("mixed light", MIXED),
@@ -70,15 +70,12 @@ def white_errors(out: dict, truth: np.ndarray, whites: dict) -> dict:
     whites of one gain; over the pixels the grid renders (opacity > 0.5), weighted by
     their rendered green signal."""
     acc = np.asarray(out["acc"], np.float64)
-    w = np.clip(np.asarray(out["rgb_low"], np.float64)[..., 1], 0.0, None) * (acc > 0.5)
-    if w.sum() <= 0:
+    rgb_cam = np.asarray(out["rgb_low"], np.float64) * (acc > 0.5)[..., None]
+    if not np.any(rgb_cam[..., 1] > 0):
         return {}
     field = acc[..., None] / np.maximum(np.asarray(out["gain"], np.float64), 1e-12)
-    res = {}
-    for name, white in {"field": field, **whites}.items():
-        err = np.asarray(illuminant.angular_error_deg(np.broadcast_to(white, truth.shape), truth))
-        res[name] = float((err * w).sum() / w.sum())
-    return res
+    return {name: weighted_error(np.broadcast_to(white, truth.shape), truth, rgb_cam)
+            for name, white in {"field": field, **whites}.items()}
 
 
 WHITES = ("field", "field_global", "global_gw")

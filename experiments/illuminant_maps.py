@@ -52,17 +52,23 @@ def true_map(folder: Path, sim: dict, name: str, hw: tuple[int, int]) -> np.ndar
     return share * first / first[1] + (1.0 - share) * second / second[1]
 
 
+def _green_weight(rgb_cam) -> np.ndarray:
+    """(h, w) each pixel's weight: its green signal (never 0)."""
+    return np.clip(rgb_cam[..., 1], 0.0, None) + 1e-12
+
+
 def with_true_level(estimate, truth, rgb_cam) -> np.ndarray:
     """estimate (h, w, 3) scaled per channel (R and B against G) so that its green-weighted
     mean log chromaticity is the truth's: its shape kept, its level made right."""
-    w = np.clip(rgb_cam[..., 1], 0.0, None)[..., None] + 1e-12
+    w = _green_weight(rgb_cam)[..., None]
     est, tru = np.maximum(estimate, 1e-12), np.maximum(truth, 1e-12)
     shift = (np.log(tru / tru[..., 1:2] * est[..., 1:2] / est) * w).sum((0, 1)) / w.sum()
     return est * np.exp(shift)
 
 
 def weighted_error(estimate, truth, rgb_cam) -> float:
-    w = np.clip(rgb_cam[..., 1], 0.0, None) + 1e-12
+    """Green-weighted mean angular error (deg) of estimate against truth (h, w, 3)."""
+    w = _green_weight(rgb_cam)
     return float((il.angular_error_deg(estimate, truth) * w).sum() / w.sum())
 
 
@@ -93,10 +99,11 @@ def main() -> None:
             crop = img[: hb * args.block, : wb * args.block]
             truth = true_map(folder, sim, frame, crop.shape[:2])
             err_c.append(weighted_error(np.broadcast_to(capture, truth.shape), truth, crop))
-            for m, errs in ((fmap, err_m), (fmap_r, err_r)):
-                full = np.repeat(np.repeat(m, args.block, 0), args.block, 1)
-                errs.append(weighted_error(full, truth, crop))
-            err_l.append(weighted_error(with_true_level(full, truth, crop), truth, crop))
+            full, full_r = (np.repeat(np.repeat(m, args.block, 0), args.block, 1)
+                            for m in (fmap, fmap_r))
+            err_m.append(weighted_error(full, truth, crop))
+            err_r.append(weighted_error(full_r, truth, crop))
+            err_l.append(weighted_error(with_true_level(full_r, truth, crop), truth, crop))
             spread.append(float(np.percentile(il.angular_error_deg(fmap, capture), 90)))
         rec = {"capture": float(np.mean(err_c)), "map": float(np.mean(err_m)),
                "map_regions": float(np.mean(err_r)), "map_true_level": float(np.mean(err_l)),
