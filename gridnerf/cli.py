@@ -123,7 +123,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("name", help="scene name (bucket, held_arc_brick, mixed_lamp_window, ...), "
                    "'all' (the nine scenes), 'heldout' (the held-out scenes), 'dev' (the tuning "
                    "scenes with an arc and a slide rig), 'mixed' (the mixed-light scenes) or "
-                   "'heldmixed' (the held-out mixed-light scene)")
+                   "'heldmixed' (the held-out mixed-light scenes)")
     s.add_argument("--out", help="scene folder (default data/sim/<name>)")
     s.add_argument("--width", type=_positive_int, default=480)
     s.add_argument("--height", type=_positive_int, default=270)

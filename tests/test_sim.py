@@ -451,7 +451,8 @@ def test_mixed_scenes_have_two_illuminants_and_the_others_one():
 def test_held_out_mixed_scene_differs_from_the_mixed_ones(tmp_path):
     """HELDOUT_MIXED: two lights of different colour, another rig, sensor and lights than
     MIXED (nothing of the mixed-light path is chosen on it), marked held out."""
-    assert HELDOUT_MIXED and not set(HELDOUT_MIXED) & set(SCENES + HELDOUT + DEV + MIXED)
+    assert len(HELDOUT_MIXED) >= 2 and not set(HELDOUT_MIXED) & set(SCENES + HELDOUT + DEV
+                                                                  + MIXED)
     tuned = [sc.build_scene(name) for name in MIXED]
     for name in HELDOUT_MIXED:
         spec = sc.build_scene(name)
@@ -460,6 +461,8 @@ def test_held_out_mixed_scene_differs_from_the_mixed_ones(tmp_path):
         assert spec.rig not in {t.rig for t in tuned}
         assert spec.sensor.cfa_pattern not in {t.sensor.cfa_pattern for t in tuned}
         assert set(spec.kelvins).isdisjoint(k for t in tuned for k in t.kelvins)
+    held = [sc.build_scene(name) for name in HELDOUT_MIXED]  # unlike each other, too
+    assert len({s.rig for s in held}) == len(held) and len({s.kelvins for s in held}) == len(held)
     out = simulate_scene(HELDOUT_MIXED[0], tmp_path / "s", width=64, height=36, n_frames=2)
     record = _manifest(out)
     assert record["held_out"] is True and record["mixed_light"] is True

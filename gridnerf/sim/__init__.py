@@ -5,7 +5,7 @@
 a wide depth range, high-frequency textures), on which no default is tuned; `DEV` tuning
 scenes with rigs of those kinds (an arc, a slide) but other content; `MIXED` the
 mixed-light scenes (a warm lamp and daylight lighting different parts of the scene);
-`HELDOUT_MIXED` a mixed-light scene held out from the mixed-light path's choices.
+`HELDOUT_MIXED` mixed-light scenes held out from the mixed-light path's choices.
 """
 
 from gridnerf.sim.scenes import ALL_SCENES, DEV, HELDOUT, HELDOUT_MIXED, MIXED, SCENES

@@ -46,9 +46,9 @@ DEV: tuple[str, ...] = ("dev_arc_shop", "dev_slide_bench")
 # Lit by two illuminants of different colour temperature (a lamp and daylight), each
 # dominating its own part of the scene: a global white balance cannot be right everywhere.
 MIXED: tuple[str, ...] = ("mixed_lamp_window", "mixed_desk_daylight")
-# Mixed light, held out: other rig (a converging arc), lights, sensor and content than
-# MIXED; no default of the mixed-light path is chosen on it.
-HELDOUT_MIXED: tuple[str, ...] = ("held_mixed_arc",)
+# Mixed light, held out: other rigs (a converging arc, a slider), lights, sensors and
+# content (warm, cool) than MIXED; no default of the mixed-light path is chosen on them.
+HELDOUT_MIXED: tuple[str, ...] = ("held_mixed_arc", "held_mixed_slide")
 # every scene name the simulator knows
 ALL_SCENES: tuple[str, ...] = SCENES + HELDOUT + DEV + MIXED + HELDOUT_MIXED
 RIGS: tuple[str, ...] = ("tripod", "arc", "slide")
@@ -165,6 +165,7 @@ _SENSORS = {
     "mixed_lamp_window": (2700, "Sony ILCE-7SM2", "RGGB", 12.0, 0.024, 5.0),
     "mixed_desk_daylight": (2400, "Canon EOS 5D Mark IV", "RGGB", 16.0, 0.03, 4.5),
     "held_mixed_arc": (3000, "Nikon D850", "GRBG", 10.0, 0.02, 5.5),
+    "held_mixed_slide": (2200, "Sony ILCE-7SM2", "GRBG", 12.0, 0.024, 5.0),
 }
 
 
@@ -761,8 +762,41 @@ def _held_mixed_arc() -> SceneSpec:
                      height=0.5, rig="arc", yaw_spread_deg=20.0)
 
 
+def _held_mixed_slide() -> SceneSpec:
+    """Held out, mixed light (nothing is tuned on it; added in session 17 so that the
+    held-out mixed-light result is not one scene). Cool content where held_mixed_arc is
+    warm: a workbench of blue-grey metal before a teal wall, on slate tiles, with a blue
+    toolbox, a green bottle, a white jug, a greyscale print and a blue-and-white rug,
+    seen from a slider (forward-facing). A 2200 K work lamp close at the right (a point
+    light) and 7500 K north-sky light from high at the left (directional, with its
+    ambient fill). Subject ~2 m away."""
+    wall = _b([0, 3.0, -2.0], [12.0, 7.0, 0.5],
+              tx.noise((0.35, 0.52, 0.58), (0.29, 0.45, 0.5), cells=30, seed=71))
+    floor = _floor(tx.checker((0.42, 0.45, 0.5), (0.34, 0.37, 0.42), (24, 10)))
+    metal = tx.noise((0.3, 0.34, 0.4), (0.36, 0.4, 0.46), cells=16, seed=72)
+    props = [
+        _b([0.0, 0.35, -0.9], [0.8, 0.35, 0.3], metal),  # workbench
+        _b([-0.45, 0.82, -0.9], [0.18, 0.12, 0.12], tx.solid((0.1, 0.25, 0.6)), yaw=0.2),
+        _f([0.05, 0.85, -0.85], 0.07, 0.15, 0.03, tx.solid((0.15, 0.45, 0.3))),  # bottle
+        _f([0.38, 0.8, -0.95], 0.08, 0.1, 0.06, tx.solid((0.9, 0.9, 0.92))),  # jug
+        _b([0.12, 0.705, -0.72], [0.15, 0.005, 0.1], tx.text(_INK, (0.9, 0.92, 0.95), rows=6,
+                                                             cols=14, seed=73)),
+        _board([-0.2, 1.35, -1.48], [0.3, 0.22, 0.01], tx.image("coins", size=512),
+               tx.solid((0.15, 0.15, 0.15))),
+        _b([0.0, 0.004, -0.1], [0.7, 0.004, 0.45],
+           tx.stripes([(0.2, 0.3, 0.55), (0.85, 0.87, 0.9)], 10)),  # rug
+        _f([0.65, 0.25, -0.25], 0.15, 0.25, 0.13, tx.solid((0.2, 0.5, 0.5))),  # stool
+    ]
+    lights = (PointLight((0.9, 0.95, -0.35), 1.2, radius=0.05, kelvin=2200.0),
+              Light((-0.6, 0.7, 0.4), 0.6, kelvin=7500.0))
+    return SceneSpec(name="held_mixed_slide", room=(wall, floor), props=tuple(props),
+                     sensor=_sensor("held_mixed_slide"), lights=lights, ambient=0.12,
+                     ambient_kelvin=7500.0, target=(0.0, 0.8, -0.9), distance=2.0,
+                     height=0.25, rig="slide", baseline=0.4)
+
+
 _MIX = {"mixed_lamp_window": _mixed_lamp_window, "mixed_desk_daylight": _mixed_desk_daylight,
-        "held_mixed_arc": _held_mixed_arc}
+        "held_mixed_arc": _held_mixed_arc, "held_mixed_slide": _held_mixed_slide}
 
 
 def build_scene(name: str) -> SceneSpec:
