@@ -635,12 +635,16 @@ def get(cfg: Config, dotted: str) -> Any:
 LEGACY = {("grid", "background"): "black", ("loss", "opacity_stages"): 0,
           ("loss", "data_eps"): 1e-3, ("loss", "data_eps_mode"): "absolute",
           ("loss", "ca_map_anchor"): "capture"}
+# (section, field) -> the one value of a removed field whose behaviour the code still has:
+# a saved config with another value was trained by code that no longer exists, so it must
+# not load as today's config (unknown keys are otherwise ignored)
+REMOVED = {("loss", "ca_on"): "rays"}  # per-sample L_ca, dropped in session 16
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:
     """Config from `to_dict` output; unknown keys are ignored, missing ones take defaults
     (or their LEGACY value). ConfigError (naming `source`) for a value that does not
-    validate."""
+    validate, or for a REMOVED field set to a behaviour the code no longer has."""
     if not isinstance(d, dict):
         raise ConfigError(source, "the config is not a JSON object",
                           "delete it (train writes it again) or restore it")
@@ -653,6 +657,12 @@ def from_dict(d: dict, source: Path | None = None) -> Config:
             if not isinstance(vals, dict):
                 raise ConfigError(None, f"section {f.name} is not an object", "restore it")
             legacy = {k: v for (sec, k), v in LEGACY.items() if sec == f.name and k not in vals}
+            for (sec, k), kept in REMOVED.items():
+                if sec == f.name and k in vals and vals[k] != kept:
+                    raise ConfigError(None, f"trained with {sec}.{k}={vals[k]!r}, an option "
+                                      "that has since been removed (only "
+                                      f"{kept!r} remains)", "delete the run folder and "
+                                      "train it again")
             kwargs[f.name] = sub_cls(**legacy, **{k: _tupleize(v) for k, v in vals.items()
                                                   if k in known})
         return Config(**kwargs)

@@ -130,6 +130,28 @@ def test_a_saved_config_without_a_newer_field_reads_as_it_was_trained():
     assert cfgmod.from_dict(saved).loss.opacity_stages == 0
 
 
+def test_a_saved_config_with_a_removed_option_does_not_read_as_todays(trained, tmp_path,
+                                                                      capsys):
+    """loss.ca_on=samples was removed: a run trained with it is not today's default (it
+    would be cached and reported as one); the value whose behaviour remains still loads,
+    and evaluating such a run fails with one line naming its config.json."""
+    from gridnerf import config as cfgmod
+    from gridnerf.errors import ConfigError
+
+    saved = cfgmod.to_dict(cfgmod.preset("default"))
+    saved["loss"]["ca_on"] = "rays"
+    assert cfgmod.from_dict(saved) == cfgmod.preset("default")
+    saved["loss"]["ca_on"] = "samples"
+    with pytest.raises(ConfigError, match="loss.ca_on='samples'.*removed"):
+        cfgmod.from_dict(saved)
+    run = tmp_path / "run"
+    shutil.copytree(trained, run)
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["loss"]["ca_on"] = "samples"
+    (run / "config.json").write_text(json.dumps(cfg))
+    _fails(capsys, ["eval", str(run)], "config.json", "ca_on")
+
+
 def test_bad_saved_config_names_the_file(tmp_path):
     from gridnerf import config as cfgmod
     from gridnerf.errors import ConfigError
