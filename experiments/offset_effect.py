@@ -32,6 +32,16 @@ def corrected(out: dict, off_rgb: np.ndarray) -> dict:
     return out
 
 
+def offset_rgb(scene) -> np.ndarray:
+    """(3,) the simulator's per-CFA black offsets as the field learned them: binned like the
+    training data (R, mean of the greens, B), normalised, divided by the training frames'
+    mean exposure."""
+    truth = noisefit.sim_truth(scene.path)
+    b = np.asarray(truth["black_offset_dn"]) / truth["scale"]
+    inv_e = float(np.mean(1.0 / scene.exposure[scene.train_idx]))
+    return raw.bin2x2(b, scene.cfa, np.float64)[0, 0] * inv_e
+
+
 def score(run: Path, fix) -> dict:
     cfg, scene, structure, params, _ = eval_run.load_run(run)
     main = eval_run.outputs(structure, params, scene, cfg,
@@ -59,8 +69,7 @@ def main() -> None:
         _, scene, *_ = eval_run.load_run(run)
         truth = noisefit.sim_truth(scene.path)
         b = np.asarray(truth["black_offset_dn"]) / truth["scale"]
-        inv_e = float(np.mean(1.0 / scene.exposure[scene.train_idx]))
-        off_rgb = raw.bin2x2(b, scene.cfa, np.float64)[0, 0] * inv_e
+        off_rgb = offset_rgb(scene)
         rec = {"offsets_dn": b.ravel().tolist(), "as_is": score(run, lambda o: o),
                "offsets_off": score(run, lambda o, off=off_rgb: corrected(o, off))}
         record[name] = rec

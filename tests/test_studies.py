@@ -24,6 +24,7 @@ import colour_ceiling  # noqa: E402
 import common  # noqa: E402
 import consistency  # noqa: E402
 import illuminant_maps  # noqa: E402
+import matrix_offsets  # noqa: E402
 import speed  # noqa: E402
 import sweep  # noqa: E402
 
@@ -209,3 +210,27 @@ def test_true_level_keeps_the_maps_shape_and_takes_the_truths_level():
                                / truth, 1.0, rtol=1e-6)
     flat = illuminant_maps.with_true_level(np.broadcast_to(warm, truth.shape), truth, rgb_cam)
     np.testing.assert_allclose(flat / flat[0, 0], 1.0, rtol=1e-9)
+
+
+def test_every_output_matrix_shows_a_grey_surface_grey_under_its_own_white():
+    """matrix_offsets.shown_through: a grey surface under two lights (its low-light colour
+    is the light's colour), balanced by each pixel's true white, comes out neutral through
+    the D65 matrix, no matrix and the per-pixel DNG-adapted matrix; the adapted matrix of
+    a white on the locus is display_matrix's for that white."""
+    from gridnerf import exposure, illuminant
+
+    xyz_to_cam = np.array([[0.7, -0.1, -0.05], [-0.4, 1.2, 0.2], [-0.08, 0.2, 0.6]])
+    locus = illuminant.planckian_locus(xyz_to_cam)
+    warm, cool = locus[200], locus[800]
+    white = np.empty((4, 6, 3))
+    white[:, :3], white[:, 3:] = warm, cool
+    rgb_low = 0.02 * white
+    for m in matrix_offsets.MATRICES:
+        rgb = matrix_offsets.shown_through(rgb_low, white, m, xyz_to_cam)
+        np.testing.assert_allclose(rgb / rgb[..., 1:2], 1.0, atol=1e-6, err_msg=m)
+    tint = rgb_low * np.array([1.5, 1.0, 0.5])  # a coloured surface: matrices differ
+    got = matrix_offsets.shown_through(tint, white, "adapted", xyz_to_cam)
+    for part, w in ((slice(0, 3), warm), (slice(3, 6), cool)):
+        want = (tint[:, part] * np.asarray(illuminant.gains_from_illuminant(w))
+                @ exposure.display_matrix(xyz_to_cam, True, w).T)
+        np.testing.assert_allclose(got[:, part], want, rtol=1e-9)

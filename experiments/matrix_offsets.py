@@ -1,0 +1,126 @@
+"""What the output matrix and the hidden black offsets do to a run's colour, white for white.
+
+For each run (runs/<scene>/<variant>) the test views are rendered once and the field's
+low-light colour (`rgb_low`, camera RGB) is balanced per pixel by a white and shown
+through one of three output matrices, each at the run's own mean luminance per view (as in
+colour_ceiling.py, so only colour differs from `ours`):
+
+- whites: `true` (the simulator's white of each pixel, illuminant_maps.true_map) or
+  `field` (the gain field's own white per pixel, opacity / composited gain);
+- matrices: `d65` (the default: the raw file's ColorMatrix for D65, row-normalised;
+  exposure.display_matrix), `none` (balanced camera RGB shown as sRGB: the paper's output)
+  and `adapted` (the DNG pipeline for each pixel's own white: its nearest blackbody on the
+  camera's locus, camera -> XYZ, Bradford to D65; exposure.display_matrix with `neutral`);
+- `-off`: the same with the simulator's per-CFA black offsets taken off the low-light
+  colour (offset_effect.offset_rgb x opacity). With the `field` white this is not what
+  fitting the offsets would give: the field's white was estimated on frames that still
+  held them.
+
+The truth is read for scoring only; no trainer sees it.
+
+    python experiments/matrix_offsets.py [--scenes mixed_lamp_window,rabbit] [--variant default]
+
+Writes reports/matrix_offsets.md and reports/matrix_offsets.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from colour_ceiling import GROUPS
+from common import fmt, markdown_table, simulated_folders, write_report
+from gridnerf import color, eval_run, evaluate, exposure, illuminant
+from illuminant_maps import true_map
+from offset_effect import offset_rgb
+
+MATRICES = ("d65", "none", "adapted")
+
+
+def shown_through(rgb_low, white, matrix: str, xyz_to_cam) -> np.ndarray:
+    """rgb_linear (H, W, 3): rgb_low (H, W, 3) balanced by each pixel's white (H, W, 3) and
+    shown through `matrix` (MATRICES); `adapted` groups the pixels by the locus entry
+    nearest their white (one DNG matrix per entry)."""
+    balanced = rgb_low * np.asarray(illuminant.gains_from_illuminant(white))
+    if matrix != "adapted":
+        return balanced @ exposure.display_matrix(xyz_to_cam, matrix == "d65").T
+    locus = illuminant.planckian_locus(xyz_to_cam)
+    nearest = np.argmax(illuminant.unit(white) @ locus.T, axis=-1)
+    out = np.zeros_like(balanced)
+    for k in np.unique(nearest):
+        sel = nearest == k
+        out[sel] = balanced[sel] @ exposure.display_matrix(xyz_to_cam, True, locus[k]).T
+    return out
+
+
+def run_rows(run: Path, folder: Path) -> dict:
+    """{row: {"psnr", "ssim", "delta_e"}} means over the run's test views."""
+    sim = json.loads((folder / "sim.json").read_text())
+    cfg, scene, structure, params, _ = eval_run.load_run(run)
+    shown = eval_run.outputs(structure, params, scene, cfg,
+                             eval_run.training_render(structure, params, scene, cfg))
+    off = offset_rgb(scene)
+    cams, per_view = scene.cameras, {}
+    for i in scene.test_idx:
+        intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]])
+        out = eval_run.render_view(structure, params, scene, cfg, cams.c2w[i], intr,
+                                   cams.height, cams.width)
+        gt = eval_run.reference_linear(scene, scene.names[i], cams.height, cams.width)
+        truth = true_map(folder, sim, scene.names[i], (cams.height, cams.width))
+        ours, _ = shown["gridnerf"].show(out)
+        target = float(np.mean(color.luminance(ours)))
+        acc = np.asarray(out["acc"], np.float64)[..., None]
+        field = acc / np.maximum(np.asarray(out["gain"], np.float64), 1e-12)
+        field = np.where(acc > 1e-3, field, truth)  # empty rays: any white, nothing to show
+        rows = {"ours": ours}
+        low = np.asarray(out["rgb_low"], np.float64)
+        for tag, rgb_low in (("", low), ("-off", low - off * acc)):
+            for wname, white in (("true", truth), ("field", field)):
+                for m in MATRICES:
+                    rgb = shown_through(rgb_low, white, m, scene.xyz_to_cam)
+                    rows[f"{wname} {m}{tag}"] = exposure.alpha_for_luminance(rgb, target) * rgb
+        for name, rgb in rows.items():
+            per_view.setdefault(name, []).append(
+                evaluate.image_metrics(np.asarray(rgb, np.float32), gt))
+    return {name: {k: float(np.mean([v[k] for v in views])) for k in ("psnr", "delta_e")}
+            for name, views in per_view.items()}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default="mixed,heldmixed,rabbit,bucket,box,dora,head,"
+                    "held_deep_hall,held_arc_table")
+    ap.add_argument("--variant", default="default")
+    ap.add_argument("--out", default="reports/matrix_offsets")
+    args = ap.parse_args()
+    record = {}
+    for name, folder in simulated_folders(args.scenes):
+        run = Path("runs") / name / args.variant
+        if not (run / "summary.json").exists():
+            print(f"skipping {name}: no finished run at {run}")
+            continue
+        record[name] = run_rows(run, folder)
+        print(name, {k: round(v["psnr"], 2) for k, v in record[name].items()}, flush=True)
+    columns = list(next(iter(record.values()))) if record else []
+    lines = [[n, *(f"{fmt(r[c]['psnr'])} / {fmt(r[c]['delta_e'])}" for c in columns)]
+             for n, r in record.items()]
+    for label, group in (*GROUPS, ("all shown", tuple(record))):
+        got = [record[n] for n in group if n in record]
+        if got:
+            lines.append([f"**mean, {label}** ({len(got)})",
+                          *(f"{fmt(np.mean([g[c]['psnr'] for g in got]))} / "
+                            f"{fmt(np.mean([g[c]['delta_e'] for g in got]))}"
+                            for c in columns)])
+    write_report(args.out, "# The output matrix and the black offsets, white for white\n\n"
+                 f"`python experiments/matrix_offsets.py --scenes {args.scenes} --variant "
+                 f"{args.variant}`. PSNR / CIEDE2000 on the test views, every row at the "
+                 "run's own mean luminance per view; `-off`: the simulator's black offsets "
+                 "taken off the field's low-light colour.\n\n"
+                 + markdown_table(["scene", *columns], lines) + "\n", record)
+
+
+if __name__ == "__main__":
+    main()
