@@ -44,6 +44,28 @@ GROUPS = (("nine", SCENES), ("tuning", DEV), ("held out", HELDOUT), ("mixed ligh
           ("held-out mixed light", HELDOUT_MIXED))
 
 
+def test_views(run: Path, folder: Path):
+    """The run loaded and scored the way `gridnerf eval` scores it: (cfg, scene, train_out,
+    shown, views), train_out its training render, shown eval_run.outputs of it, views an
+    iterator over the test views of (name, out: the render, gt_linear (H, W, 3), truth: the
+    true white per pixel (H, W, 3), from the simulator's sim.json and illuminant maps)."""
+    sim = json.loads((folder / "sim.json").read_text())
+    cfg, scene, structure, params, _ = eval_run.load_run(run)
+    train_out = eval_run.training_render(structure, params, scene, cfg)
+    shown = eval_run.outputs(structure, params, scene, cfg, train_out)
+    cams = scene.cameras
+    hw = (cams.height, cams.width)
+
+    def views():
+        for i in scene.test_idx:
+            intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]])
+            out = eval_run.render_view(structure, params, scene, cfg, cams.c2w[i], intr, *hw)
+            yield (scene.names[i], out, eval_run.reference_linear(scene, scene.names[i], *hw),
+                   true_map(folder, sim, scene.names[i], hw))
+
+    return cfg, scene, train_out, shown, views()
+
+
 def view_rows(out: dict, shown: dict, matrix: np.ndarray, truth: np.ndarray,
               field_white: np.ndarray) -> dict:
     """rgb_linear (H, W, 3) of each row for one rendered view; truth: (H, W, 3) true white
@@ -122,25 +144,15 @@ def main() -> None:
         if not (run / "summary.json").exists():
             print(f"skipping {name}: no finished run at {run}")
             continue
-        sim = json.loads((folder / "sim.json").read_text())
-        cfg, scene, structure, params, _ = eval_run.load_run(run)
-        train_out = eval_run.training_render(structure, params, scene, cfg)
-        shown = eval_run.outputs(structure, params, scene, cfg, train_out)
+        cfg, scene, train_out, shown, views = test_views(run, folder)
         field_white = (eval_run.field_neutral(train_out) if cfg.loss.use_gains
                        else np.asarray(illuminant.grey_world(np.asarray(train_out["rgb_low"]))))
         matrix = exposure.display_matrix(scene.xyz_to_cam, cfg.output.use_color_matrix)
-        cams = scene.cameras
         per_view = {r: [] for r in ROWS}
         whites = {"field_global": field_white,
                   "global_gw": 1.0 / shown["global_grey_world"].gains}
         white_err = []
-        for i in scene.test_idx:
-            view = scene.names[i]
-            intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]])
-            out = eval_run.render_view(structure, params, scene, cfg, cams.c2w[i], intr,
-                                       cams.height, cams.width)
-            gt_linear = eval_run.reference_linear(scene, view, cams.height, cams.width)
-            truth = true_map(folder, sim, view, (cams.height, cams.width))
+        for _, out, gt_linear, truth in views:
             for r, rgb_linear in view_rows(out, shown, matrix, truth, field_white).items():
                 per_view[r].append(evaluate.image_metrics(rgb_linear, gt_linear))
             if cfg.loss.use_gains:

@@ -26,15 +26,13 @@ Writes reports/matrix_offsets.md and reports/matrix_offsets.json.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 
-from colour_ceiling import GROUPS
+from colour_ceiling import GROUPS, test_views
 from common import fmt, markdown_table, simulated_folders, write_report
-from gridnerf import color, eval_run, evaluate, exposure, illuminant
-from illuminant_maps import true_map
+from gridnerf import color, evaluate, exposure, illuminant
 from offset_effect import offset_rgb
 
 MATRICES = ("d65", "none", "adapted")
@@ -58,18 +56,10 @@ def shown_through(rgb_low, white, matrix: str, xyz_to_cam) -> np.ndarray:
 
 def run_rows(run: Path, folder: Path) -> dict:
     """{row: {"psnr", "ssim", "delta_e"}} means over the run's test views."""
-    sim = json.loads((folder / "sim.json").read_text())
-    cfg, scene, structure, params, _ = eval_run.load_run(run)
-    shown = eval_run.outputs(structure, params, scene, cfg,
-                             eval_run.training_render(structure, params, scene, cfg))
+    _, scene, _, shown, views = test_views(run, folder)
     off = offset_rgb(scene)
-    cams, per_view = scene.cameras, {}
-    for i in scene.test_idx:
-        intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]])
-        out = eval_run.render_view(structure, params, scene, cfg, cams.c2w[i], intr,
-                                   cams.height, cams.width)
-        gt = eval_run.reference_linear(scene, scene.names[i], cams.height, cams.width)
-        truth = true_map(folder, sim, scene.names[i], (cams.height, cams.width))
+    per_view = {}
+    for _, out, gt, truth in views:
         ours, _ = shown["gridnerf"].show(out)
         target = float(np.mean(color.luminance(ours)))
         acc = np.asarray(out["acc"], np.float64)[..., None]
@@ -85,8 +75,8 @@ def run_rows(run: Path, folder: Path) -> dict:
         for name, rgb in rows.items():
             per_view.setdefault(name, []).append(
                 evaluate.image_metrics(np.asarray(rgb, np.float32), gt))
-    return {name: {k: float(np.mean([v[k] for v in views])) for k in ("psnr", "delta_e")}
-            for name, views in per_view.items()}
+    return {name: {k: float(np.mean([m[k] for m in scores])) for k in ("psnr", "delta_e")}
+            for name, scores in per_view.items()}
 
 
 def main() -> None:
