@@ -33,6 +33,7 @@ import numpy as np
 from colour_ceiling import GROUPS, test_views
 from common import fmt, markdown_table, simulated_folders, write_report
 from gridnerf import color, evaluate, exposure, illuminant
+from gridnerf.sim import HELDOUT_MIXED, MIXED
 from offset_effect import offset_rgb
 
 MATRICES = ("d65", "none", "adapted")
@@ -55,7 +56,7 @@ def shown_through(rgb_low, white, matrix: str, xyz_to_cam) -> np.ndarray:
 
 
 def run_rows(run: Path, folder: Path) -> dict:
-    """{row: {"psnr", "ssim", "delta_e"}} means over the run's test views."""
+    """{row: {"psnr", "delta_e"}} means over the run's test views."""
     _, scene, _, shown, views = test_views(run, folder)
     off = offset_rgb(scene)
     per_view = {}
@@ -94,23 +95,30 @@ def main() -> None:
             continue
         record[name] = run_rows(run, folder)
         print(name, {k: round(v["psnr"], 2) for k, v in record[name].items()}, flush=True)
+    write_report(args.out, "# The output matrix and the black offsets, white for white\n\n"
+                 f"`python experiments/matrix_offsets.py --scenes {args.scenes} --variant "
+                 f"{args.variant}`. PSNR / CIEDE2000 on the test views, every row at the "
+                 "run's own mean luminance per view; `-off`: the simulator's black offsets "
+                 "taken off the field's low-light colour.\n\n" + table(record) + "\n", record)
+
+
+def table(record: dict) -> str:
+    """Markdown: each scene's rows, then the means per scene group, over all the mixed-light
+    and all the single-light scenes shown, and over every scene shown."""
     columns = list(next(iter(record.values()))) if record else []
     lines = [[n, *(f"{fmt(r[c]['psnr'])} / {fmt(r[c]['delta_e'])}" for c in columns)]
              for n, r in record.items()]
-    for label, group in (*GROUPS, ("all shown", tuple(record))):
+    mixed = MIXED + HELDOUT_MIXED
+    for label, group in (*GROUPS, ("all mixed light", mixed),
+                         ("all single light", tuple(n for n in record if n not in mixed)),
+                         ("all shown", tuple(record))):
         got = [record[n] for n in group if n in record]
         if got:
             lines.append([f"**mean, {label}** ({len(got)})",
                           *(f"{fmt(np.mean([g[c]['psnr'] for g in got]))} / "
                             f"{fmt(np.mean([g[c]['delta_e'] for g in got]))}"
                             for c in columns)])
-    write_report(args.out, "# The output matrix and the black offsets, white for white\n\n"
-                 f"`python experiments/matrix_offsets.py --scenes {args.scenes} --variant "
-                 f"{args.variant}`. PSNR / CIEDE2000 on the test views, every row at the "
-                 "run's own mean luminance per view; `-off`: the simulator's black offsets "
-                 "taken off the field's low-light colour.\n\n"
-                 + markdown_table(["scene", *columns], lines) + "\n", record)
-
+    return markdown_table(["scene", *columns], lines)
 
 if __name__ == "__main__":
     main()
