@@ -44,7 +44,9 @@ VARIANTS = [
 # --study colour (issue 8's rows): no white balance, one global grey-world gain (both the
 # no-gain run), the default (the illuminant map, anchored by region) with each L_ca
 # illuminant estimate, the map anchored to the capture's estimate, one target for the
-# capture (no map), and the default with the black offsets fitted from the noise
+# capture (no map), the default with the black offsets fitted from the noise, and both
+# the no-gain run and the default with the black level measured from the scene's
+# lens-cap frames (data.black_offset=dark: a capture that includes dark frames)
 COLOUR_VARIANTS = [
     ("no_cr", "no white balance / one grey-world gain (no gains)", "nogain", "nogain", []),
     ("grey_world", "field, estimator grey world", "ca_grey_world", "default",
@@ -61,6 +63,10 @@ COLOUR_VARIANTS = [
      "default", "default", []),
     ("black_fit", "default + black offsets fitted from the noise", "black_fit", "default",
      ["data.black_offset=fit"]),
+    ("no_cr_dark", "no gains, black level from lens-cap frames", "nogain_dark", "nogain",
+     ["data.black_offset=dark"]),
+    ("black_dark", "default + black level from lens-cap frames", "dark_black", "default",
+     ["data.black_offset=dark"]),
 ]
 STUDIES = {"parts": VARIANTS, "colour": COLOUR_VARIANTS}
 # (column, eval summary key) shown for every variant; the no-gain run adds its global gain
@@ -75,7 +81,7 @@ def ablate(scenes: list[str], runs: Path, quick: bool, variants=VARIANTS) -> dic
     for scene in scenes:
         for key, _, folder, preset, sets in variants:
             summary = run_variant(scene, folder, preset, sets, runs, quick)["summary"]
-            shown = OUTPUTS if key == "no_cr" else OUTPUTS[:2]
+            shown = OUTPUTS if key.startswith("no_cr") else OUTPUTS[:2]
             record.setdefault(scene, {})[key] = {
                 out: {m: float(summary[k][m]) for m in METRICS} for out, k in shown
                 if k in summary}

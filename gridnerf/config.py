@@ -118,12 +118,13 @@ class DataConfig(_Section):
     # "dark_srgb" (the LLNeRF-style row: each frame as a camera saves a dark photo, binned,
     # grey world, colour matrix, no brightening, sRGB curve; needs loss.method=llnerf)
     target: Literal["raw", "reference", "processed", "dark_srgb"] = "raw"
-    # black level of the data term: "file" (the frames' BlackLevel tags) or "fit": per-CFA
-    # offsets fitted from the noise against the field before the last stage (gridnerf
-    # .sensorfit), taken off the targets of the last stage. Experimental: against a render
-    # the fit takes model error for shot noise (bucket: offsets 3-4 DN off, 17.95 dB
-    # against 19.68 with "file"; docs/colour.md)
-    black_offset: Literal["file", "fit"] = "file"
+    # black level: "file" (the frames' BlackLevel tags); "dark": the file's plus per-CFA
+    # offsets measured from lens-cap frames in <scene>/dark/ (gridnerf.darkframes), for
+    # every use of the frames; "fit": per-CFA offsets fitted from the noise against the
+    # field before the last stage (gridnerf.sensorfit), taken off the targets of the last
+    # stage. Experimental: against a render the fit takes model error for shot noise
+    # (bucket: offsets 3-4 DN off, 17.95 dB against 19.68 with "file"; docs/colour.md)
+    black_offset: Literal["file", "fit", "dark"] = "file"
     # the paper's darkness sweep: raw targets times this ratio after black-level removal
     exposure_ratio: float = 1.0
 

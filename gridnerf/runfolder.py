@@ -25,7 +25,7 @@ import json
 import os
 from pathlib import Path
 
-from gridnerf import atomic, bounds, checkpoint, grid
+from gridnerf import atomic, bounds, checkpoint, darkframes, grid
 from gridnerf import config as cfgmod
 from gridnerf.errors import CheckpointError, ConfigError, RunLockedError, SceneError
 from gridnerf.scene import BoundsMissing, Scene, load_scene
@@ -181,11 +181,19 @@ def trim_metrics(run: Path, stage: int, step: int) -> None:
 
 
 def open_scene(scene_dir, run: Path, estimate: bool = True) -> Scene:
-    """Load the run's scene with the bounds the run uses.
+    """Load the run's scene with the bounds and the black level the run uses.
 
     The run's bounds.json wins; otherwise the scene's own bounds; otherwise (estimate=True)
     gridnerf.bounds estimates them from the given poses and they are saved in bounds.json.
+    A black level the run measured from dark frames (black_level.json, gridnerf.darkframes)
+    is added to the file's.
     """
+    scene = _open_scene(scene_dir, run, estimate)
+    offset = darkframes.load(run)
+    return scene if offset is None else darkframes.apply(scene, offset)
+
+
+def _open_scene(scene_dir, run: Path, estimate: bool) -> Scene:
     saved = Path(run) / BOUNDS
     if saved.is_file():
         try:

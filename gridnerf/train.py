@@ -29,6 +29,7 @@ from tqdm import tqdm
 from gridnerf import (
     atomic,
     checkpoint,
+    darkframes,
     dataset,
     devices,
     grid,
@@ -547,6 +548,11 @@ def initial_grid(data: dataset.RayData, scene, cfg: Config, key, scene_ill=None)
 def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
            session: runfolder.Session) -> dict:
     cfg = runfolder.resolve_config(run, cfg, overwrite_config)
+    if cfg.data.black_offset == "dark" and darkframes.load(run) is None:
+        measured = darkframes.measure(scene_dir)  # before the scene loads: a fast refusal
+        darkframes.save(run, measured)  # open_scene adds it to the file's black level
+        print("black level from the dark frames: offsets (DN, CFA order) "
+              f"{np.round(np.ravel(measured['offset_dn']), 2).tolist()}")
     scene = runfolder.open_scene(scene_dir, run)
     data = dataset.training_data(scene, cfg.data)
     near_t, far_t = dataset.grid_box(scene)[2:]
@@ -675,6 +681,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         "voxels": int(structure.n_rows),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
+    if (offset := darkframes.load(run)) is not None:
+        summary["black_offset_dn"] = offset.tolist()
     if (run / sensorfit.SENSOR_FIT).exists():
         summary["sensor_fit_dn"] = json.loads((run / sensorfit.SENSOR_FIT).read_text())["dn"]
     atomic.write_text(run / "summary.json", json.dumps(summary, indent=2))

@@ -183,6 +183,13 @@ def test_scene_folder_reads_back(small_scene):
     assert manifest["scene"] == "bucket" and 2300 <= manifest["illuminant_kelvin"] <= 3200
     assert manifest["rig"] == "tripod" and manifest["held_out"] is False
     assert "0.18" in manifest["exposure_convention"]
+    # lens-cap frames: same sensor and settings, no light; their mean is the hidden bias
+    assert manifest["dark_frames"] == ["dark/dark_000.dng", "dark/dark_001.dng"]
+    dark, dark_cfa, dark_black, _, _ = _read_raw(small_scene / "dark" / "dark_000.dng")
+    assert dark.shape == raw.shape and dark_cfa.tolist() == cfa.tolist() and dark_black == black
+    bias = np.array(manifest["noise"]["black_bias_dn_per_cfa_position"])
+    per_position = (dark.astype(np.float64) - 512).reshape(45, 2, 80, 2).mean(axis=(0, 2))
+    np.testing.assert_allclose(per_position, bias, atol=0.6)
 
 
 def test_raw_is_dark_and_warm(small_scene):

@@ -7,6 +7,10 @@ Folder layout (the contract every loader follows):
                        split (every 8th frame is test). No scene bounds: a trainer must
                        find near/far itself, as with a real capture
   gt/<name>.exr|.png   clean normal-light references (linear float32 / sRGB 8-bit)
+  dark/dark_000.dng ...  lens-cap frames (no light) at the frames' ISO and exposure time:
+                       a dark-frame calibration a photographer can shoot with the capture.
+                       Only `data.black_offset=dark` reads them (gridnerf.darkframes);
+                       by default the trainer sees raw/ alone
   illuminant/<name>.png  mixed-light scenes only: 8-bit map of the first illuminant's share
                        of the camera green signal per pixel (255 = all of it)
   sim.json             manifest, written LAST (its presence marks a complete scene);
@@ -51,8 +55,9 @@ from gridnerf.sim.scenes import ALL_SCENES, HELDOUT, HELDOUT_MIXED, build_scene
 
 # Scene-folder format version, part of the cache key: bump it whenever the written
 # files change so that folders written before are rebuilt. 2: camera rigs, held-out
-# scenes, no near_far in transforms.json.
-SIM_VERSION = 2
+# scenes, no near_far in transforms.json. 3: dark/ lens-cap frames (raw/ unchanged).
+SIM_VERSION = 3
+N_DARK = 2  # lens-cap frames per scene
 GT_MEAN_LUMINANCE = 0.18
 SSAA = 2  # sub-rays per pixel side (pixel-area integration)
 TEST_EVERY = 8
@@ -67,6 +72,11 @@ EXPOSURE_CONVENTION = (
 def frame_names(n_frames: int) -> list[str]:
     """Frame stems: frame_000, frame_001, ..."""
     return [f"frame_{i:03d}" for i in range(n_frames)]
+
+
+def dark_names() -> list[str]:
+    """Lens-cap frame stems: dark_000, dark_001, ..."""
+    return [f"dark_{j:03d}" for j in range(N_DARK)]
 
 
 def _key(name: str, width: int, height: int, n_frames: int, seed: int) -> dict:
@@ -100,6 +110,7 @@ def _is_complete(out: Path, key: dict) -> bool:
     files = ["transforms.json"] + [f"{d}/{n}.{e}" for n in names
                                    for d, e in (("raw", "dng"), ("images", "jpg"),
                                                 ("gt", "exr"), ("gt", "png"))]
+    files += [f"dark/{n}.dng" for n in dark_names()]
     return all((out / f).is_file() for f in files)
 
 
@@ -180,7 +191,7 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
     e_scale = params.electrons / mean_green  # electrons per unit of relative camera signal
 
     names = frame_names(n_frames)
-    for sub in ("raw", "images", "gt", *(("illuminant",) if spec.layered else ())):
+    for sub in ("raw", "images", "gt", "dark", *(("illuminant",) if spec.layered else ())):
         (folder / sub).mkdir(parents=True)
     black = np.full((2, 2), float(sensor.BLACK_LEVEL))
     for i, stem in enumerate(names):
@@ -203,6 +214,14 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
         rgb_linear = frames[i] * np.float32(gt_scale)
         write_exr(folder / "gt" / f"{stem}.exr", rgb_linear)
         write_png(folder / "gt" / f"{stem}.png", srgb_encode(np.clip(rgb_linear, 0.0, 1.0)))
+
+    for j, stem in enumerate(dark_names()):  # lens cap on: no electrons, same sensor
+        raw_bayer = sensor.expose(np.zeros((height, width)), params,
+                                  np.random.default_rng([seed, salt, 2, j]))
+        write_dng(folder / "dark" / f"{stem}.dng", raw_bayer, params.cfa, black,
+                  sensor.WHITE_LEVEL, params.xyz_to_cam, np.ones(3),
+                  exposure_time=params.exposure_time, iso=params.iso,
+                  camera_model=params.camera_model)
 
     test = [i for i in range(n_frames) if i % TEST_EVERY == 0]
     paths = [f"raw/{stem}.dng" for stem in names]
@@ -231,6 +250,7 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
         "held_out": name in HELDOUT + HELDOUT_MIXED, "rig": spec.rig,
         **({"mixed_light": True} if spec.layered else {}),
         "frames": names, "test_frames": [names[i] for i in test],
+        "dark_frames": [f"dark/{n}.dng" for n in dark_names()],
         "illuminant_kelvin": main["kelvin"] if spec.layered else params.kelvin,
         "illuminant_neutral_cam": (neutral if spec.layered
                                    else sensor.illuminant_neutral(params).tolist()),

@@ -1,0 +1,136 @@
+"""The black level measured from dark frames (lens-cap exposures) of the capture.
+
+A RAW file records its black level (BlackLevel), but the dark signal of a real sensor sits
+a few DN off it, differently per CFA position (the ELD noise model: Wei et al., "A
+Physics-based Noise Formation Model for Extreme Low-light Raw Denoising", CVPR 2020;
+gridnerf.sim hides such a bias of -2 to +4 DN, about +20 % of a blue signal of ~18 DN).
+A field trained on the frames as they are learns mu + offset per colour: a colour cast
+of the dark parts once the exposure is raised, and a shift of every illuminant estimate
+made from the frames. Astrophotographers measure it the standard way, with a few frames
+shot with the lens cap on at the capture's ISO and exposure time: their mean per CFA
+position, less the file's black level, is the offset (with 2 frames of 480x270 photosites
+and ~7 DN of read noise, to about 0.02 DN).
+
+`data.black_offset = "dark"` reads `<scene>/dark/*` (any RAW format `raw/` takes),
+measures the offsets once (`measure`), keeps them in `<run>/black_level.json` and every
+later load of the run's scene (training, resume, evaluation: runfolder.open_scene)
+adds them to the scene's black level (`apply`), so the data term, the illuminant
+estimates and the noise fit all see the corrected frames. Without dark frames the
+offsets can only be fitted from the noise (gridnerf.sensorfit, `data.black_offset=fit`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+from gridnerf import atomic, raw
+from gridnerf.errors import SceneError
+
+DARK_DIR = "dark"
+BLACK_LEVEL = "black_level.json"  # in the run folder
+# a lens-cap frame's mean may sit this far above the file's black level (fraction of
+# white - black, ~160 DN at 14 bits): the offsets are a few DN, a light leak is more
+NOT_DARK = 0.01
+_FIX = ("shoot 1-4 frames with the lens cap on at the capture's ISO and exposure time into "
+        "<scene>/dark/, or use data.black_offset=file")
+
+
+def dark_files(scene_dir) -> list[Path]:
+    """RAW files in <scene>/dark, sorted (SceneError naming the folder when there are none)."""
+    from gridnerf.scene import RAW_EXTENSIONS
+
+    folder = Path(scene_dir) / DARK_DIR
+    files = (sorted(p for p in folder.iterdir()
+                    if p.is_file() and p.suffix.lower() in RAW_EXTENSIONS)
+             if folder.is_dir() else [])
+    if not files:
+        raise SceneError(folder, "data.black_offset=dark needs dark frames and there are none",
+                         _FIX)
+    return files
+
+
+def measure(scene_dir) -> dict:
+    """Per-CFA black offsets from a scene folder's dark frames: {"offset_dn": (2, 2) list,
+    DN above the file's black level per CFA position [row % 2][col % 2], "files": names,
+    "read_sigma_dn": the frames' spread (row noise included)}.
+
+    The first file of raw/ gives the size, CFA, black and white levels, ISO and exposure
+    time the dark frames must share. SceneError (one line naming the dark frame or folder)
+    when a dark frame cannot serve.
+    """
+    from gridnerf.scene import raw_files
+
+    files = dark_files(scene_dir)
+    first = raw.read_raw(next(iter(raw_files(Path(scene_dir)).values())))
+    sums, sq, count, names = np.zeros((2, 2)), np.zeros((2, 2)), 0, []
+    for path in files:
+        frame = raw.read_raw(path)
+        _check(frame, first, path)
+        h, w = frame.raw_bayer.shape
+        blocks = frame.raw_bayer[: h // 2 * 2, : w // 2 * 2].astype(np.float64).reshape(
+            h // 2, 2, w // 2, 2) - frame.black_level.astype(np.float64)[None, :, None, :]
+        mean = blocks.mean(axis=(0, 2))  # (2, 2) per CFA position
+        if np.any(mean > NOT_DARK * (frame.white_level - frame.black_level.max())):
+            raise SceneError(path, f"is not dark: {float(mean.max()):.0f} DN above the black "
+                             "level (a lens-cap frame sees no light)", _FIX)
+        sums += blocks.sum(axis=(0, 2))
+        sq += (blocks**2).sum(axis=(0, 2))
+        count += blocks.shape[0] * blocks.shape[2]
+        names.append(path.name)
+    offset = sums / count
+    sigma = np.sqrt(np.maximum(sq / count - offset**2, 0.0))
+    return {"offset_dn": offset.tolist(), "files": names,
+            "read_sigma_dn": float(sigma.mean())}
+
+
+def _check(frame: raw.RawFrame, first: raw.RawFrame, path: Path) -> None:
+    """SceneError unless `frame` was shot by the capture's sensor at its settings."""
+    problem = None
+    if frame.raw_bayer.shape != first.raw_bayer.shape:
+        problem = (f"is {frame.raw_bayer.shape[1]}x{frame.raw_bayer.shape[0]} but the frames "
+                   f"are {first.raw_bayer.shape[1]}x{first.raw_bayer.shape[0]}")
+    elif not np.array_equal(frame.cfa, first.cfa):
+        problem = f"has CFA {frame.cfa.tolist()}, the frames {first.cfa.tolist()}"
+    elif (not np.allclose(frame.black_level, first.black_level)
+          or frame.white_level != first.white_level):
+        problem = (f"has black {frame.black_level.ravel().tolist()} / white "
+                   f"{frame.white_level:g}, the frames {first.black_level.ravel().tolist()} / "
+                   f"{first.white_level:g}")
+    else:
+        for what, a, b in (("ISO", frame.iso, first.iso),
+                           ("exposure time", frame.exposure_time, first.exposure_time)):
+            if a and b and abs(a - b) > 0.01 * b:
+                problem = f"has {what} {a:g}, the frames {b:g}"
+                break
+    if problem:
+        raise SceneError(path, problem, _FIX)
+
+
+def save(run, record: dict) -> None:
+    """<run>/black_level.json: the measured offsets (measure's record)."""
+    atomic.write_text(Path(run) / BLACK_LEVEL, json.dumps(record, indent=2) + "\n")
+
+
+def load(run) -> np.ndarray | None:
+    """(2, 2) offsets in DN kept by the run, or None (no file: the file's black level)."""
+    path = Path(run) / BLACK_LEVEL
+    if not path.is_file():
+        return None
+    try:
+        offset = np.asarray(json.loads(path.read_text())["offset_dn"], np.float64)
+    except (ValueError, KeyError, TypeError):
+        offset = None
+    if offset is None or offset.shape != (2, 2) or not np.isfinite(offset).all():
+        raise SceneError(path, "cannot read the run's measured black level",
+                         "delete it to measure it again from the dark frames")
+    return offset
+
+
+def apply(scene, offset_dn):
+    """The scene with (2, 2) offsets in DN added to every frame's per-CFA black level."""
+    black = scene.black_level + np.asarray(offset_dn, np.float32)[None]
+    return dataclasses.replace(scene, black_level=black.astype(np.float32))
