@@ -20,6 +20,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO / "experiments"))
 
 import ablate  # noqa: E402
+import black_level  # noqa: E402
 import colour_ceiling  # noqa: E402
 import common  # noqa: E402
 import consistency  # noqa: E402
@@ -234,3 +235,22 @@ def test_every_output_matrix_shows_a_grey_surface_grey_under_its_own_white():
         want = (tint[:, part] * np.asarray(illuminant.gains_from_illuminant(w))
                 @ exposure.display_matrix(xyz_to_cam, True, w).T)
         np.testing.assert_allclose(got[:, part], want, rtol=1e-9)
+
+
+def test_black_level_table_differences_and_group_means():
+    def per(ours_file, gw_file, ours_dark, gw_dark):
+        return {"file": {"ours": {"psnr": ours_file, "delta_e": 9.0},
+                         "global_gw": {"psnr": gw_file, "delta_e": 10.0}},
+                "dark": {"ours": {"psnr": ours_dark, "delta_e": 7.0},
+                         "global_gw": {"psnr": gw_dark, "delta_e": 8.0}}}
+
+    record = {"bucket": per(20.0, 19.0, 21.0, 19.5), "box": per(22.0, 21.0, 21.5, 21.0),
+              MIXED[0]: per(24.0, 23.0, 26.0, 24.0)}
+    md = black_level.table(record, "cmd")
+    assert ("| bucket | 20.00 / 9.00 | 19.00 / 10.00 | 21.00 / 7.00 | 19.50 / 8.00 | 1.00 "
+            "| 1.50 |") in md
+    # the nine's mean holds bucket and box only; the mixed-light scene is its own group
+    assert "| **mean, nine** (2) | 21.00 / 9.00 | 20.00 / 10.00 | 21.25 / 7.00 | 20.25 / 8.00 " \
+        "| 0.25 | 1.00 |" in md
+    assert "| **mean, mixed light** (1) | 24.00 / 9.00 |" in md
+    assert "held out" not in md.split("|---|")[1]  # no group without scenes
