@@ -67,7 +67,7 @@ def measure(scene_dir) -> dict:
 
     files = dark_files(scene_dir)
     first = raw.read_raw(next(iter(raw_files(Path(scene_dir)).values())))
-    sums, sq, count, names = np.zeros((2, 2)), np.zeros((2, 2)), 0, []
+    values, names = [], []  # per frame: (4, n) DN above the file's black, by CFA position
     for path in files:
         frame = raw.read_raw(path)
         _check(frame, first, path)
@@ -78,14 +78,24 @@ def measure(scene_dir) -> dict:
         if np.any(mean > NOT_DARK * (frame.white_level - frame.black_level.max())):
             raise SceneError(path, f"is not dark: {float(mean.max()):.0f} DN above the black "
                              "level (a lens-cap frame sees no light)", _FIX)
-        sums += blocks.sum(axis=(0, 2))
-        sq += (blocks**2).sum(axis=(0, 2))
-        count += blocks.shape[0] * blocks.shape[2]
+        values.append(blocks.transpose(1, 3, 0, 2).reshape(4, -1))
         names.append(path.name)
-    offset = sums / count
-    sigma = np.sqrt(np.maximum(sq / count - offset**2, 0.0))
-    return {"offset_dn": offset.tolist(), "files": names,
+    offset, sigma = _robust_mean(np.concatenate(values, axis=1))
+    return {"offset_dn": offset.reshape(2, 2).tolist(), "files": names,
             "read_sigma_dn": float(sigma.mean())}
+
+
+def _robust_mean(values: np.ndarray, cut: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
+    """(4, n) dark values -> per row (mean, std) of the values within `cut` robust sigmas
+    (1.4826 MAD) of the median: hot and dead photosites left out; the read noise is
+    symmetric, so the cut does not bias the mean."""
+    med = np.median(values, axis=1, keepdims=True)
+    mad = 1.4826 * np.median(np.abs(values - med), axis=1, keepdims=True)
+    keep = np.abs(values - med) <= cut * np.maximum(mad, 1.0)
+    n = keep.sum(axis=1)
+    mean = (values * keep).sum(axis=1) / n
+    var = ((values - mean[:, None]) ** 2 * keep).sum(axis=1) / n
+    return mean, np.sqrt(var)
 
 
 def _check(frame: raw.RawFrame, first: raw.RawFrame, path: Path) -> None:

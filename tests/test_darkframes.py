@@ -42,6 +42,21 @@ def test_measures_the_hidden_offsets(small_scene):
     assert got["files"] == ["dark_000.dng", "dark_001.dng"]
 
 
+def test_hot_and_dead_photosites_do_not_move_the_offsets(scene_copy):
+    clean = darkframes.measure(scene_copy)
+    like = next((scene_copy / "raw").iterdir())
+    path = scene_copy / "dark" / "dark_000.dng"
+    dark = raw.read_raw(path).raw_bayer.copy()
+    rng = np.random.default_rng(0)
+    v, u = rng.integers(0, dark.shape[0], 40), rng.integers(0, dark.shape[1], 40)
+    dark[v[:30], u[:30]] = 16383  # hot
+    dark[v[30:], u[30:]] = 0  # dead
+    _write_dark(scene_copy, "dark_000.dng", dark, like)
+    got = darkframes.measure(scene_copy)
+    np.testing.assert_allclose(got["offset_dn"], clean["offset_dn"], atol=0.05)
+    assert abs(got["read_sigma_dn"] - clean["read_sigma_dn"]) < 0.1
+
+
 def test_apply_shifts_the_normalised_frames_by_the_offsets(small_scene):
     scene = _loaded(small_scene)
     offset = np.array([[1.0, -2.0], [3.0, 0.5]])
