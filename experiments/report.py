@@ -84,7 +84,8 @@ STUDIES = [("ablation", "Ablation", "ablate"), ("sweep", "Darkness sweep", "swee
            ("illuminants", "Illuminant estimation (angular error)", "illuminants"),
            ("illuminant_maps", "Illuminant maps where lights mix", "illuminant_maps"),
            ("colour_ceiling", "Colour ceiling (the true white)", "colour_ceiling"),
-           ("noise", "Sensor fit (fitted against true)", "noise_table")]
+           ("noise", "Sensor fit (fitted against true)", "noise_table"),
+           ("black_level", "The black level from lens-cap frames", "black_level")]
 QUICK_SCENES = ["bucket", "held_arc_brick"]
 METRICS = ("psnr", "ssim", "delta_e", "psnr_aligned", "ssim_aligned", "delta_e_aligned")
 
