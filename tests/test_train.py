@@ -474,6 +474,35 @@ def test_fitted_black_offsets_train_and_resume(small_scene, tmp_path, monkeypatc
         cfgmod.override(cfg, ["grid.resolutions=[[24,24,16]]", "train.steps_per_stage=[40]"])
 
 
+def test_dark_frame_black_level_trains_resumes_and_reaches_eval(small_scene, tmp_path,
+                                                                monkeypatch):
+    """data.black_offset = "dark": measured once before training (black_level.json, in the
+    summary), not measured again on resume, and the evaluation's scene carries it."""
+    from gridnerf import darkframes
+    from gridnerf import train as trainmod
+    from gridnerf.eval_run import load_run
+
+    cfg = cfgmod.override(cfgmod.preset("tiny"), [
+        "data.black_offset=dark", "train.steps_per_stage=[20,20]", "train.checkpoint_every=10",
+        "train.checkpoint_seconds=0"])
+    run = tmp_path / "run"
+    real_make_step = trainmod.make_step
+    _crash_after(monkeypatch, 33)
+    with pytest.raises(KeyboardInterrupt):
+        trainmod.train(small_scene, run, cfg)
+    offset = darkframes.load(run)
+    truth = json.loads((small_scene / "sim.json").read_text())["noise"][
+        "black_bias_dn_per_cfa_position"]
+    np.testing.assert_allclose(offset, truth, atol=0.4)
+    monkeypatch.setattr(trainmod, "make_step", real_make_step)
+    monkeypatch.setattr(darkframes, "measure", lambda *a, **k: pytest.fail("measured twice"))
+    summary = trainmod.train(small_scene, run, cfg)
+    np.testing.assert_array_equal(summary["black_offset_dn"], offset)
+    _, scene, *_ = load_run(run)
+    file_black = scene.black_level - offset.astype(np.float32)[None]
+    np.testing.assert_allclose(file_black, 512.0, atol=1e-3)  # the DNG's tag, plus offset
+
+
 def test_guarded_carving_gives_back_what_a_weight_threshold_empties(small_scene, tmp_path):
     """With a harsh weight threshold (the 90th percentile of the vertices' weights) some
     training rays lose most of their opacity; the guarded carving keeps every vertex the
