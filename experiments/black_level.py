@@ -14,7 +14,8 @@ mixed-light pair and the held-out mixed-light pair, each reported apart.
 
     python experiments/black_level.py [--scenes all]
 
-Writes reports/black_level.md and reports/black_level.json.
+Writes reports/black_level.md and reports/black_level.json, and (with all scenes) the
+group means into the README between its black_level markers.
 """
 
 from __future__ import annotations
@@ -23,7 +24,15 @@ import argparse
 
 import numpy as np
 
-from common import GROUPS, fmt, markdown_table, run_variant, scene_names, write_report
+from common import (
+    GROUPS,
+    fmt,
+    markdown_table,
+    run_variant,
+    scene_names,
+    update_readme,
+    write_report,
+)
 
 VARIANTS = (("file", "default", []), ("dark", "dark_black", ["data.black_offset=dark"]))
 OUTPUTS = (("ours", "gridnerf"), ("global_gw", "global_grey_world"))
@@ -43,25 +52,45 @@ def measure(scenes: list[str]) -> dict:
     return record
 
 
-def table(record: dict, command: str) -> str:
-    def cell(m):
-        return f"{fmt(m['psnr'])} / {fmt(m['delta_e'])}"
+def _cell(m: dict) -> str:
+    return f"{fmt(m['psnr'])} / {fmt(m['delta_e'])}"
 
-    def row(label: str, per: dict) -> list[str]:
-        f, d = per["file"], per["dark"]
-        return [label, cell(f["ours"]), cell(f["global_gw"]), cell(d["ours"]),
-                cell(d["global_gw"]), fmt(d["ours"]["psnr"] - f["ours"]["psnr"]),
-                fmt(d["ours"]["psnr"] - d["global_gw"]["psnr"])]
 
-    rows = [row(s, per) for s, per in record.items()]
+def _row(label: str, per: dict) -> list[str]:
+    f, d = per["file"], per["dark"]
+    return [label, _cell(f["ours"]), _cell(f["global_gw"]), _cell(d["ours"]),
+            _cell(d["global_gw"]), fmt(d["ours"]["psnr"] - f["ours"]["psnr"]),
+            fmt(d["ours"]["psnr"] - d["global_gw"]["psnr"])]
+
+
+def group_means(record: dict) -> dict:
+    """{group label: (n, the mean of every figure of `record`'s scenes in that group)}."""
+    out = {}
     for group, label in LABELS.items():
         got = [record[s] for s in GROUPS[group] if s in record]
-        if not got:
-            continue
-        mean = {b: {o: {m: float(np.mean([g[b][o][m] for g in got])) for m in ("psnr",
-                                                                            "delta_e")}
-                    for o, _ in OUTPUTS} for b, *_ in VARIANTS}
-        rows.append(row(f"**mean, {label}** ({len(got)})", mean))
+        if got:
+            out[label] = (len(got), {
+                b: {o: {m: float(np.mean([g[b][o][m] for g in got])) for m in ("psnr",
+                                                                              "delta_e")}
+                    for o, _ in OUTPUTS} for b, *_ in VARIANTS})
+    return out
+
+
+HEADER = ["scene", "file: ours", "file: one gw gain", "dark: ours", "dark: one gw gain",
+          "dark - file", "dark: ours - gw"]
+
+
+def readme_table(record: dict, command: str) -> str:
+    """The group means alone, for the README (between its black_level markers)."""
+    rows = [_row(f"{label} ({n})", mean) for label, (n, mean) in group_means(record).items()]
+    return (f"Measured by `{command}` (reports/black_level.md), PSNR / CIEDE2000 on the test "
+            "views:\n\n" + markdown_table(["scenes", *HEADER[1:]], rows))
+
+
+def table(record: dict, command: str) -> str:
+    rows = [_row(s, per) for s, per in record.items()]
+    rows += [_row(f"**mean, {label}** ({n})", mean)
+             for label, (n, mean) in group_means(record).items()]
     return ("# The black level from lens-cap frames, end to end\n\n"
             f"`{command}`. PSNR / CIEDE2000 on the test views. `ours`: the default's output "
             "(gain field, D65 matrix); `one gw gain`: the same field's low-light colour with "
@@ -69,9 +98,7 @@ def table(record: dict, command: str) -> str:
             "the black level measured from the scene's two lens-cap frames "
             "(`data.black_offset=dark`). `dark - file`: what the exact black level adds to "
             "ours; `dark: ours - gw`: the field over one grey-world gain, both with it.\n\n"
-            + markdown_table(["scene", "file: ours", "file: one gw gain", "dark: ours",
-                              "dark: one gw gain", "dark - file", "dark: ours - gw"], rows)
-            + "\n")
+            + markdown_table(HEADER, rows) + "\n")
 
 
 def main() -> None:
@@ -84,6 +111,8 @@ def main() -> None:
     command = "python experiments/black_level.py" + (
         f" --scenes {args.scenes}" if args.scenes != "all" else "")
     write_report(args.out, table(record, command), record)
+    if args.scenes == "all":
+        update_readme("black_level", readme_table(record, command))
     print(table(record, command))
 
 

@@ -254,3 +254,5 @@ def test_black_level_table_differences_and_group_means():
         "| 0.25 | 1.00 |" in md
     assert "| **mean, mixed light** (1) | 24.00 / 9.00 |" in md
     assert "held out" not in md.split("|---|")[1]  # no group without scenes
+    readme = black_level.readme_table(record, "cmd")  # the group means alone
+    assert "| nine (2) | 21.00 / 9.00 |" in readme and "bucket" not in readme
