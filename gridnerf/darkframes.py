@@ -14,9 +14,9 @@ simulated scenes, `python experiments/noise_table.py`).
 
 `data.black_offset = "dark"` reads `<scene>/dark/*` (any RAW format `raw/` takes),
 measures the offsets once (`measure`), keeps them in `<run>/black_level.json` and every
-later load of the run's scene (training, resume, evaluation: runfolder.open_scene)
-adds them to the scene's black level (`apply`), so the data term, the illuminant
-estimates and the noise fit all see the corrected frames. Without dark frames the
+later load of the run's scene under that config (training, resume, evaluation:
+runfolder.open_scene) adds them to the scene's black level (`apply`), so the data term,
+the illuminant estimates and the noise fit all see the corrected frames. Without dark frames the
 offsets can only be fitted from the noise (gridnerf.sensorfit, `data.black_offset=fit`).
 """
 

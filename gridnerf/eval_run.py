@@ -56,7 +56,8 @@ def load_run(run: Path):
         )
     cfg = cfgmod.load(run / "config.json")
     summary = json.loads((run / "summary.json").read_text())
-    scene = open_scene(Path(summary["scene"]), run, estimate=False)
+    scene = open_scene(Path(summary["scene"]), run, estimate=False,
+                       dark=cfg.data.black_offset == "dark")
     structure, params, _, _ = load_state(run)
     return cfg, scene, structure, params, summary
 

@@ -180,16 +180,17 @@ def trim_metrics(run: Path, stage: int, step: int) -> None:
     atomic.write_text(path, "".join(f"{line}\n" for line in kept))
 
 
-def open_scene(scene_dir, run: Path, estimate: bool = True) -> Scene:
+def open_scene(scene_dir, run: Path, estimate: bool = True, dark: bool = False) -> Scene:
     """Load the run's scene with the bounds and the black level the run uses.
 
     The run's bounds.json wins; otherwise the scene's own bounds; otherwise (estimate=True)
     gridnerf.bounds estimates them from the given poses and they are saved in bounds.json.
-    A black level the run measured from dark frames (black_level.json, gridnerf.darkframes)
-    is added to the file's.
+    dark (the run's config says data.black_offset = "dark"): the black level the run
+    measured from lens-cap frames (black_level.json, gridnerf.darkframes) is added to the
+    file's.
     """
     scene = _open_scene(scene_dir, run, estimate)
-    offset = darkframes.load(run)
+    offset = darkframes.load(run) if dark else None
     return scene if offset is None else darkframes.apply(scene, offset)
 
 

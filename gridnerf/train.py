@@ -553,7 +553,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         darkframes.save(run, measured)  # open_scene adds it to the file's black level
         print("black level from the dark frames: offsets (DN, CFA order) "
               f"{np.round(np.ravel(measured['offset_dn']), 2).tolist()}")
-    scene = runfolder.open_scene(scene_dir, run)
+    scene = runfolder.open_scene(scene_dir, run, dark=cfg.data.black_offset == "dark")
     data = dataset.training_data(scene, cfg.data)
     near_t, far_t = dataset.grid_box(scene)[2:]
     data, colour = colour_inputs(data, scene, cfg)
@@ -681,7 +681,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         "voxels": int(structure.n_rows),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
-    if (offset := darkframes.load(run)) is not None:
+    if cfg.data.black_offset == "dark" and (offset := darkframes.load(run)) is not None:
         summary["black_offset_dn"] = offset.tolist()
     if (run / sensorfit.SENSOR_FIT).exists():
         summary["sensor_fit_dn"] = json.loads((run / sensorfit.SENSOR_FIT).read_text())["dn"]

@@ -92,11 +92,14 @@ def test_a_runs_measured_black_level_reaches_its_scene(small_scene, tmp_path):
     (run / runfolder.BOUNDS).write_text(json.dumps({"near": near, "far": far}))
     plain = runfolder.open_scene(small_scene, run)
     darkframes.save(run, {"offset_dn": [[2.0, 2.0], [2.0, 2.0]], "files": []})
-    shifted = runfolder.open_scene(small_scene, run)
+    shifted = runfolder.open_scene(small_scene, run, dark=True)
     np.testing.assert_allclose(shifted.black_level, plain.black_level + 2.0)
+    # a run whose config says data.black_offset=file ignores a left-over measurement
+    np.testing.assert_array_equal(runfolder.open_scene(small_scene, run).black_level,
+                                  plain.black_level)
     (run / darkframes.BLACK_LEVEL).write_text("{}")
     with pytest.raises(SceneError, match="black_level.json"):
-        runfolder.open_scene(small_scene, run)
+        runfolder.open_scene(small_scene, run, dark=True)
 
 
 def test_training_without_dark_frames_stops_with_one_line(scene_copy, tmp_path, capsys):
