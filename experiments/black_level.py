@@ -24,15 +24,8 @@ import argparse
 
 import numpy as np
 
-from common import (
-    GROUPS,
-    fmt,
-    markdown_table,
-    run_variant,
-    scene_names,
-    update_readme,
-    write_report,
-)
+import common
+from common import GROUPS, fmt, markdown_table, run_variant, scene_names, write_report
 
 VARIANTS = (("file", "default", []), ("dark", "dark_black", ["data.black_offset=dark"]))
 OUTPUTS = (("ours", "gridnerf"), ("global_gw", "global_grey_world"))
@@ -112,7 +105,7 @@ def main() -> None:
         f" --scenes {args.scenes}" if args.scenes != "all" else "")
     write_report(args.out, table(record, command), record)
     if args.scenes == "all":
-        update_readme("black_level", readme_table(record, command))
+        common.update_readme("black_level", readme_table(record, command))
     print(table(record, command))
 
 
