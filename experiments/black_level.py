@@ -25,12 +25,10 @@ import argparse
 import numpy as np
 
 import common
-from common import GROUPS, fmt, markdown_table, run_variant, scene_names, write_report
+from common import REPORT_GROUPS, fmt, markdown_table, run_variant, scene_names, write_report
 
 VARIANTS = (("file", "default", []), ("dark", "dark_black", ["data.black_offset=dark"]))
 OUTPUTS = (("ours", "gridnerf"), ("global_gw", "global_grey_world"))
-LABELS = {"nine": "nine", "dev": "tuning", "heldout": "held out", "mixed": "mixed light",
-          "heldmixed": "held-out mixed light"}
 
 
 def measure(scenes: list[str]) -> dict:
@@ -59,8 +57,8 @@ def _row(label: str, per: dict) -> list[str]:
 def group_means(record: dict) -> dict:
     """{group label: (n, the mean of every figure of `record`'s scenes in that group)}."""
     out = {}
-    for group, label in LABELS.items():
-        got = [record[s] for s in GROUPS[group] if s in record]
+    for label, members in REPORT_GROUPS:
+        got = [record[s] for s in members if s in record]
         if got:
             out[label] = (len(got), {
                 b: {o: {m: float(np.mean([g[b][o][m] for g in got])) for m in ("psnr",
@@ -99,7 +97,7 @@ def main() -> None:
     ap.add_argument("--scenes", default="all", help="'all' or groups / names, comma-separated")
     ap.add_argument("--out", default="reports/black_level")
     args = ap.parse_args()
-    scenes = scene_names(args.scenes, tuple(LABELS))
+    scenes = scene_names(args.scenes, ("nine", "dev", "heldout", "mixed", "heldmixed"))
     record = measure(scenes)
     command = "python experiments/black_level.py" + (
         f" --scenes {args.scenes}" if args.scenes != "all" else "")

@@ -34,14 +34,13 @@ from pathlib import Path
 
 import numpy as np
 
-from common import fmt, markdown_table, simulated_folders, write_report
+from common import REPORT_GROUPS, fmt, markdown_table, simulated_folders, write_report
 from gridnerf import color, eval_run, evaluate, exposure, illuminant
-from gridnerf.sim import DEV, HELDOUT, HELDOUT_MIXED, MIXED, SCENES
+from gridnerf.sim import HELDOUT_MIXED, MIXED
 from illuminant_maps import true_map, weighted_error
 
 ROWS = ("ours", "field_global", "global_gw", "true_global", "true_local")
-GROUPS = (("nine", SCENES), ("tuning", DEV), ("held out", HELDOUT), ("mixed light", MIXED),
-          ("held-out mixed light", HELDOUT_MIXED))
+GROUPS = REPORT_GROUPS
 
 
 def test_views(run: Path, folder: Path):

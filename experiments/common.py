@@ -75,6 +75,9 @@ def stale_run(run: Path, preset: str, quick: bool = False) -> bool:
 # the scene groups a study's --scenes may name
 GROUPS = {"nine": SCENES, "heldout": HELDOUT, "dev": DEV, "mixed": MIXED,
           "heldmixed": HELDOUT_MIXED}
+# (label, scenes) of the groups a colour study reports its means over, each apart
+REPORT_GROUPS = (("nine", SCENES), ("tuning", DEV), ("held out", HELDOUT),
+                 ("mixed light", MIXED), ("held-out mixed light", HELDOUT_MIXED))
 
 
 def scene_names(spec: str, all_groups: tuple[str, ...] = ("nine", "heldout")) -> list[str]:
