@@ -73,37 +73,47 @@ def log_chroma_map(rgb_cam, mask=None, block: int = 16, tau: float = 0.1,
     return _map_and_weight(rgb_cam, mask, block, tau, tie)[0]
 
 
+def neighbour_pairs(hb: int, wb: int) -> tuple[np.ndarray, np.ndarray]:
+    """((E,), (E,)) flat indices of the horizontally then vertically neighbouring blocks of
+    an (hb, wb) grid: the edges Retinex compares."""
+    idx = np.arange(hb * wb).reshape(hb, wb)
+    return (np.concatenate([idx[:, :-1].ravel(), idx[:-1, :].ravel()]),
+            np.concatenate([idx[:, 1:].ravel(), idx[1:, :].ravel()]))
+
+
+def integrate_steps(steps, keep, weight, tie: float = 0.05) -> np.ndarray:
+    """(hb, wb, 2) the map f whose neighbour differences f_b - f_a (neighbour_pairs order)
+    best match `steps` (E, 2) on the kept edges (keep (E,) bool; weight: the weaker block's
+    of `weight` (hb, wb)) and 0 with `tie` x that weight on the others, by weighted least
+    squares (scipy's LSQR), with zero weighted mean."""
+    weight = np.asarray(weight, np.float64)
+    hb, wb = weight.shape
+    a, b = neighbour_pairs(hb, wb)
+    if len(a) == 0:
+        return np.zeros((hb, wb, 2))
+    flat_w = weight.ravel()
+    keep = np.asarray(keep, bool)
+    w = np.minimum(flat_w[a], flat_w[b]) * np.where(keep, 1.0, tie)
+    e = np.arange(len(a))
+    a_mat = coo_matrix((np.concatenate([-w, w]), (np.concatenate([e, e]), np.concatenate([a, b]))),
+                       shape=(len(a), hb * wb))
+    a_mat = vstack([a_mat, 1e-3 * identity(hb * wb)]).tocsr()  # fixes the constant
+    rhs = np.concatenate([w[:, None] * np.where(keep[:, None], np.asarray(steps), 0.0),
+                          np.zeros((hb * wb, 2))])
+    f = np.stack([lsqr(a_mat, rhs[:, k], atol=1e-10, btol=1e-10)[0] for k in range(2)], -1)
+    total = max(float(flat_w.sum()), _TINY)
+    f = f - (f * flat_w[:, None]).sum(0) / total
+    return f.reshape(hb, wb, 2)
+
+
 def _map_and_weight(rgb_cam, mask, block: int, tau: float, tie: float = 0.05
                     ) -> tuple[np.ndarray, np.ndarray]:
     """(log_chroma_map (hb, wb, 2), the blocks' weights (hb, wb) of block_chroma)."""
     chroma, weight = block_chroma(rgb_cam, mask, block)
-    hb, wb = weight.shape
-    idx = np.arange(hb * wb).reshape(hb, wb)
-    flat_c, flat_w = chroma.reshape(-1, 2), weight.ravel()
-    rows, cols, vals, rhs = [], [], [], []
-    n = 0
-    for a, b in ((idx[:, :-1], idx[:, 1:]), (idx[:-1, :], idx[1:, :])):
-        a, b = a.ravel(), b.ravel()
-        diff = flat_c[b] - flat_c[a]  # (e, 2)
-        edge = np.hypot(diff[:, 0], diff[:, 1]) > tau
-        w = np.minimum(flat_w[a], flat_w[b]) * np.where(edge, tie, 1.0)
-        e = np.arange(len(a)) + n
-        rows += [e, e]
-        cols += [a, b]
-        vals += [-w, w]
-        rhs.append(w[:, None] * np.where(edge[:, None], 0.0, diff))
-        n += len(a)
-    if n == 0:
-        return np.zeros((hb, wb, 2)), weight
-    a_mat = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                       shape=(n, hb * wb))
-    a_mat = vstack([a_mat, 1e-3 * identity(hb * wb)]).tocsr()  # fixes the constant
-    rhs_all = np.concatenate([np.concatenate(rhs), np.zeros((hb * wb, 2))])
-    f = np.stack([lsqr(a_mat, rhs_all[:, k], atol=1e-10, btol=1e-10)[0] for k in range(2)],
-                 -1)
-    total = max(float(flat_w.sum()), _TINY)
-    f = f - (f * flat_w[:, None]).sum(0) / total
-    return f.reshape(hb, wb, 2), weight
+    a, b = neighbour_pairs(*weight.shape)
+    flat_c = chroma.reshape(-1, 2)
+    steps = flat_c[b] - flat_c[a]  # (E, 2)
+    return integrate_steps(steps, np.hypot(steps[:, 0], steps[:, 1]) <= tau, weight, tie), weight
 
 
 def relative_maps(images, masks, block: int = 16, tau: float = 0.1

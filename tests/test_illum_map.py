@@ -77,6 +77,23 @@ def test_map_is_scale_free_and_finite_on_black_and_masked_input():
         np.testing.assert_allclose(np.linalg.norm(out, axis=-1), 1.0, atol=1e-9)
 
 
+def test_integrated_steps_recover_a_field_up_to_its_weighted_mean():
+    """integrate_steps: the exact neighbour differences of a field over every edge give the
+    field back less its weighted mean; dropping every edge (ties only) gives a flat map."""
+    rng = np.random.default_rng(3)
+    hb, wb = 9, 13
+    field = np.cumsum(rng.normal(0, 0.05, (hb, wb, 2)), axis=1)
+    weight = rng.uniform(0.2, 1.0, (hb, wb))
+    a, b = illum_map.neighbour_pairs(hb, wb)
+    assert len(a) == hb * (wb - 1) + (hb - 1) * wb
+    steps = field.reshape(-1, 2)[b] - field.reshape(-1, 2)[a]
+    got = illum_map.integrate_steps(steps, np.ones(len(a), bool), weight)
+    mean = (field * weight[..., None]).sum((0, 1)) / weight.sum()
+    np.testing.assert_allclose(got, field - mean, atol=2e-3)
+    flat = illum_map.integrate_steps(steps, np.zeros(len(a), bool), weight)
+    np.testing.assert_allclose(flat, 0.0, atol=1e-9)
+
+
 def test_to_locus_projects_every_entry_of_a_map():
     locus = illuminant.planckian_locus(np.eye(3))
     e = np.random.default_rng(0).uniform(0.2, 1.0, size=(4, 5, 3))

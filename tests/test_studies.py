@@ -213,6 +213,24 @@ def test_true_level_keeps_the_maps_shape_and_takes_the_truths_level():
     np.testing.assert_allclose(flat / flat[0, 0], 1.0, rtol=1e-9)
 
 
+def test_shape_split_of_a_frame_under_one_and_two_lights():
+    """illuminant_maps.shape_split: under one light there is no illumination change to
+    lose (errors 0, nothing on dropped edges); under a smooth blend of two lights over
+    flat paint nothing is dropped and the true steps rebuild the truth within a degree."""
+    warm, cool = np.array([0.6, 1.0, 0.35]), np.array([0.37, 1.0, 0.72])
+    h, w = 64, 256  # 16 blocks: steps of ~0.055 in log chromaticity, under tau
+    one = np.broadcast_to(warm, (h, w, 3))
+    split = illuminant_maps.shape_split(0.2 * one, None, one, 16, 0.1)
+    assert split["true_steps_kept_edges"] == pytest.approx(0.0, abs=1e-6)
+    assert split["dropped_share"] == 0.0 and split["edges_dropped"] == 0.0
+    t = np.linspace(0.0, 1.0, w)[None, :, None]
+    two = np.broadcast_to((1 - t) * warm + t * cool, (h, w, 3))
+    split = illuminant_maps.shape_split(0.2 * two, None, two, 16, 0.1)
+    assert split["edges_dropped"] == 0.0 and split["dropped_share"] == 0.0
+    assert split["true_steps_kept_edges"] < 1.0
+    assert split["true_steps_kept_edges"] == pytest.approx(split["true_steps_all_edges"])
+
+
 def test_every_output_matrix_shows_a_grey_surface_grey_under_its_own_white():
     """matrix_offsets.shown_through: a grey surface under two lights (its low-light colour
     is the light's colour), balanced by each pixel's true white, comes out neutral through
