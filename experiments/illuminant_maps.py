@@ -80,7 +80,7 @@ def weighted_error(estimate, truth, rgb_cam) -> float:
     return float((il.angular_error_deg(estimate, truth) * w).sum() / w.sum())
 
 
-def _from_log_chroma(f) -> np.ndarray:
+def rgb_from_log_chroma(f) -> np.ndarray:
     """(..., 2) log R/G, log B/G -> (..., 3) camera RGB with green 1."""
     return np.stack([np.exp(f[..., 0]), np.ones(f.shape[:-1]), np.exp(f[..., 1])], -1)
 
@@ -103,7 +103,7 @@ def shape_split(img, mask, truth, block: int, tau: float) -> dict:
 
     def error(kept):
         f = illum_map.integrate_steps(steps, kept, weight)
-        full = np.repeat(np.repeat(_from_log_chroma(f), block, 0), block, 1)
+        full = np.repeat(np.repeat(rgb_from_log_chroma(f), block, 0), block, 1)
         return weighted_error(with_true_level(full, truth, crop), truth, crop)
 
     return {"true_steps_kept_edges": error(keep),

@@ -45,14 +45,21 @@ from gridnerf import illuminant, raw
 _TINY = 1e-12
 
 
-def block_chroma(rgb_cam, mask, block: int) -> tuple[np.ndarray, np.ndarray]:
-    """Masked block means in log chromaticity: ((hb, wb, 2) log R/G, log B/G; (hb, wb)
-    weight = the block's mean signal times its valid fraction, >= 0)."""
+def block_means(rgb_cam, mask, block: int) -> tuple[np.ndarray, np.ndarray]:
+    """((hb, wb, 3) each block's mean camera RGB over its valid pixels, (hb, wb) the
+    block's valid fraction); mask (h, w) or (h, w, 3) (a pixel is valid where every channel
+    is) or None."""
     x = np.asarray(rgb_cam, np.float64)
     m = np.ones(x.shape[:2]) if mask is None else np.asarray(mask, np.float64)
     m = m.min(-1) if m.ndim == 3 else m
     mean_w = raw.downscale(m, block)
-    means = raw.downscale(x * m[..., None], block) / np.maximum(mean_w, _TINY)[..., None]
+    return raw.downscale(x * m[..., None], block) / np.maximum(mean_w, _TINY)[..., None], mean_w
+
+
+def block_chroma(rgb_cam, mask, block: int) -> tuple[np.ndarray, np.ndarray]:
+    """Masked block means in log chromaticity: ((hb, wb, 2) log R/G, log B/G; (hb, wb)
+    weight = the block's mean signal times its valid fraction, >= 0)."""
+    means, mean_w = block_means(rgb_cam, mask, block)
     c = np.maximum(means, _TINY)
     chroma = np.stack([np.log(c[..., 0] / c[..., 1]), np.log(c[..., 2] / c[..., 1])], -1)
     weight = np.maximum(means.sum(-1), 0.0) * mean_w
@@ -129,14 +136,22 @@ def _log_chroma(e) -> np.ndarray:
     return np.stack([np.log(e[..., 0] / e[..., 1]), np.log(e[..., 2] / e[..., 1])], -1)
 
 
+def _principal(pts: np.ndarray) -> np.ndarray:
+    return np.linalg.svd(pts - pts.mean(0), full_matrices=False)[2][0]
+
+
+def locus_axis(locus) -> np.ndarray:
+    """(2,) unit direction of the Planckian locus (n, 3) in log chromaticity (log R/G,
+    log B/G): its principal direction over the blackbodies it holds."""
+    return _principal(_log_chroma(locus))
+
+
 def _axis(rel: np.ndarray, weight: np.ndarray, locus=None) -> np.ndarray:
     """(2,) unit direction in log chromaticity along which lights differ: the locus's
     principal direction (blackbodies of 1500-20000 K) or, without one, the maps'."""
     if locus is not None:
-        pts = _log_chroma(locus)
-    else:
-        pts = rel.reshape(-1, 2) * np.sqrt(weight.reshape(-1, 1))
-    return np.linalg.svd(pts - pts.mean(0), full_matrices=False)[2][0]
+        return locus_axis(locus)
+    return _principal(rel.reshape(-1, 2) * np.sqrt(weight.reshape(-1, 1)))
 
 
 def regional_anchor(images, masks, rel: np.ndarray, weight: np.ndarray, estimate: Callable,

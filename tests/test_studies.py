@@ -26,6 +26,7 @@ import common  # noqa: E402
 import consistency  # noqa: E402
 import illuminant_maps  # noqa: E402
 import matrix_offsets  # noqa: E402
+import retinex_edges  # noqa: E402
 import speed  # noqa: E402
 import sweep  # noqa: E402
 
@@ -229,6 +230,27 @@ def test_shape_split_of_a_frame_under_one_and_two_lights():
     assert split["edges_dropped"] == 0.0 and split["dropped_share"] == 0.0
     assert split["true_steps_kept_edges"] < 1.0
     assert split["true_steps_kept_edges"] == pytest.approx(split["true_steps_all_edges"])
+
+
+def test_edge_rules_keep_a_lights_shadow_and_drop_paint():
+    """retinex_edges.edge_rules on three blocks of one grey paint in a row: the middle one
+    lit by a warm and a cool light, the left one in the warm light's shadow, the right one
+    painted another colour. Every rule drops the paint edge; the default drops the shadow
+    edge too (a step of 0.23), the chord and shadow rules keep it. (Mixtures curve in log
+    chromaticity: with lights twice as far apart the shadow's step leaves the chord by
+    more than the rules allow.)"""
+    warm, cool = np.array([0.8, 1.0, 0.55]), np.array([0.6, 1.0, 0.8])  # ~0.47 apart
+    lit = 0.3 * warm + 0.3 * cool
+    means = np.stack([0.3 * cool, lit, lit * np.array([0.9, 0.5, 0.3])])[None]  # (1, 3, 3)
+    chroma = np.stack([np.log(means[..., 0] / means[..., 1]),
+                       np.log(means[..., 2] / means[..., 1])], -1)
+    c = np.log(warm[[0, 2]] / warm[1]) - np.log(cool[[0, 2]] / cool[1])
+    along = c / np.linalg.norm(c)
+    across = np.array([-along[1], along[0]])
+    rules = retinex_edges.edge_rules(means, chroma, along, across, tau=0.1)
+    # edges: (left, middle) = the shadow's, (middle, right) = the paint's
+    assert not rules["retinex"][0] and rules["chord"][0] and rules["shadow"][0]
+    assert not any(r[1] for r in rules.values())
 
 
 def test_every_output_matrix_shows_a_grey_surface_grey_under_its_own_white():

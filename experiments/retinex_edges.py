@@ -1,0 +1,143 @@
+"""Which block edges a Retinex map may integrate: the default rule against two that keep
+large steps that look like illumination.
+
+Most of the mixed-light maps' shape error is illumination change on edges the default rule
+drops (reports/illuminant_maps.md, second table: 58-72 % of the true change lies on edges
+whose chromaticity step exceeds tau). Two rules that keep some larger steps are scored
+here on the 2x2-binned raw training frames, each map at the truth's level (its shape
+alone, not projected on the locus; green-weighted angular error against the simulator's
+per-pixel white, as in experiments/illuminant_maps.py):
+
+- `retinex` (the default, illum_map.log_chroma_map): a step is kept when its log
+  chromaticity changes by at most tau.
+- `chord`: also keep a larger step (up to 0.3 along the camera's Planckian locus) that
+  runs along the locus (at most 0.02 across it): where two blackbody lights mix, the
+  illumination moves along the chord between them, close to the locus.
+- `shadow`: also keep a larger step that looks like one light's shadow or falloff: between
+  a brighter block b and a darker block d of one paint, E_b = E_d + k L (one light L
+  added), so b / d - 1 = k L / E_d is positive in every channel, and both its log
+  chromaticity and the step's run along the locus (within 10 deg), the same way, the
+  former the longer. Paint edges give any ratio.
+
+Both rules mistake some paint for light (a white beside a warm paint reads as a cool light
+added), and that is what the table measures, under one light as under two.
+
+    python experiments/retinex_edges.py [--scenes all] [--block 16] [--tau 0.1]
+
+Writes reports/retinex_edges.md and reports/retinex_edges.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+from common import REPORT_GROUPS, fmt, markdown_table, simulated_folders, write_report
+from gridnerf import illum_map
+from gridnerf import illuminant as il
+from gridnerf.scene import raw_files
+from illuminant_maps import rgb_from_log_chroma, true_map, weighted_error, with_true_level
+from illuminants import raw_images
+
+RULES = ("retinex", "chord", "shadow")
+ACROSS, ALONG = 0.02, 0.3  # the chord rule's limits (log chromaticity)
+SHADOW_DEG, SHADOW_MIN_RATIO = 10.0, 0.05  # the shadow rule's angle; b / d - 1 floor
+
+
+def locus_axes(xyz_to_cam) -> tuple[np.ndarray, np.ndarray]:
+    """((2,), (2,)) unit directions along and across the camera's Planckian locus in log
+    chromaticity (log R/G, log B/G): illum_map.locus_axis, and the normal to it."""
+    along = illum_map.locus_axis(il.planckian_locus(xyz_to_cam))
+    return along, np.array([-along[1], along[0]])
+
+
+def edge_rules(means, chroma, along, across, tau: float) -> dict[str, np.ndarray]:
+    """Each rule's kept edges (E,) bool (illum_map.neighbour_pairs order). means: (hb, wb,
+    3) the blocks' mean camera RGB; chroma: (hb, wb, 2) their log chromaticity."""
+    a, b = illum_map.neighbour_pairs(*chroma.shape[:2])
+    flat_c, flat_m = chroma.reshape(-1, 2), means.reshape(-1, 3)
+    step = flat_c[b] - flat_c[a]
+    small = np.hypot(step[:, 0], step[:, 1]) <= tau
+    chord = (np.abs(step @ across) <= ACROSS) & (np.abs(step @ along) <= ALONG)
+    lum = flat_m.sum(-1)
+    hi, lo = np.where(lum[b] > lum[a], b, a), np.where(lum[b] > lum[a], a, b)
+    ratio = flat_m[hi] / np.maximum(flat_m[lo], 1e-12) - 1.0  # k L / E_d for a shadow
+    q = np.log(np.maximum(ratio, 1e-6))
+    q = np.stack([q[:, 0] - q[:, 1], q[:, 2] - q[:, 1]], -1)
+    s = flat_c[hi] - flat_c[lo]
+    tan = np.tan(np.deg2rad(SHADOW_DEG))
+    sa, qa = s @ along, q @ along
+    shadow = ((ratio > SHADOW_MIN_RATIO).all(-1)
+              & (np.abs(s @ across) <= tan * np.abs(sa))
+              & (np.abs(q @ across) <= tan * np.abs(qa))
+              & (np.sign(sa) == np.sign(qa))
+              & (np.hypot(*q.T) >= np.hypot(*s.T)))
+    return {"retinex": small, "chord": small | chord, "shadow": small | shadow}
+
+
+def frame_errors(img, mask, truth, along, across, block: int, tau: float) -> dict:
+    """Each rule's map of one frame at the truth's level: green-weighted angular error
+    (deg) against truth (hb * block, wb * block, 3), and the share of edges it keeps that
+    the default rule drops ('<rule>_extra')."""
+    chroma, weight = illum_map.block_chroma(img, mask, block)
+    hb, wb = weight.shape
+    means = illum_map.block_means(img, mask, block)[0]
+    a, b = illum_map.neighbour_pairs(hb, wb)
+    flat_c = chroma.reshape(-1, 2)
+    crop = img[: hb * block, : wb * block]
+    rules = edge_rules(means, chroma, along, across, tau)
+    out = {}
+    for name, keep in rules.items():
+        f = illum_map.integrate_steps(flat_c[b] - flat_c[a], keep, weight)
+        full = np.repeat(np.repeat(rgb_from_log_chroma(f), block, 0), block, 1)
+        out[name] = weighted_error(with_true_level(full, truth, crop), truth, crop)
+        out[f"{name}_extra"] = float(np.mean(keep & ~rules["retinex"]))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default="all")
+    ap.add_argument("--block", type=int, default=16)
+    ap.add_argument("--tau", type=float, default=0.1)
+    ap.add_argument("--out", default="reports/retinex_edges")
+    args = ap.parse_args()
+    record, rows = {}, []
+    for name, folder in simulated_folders(args.scenes):
+        sim = json.loads((folder / "sim.json").read_text())
+        images, masks = raw_images(folder)
+        test = set(sim.get("test_frames", []))
+        names = [n for n in raw_files(folder) if n not in test]
+        along, across = locus_axes(sim["xyz_to_cam"])
+        per = []
+        for img, mask, frame in zip(images, masks, names, strict=True):
+            hb, wb = (s // args.block for s in img.shape[:2])
+            truth = true_map(folder, sim, frame, (hb * args.block, wb * args.block))
+            per.append(frame_errors(img, mask, truth, along, across, args.block, args.tau))
+        record[name] = {k: float(np.mean([p[k] for p in per])) for k in per[0]}
+        record[name]["mixed_light"] = bool(sim.get("mixed_light"))
+        rows.append([name, *(fmt(record[name][r]) for r in RULES),
+                     *(fmt(record[name][f"{r}_extra"]) for r in RULES[1:])])
+        print(" | ".join(rows[-1]), flush=True)
+    for label, group in REPORT_GROUPS:
+        got = [record[n] for n in group if n in record]
+        if got:
+            rows.append([f"**mean, {label}** ({len(got)})",
+                         *(fmt(float(np.mean([g[r] for g in got]))) for r in RULES),
+                         *(fmt(float(np.mean([g[f"{r}_extra"] for g in got])))
+                           for r in RULES[1:])])
+    md = ("# Retinex edges: which steps a map may integrate\n\n"
+          f"`python experiments/retinex_edges.py --scenes {args.scenes}`. Per-pixel angular "
+          "error (deg, green-weighted) of each frame's map at the truth's level (its shape "
+          "alone), 2x2-binned raw training frames, blocks of "
+          f"{args.block}, tau {args.tau}; `extra`: the share of edges a rule keeps that "
+          "the default (`retinex`) drops. Rules in the script's docstring.\n\n"
+          + markdown_table(["scene", *(f"{r} (deg)" for r in RULES), "chord extra",
+                            "shadow extra"], rows) + "\n")
+    write_report(args.out, md, record)
+
+
+if __name__ == "__main__":
+    main()
