@@ -83,6 +83,7 @@ STUDIES = [("ablation", "Ablation", "ablate"), ("sweep", "Darkness sweep", "swee
            ("recon", "Reconstruction against the per-frame pipeline and the oracle", "recon"),
            ("illuminants", "Illuminant estimation (angular error)", "illuminants"),
            ("illuminant_maps", "Illuminant maps where lights mix", "illuminant_maps"),
+           ("retinex_edges", "Retinex edge rules for the maps (not adopted)", "retinex_edges"),
            ("colour_ceiling", "Colour ceiling (the true white)", "colour_ceiling"),
            ("noise", "Sensor fit (fitted against true)", "noise_table"),
            ("black_level", "The black level from lens-cap frames", "black_level")]
