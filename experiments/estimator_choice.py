@@ -1,0 +1,150 @@
+"""Choosing the illuminant estimator per capture by its consistency across the frames.
+
+The L_ca target's level is the capture's colour constancy: the consensus (per-channel
+median) of grey world, shades of grey and grey edge, each on the camera's Planckian locus
+(illuminant.capture_estimate "consensus"). Each of the three fails on some content, and
+the consensus outvotes one that fails. An alternative that looks at the capture: an
+estimator that reacts to the light, not the content, gives the same answer on different
+parts of the scene. Here each estimator runs on the four quadrants of the training frames
+(pooled over the frames) and on the whole capture; its `spread` is the mean angle of the
+quadrants' estimates from the whole's, and the `pick` is the estimator that spreads least.
+The `safe pick` never takes the odd one out (the estimate furthest from the consensus):
+the least spread of the other two.
+
+Scored on the 2x2-binned raw training frames against the simulator's white:
+
+- one estimate for the capture (single-light scenes): angular error of the consensus and
+  of the pick;
+- the L_ca map anchored by region (illum_map.regional_anchor, the default target) with the
+  consensus or with the pick in both halves: green-weighted per-pixel angular error, as
+  experiments/illuminant_maps.py scores it (every scene).
+
+Under two lights the quadrants see different lights as well as different content, so
+the spread measures both.
+
+    python experiments/estimator_choice.py [--scenes all]
+
+Writes reports/estimator_choice.md and reports/estimator_choice.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from functools import partial
+
+import numpy as np
+
+from common import REPORT_GROUPS, fmt, markdown_table, simulated_folders, write_report
+from gridnerf import illum_map
+from gridnerf import illuminant as il
+from gridnerf.scene import raw_files
+from illuminant_maps import true_map, weighted_error
+from illuminants import raw_images
+
+BLOCK, TAU = 16, 0.1  # the default map's (loss.ca_map_block, loss.ca_map_tau)
+
+
+def quadrants(images, masks) -> list[tuple[list, list]]:
+    """The frames' four quadrants, each (images, masks) pooled over the frames; a quadrant
+    with under 5 % valid pixels on average is left out."""
+    h, w = np.shape(images[0])[:2]
+    out = []
+    for ys in (slice(0, h // 2), slice(h // 2, None)):
+        for xs in (slice(0, w // 2), slice(w // 2, None)):
+            ims = [np.asarray(x)[ys, xs] for x in images]
+            ms = [np.asarray(m)[ys, xs] for m in masks]
+            if np.mean([m.mean() for m in ms]) > 0.05:
+                out.append((ims, ms))
+    return out
+
+
+def spreads(images, masks, locus) -> dict[str, tuple[np.ndarray, float]]:
+    """{estimator: ((3,) its capture estimate on the locus, its spread in deg)} for the
+    consensus's three estimators."""
+    parts = quadrants(images, masks)
+    out = {}
+    for name in il.CONSENSUS:
+        whole = il.capture_estimate(name, images, masks, locus)
+        out[name] = (whole, float(np.mean([il.angular_error_deg(
+            il.capture_estimate(name, ims, ms, locus), whole) for ims, ms in parts])))
+    return out
+
+
+def regional_map_error(folder, sim, images, masks, names, estimate, locus) -> float:
+    """Mean over the frames of the per-pixel error of the regional-anchor map built with
+    `estimate` (images, masks) -> (3,)."""
+    rel, weight = illum_map.relative_maps(images, masks, BLOCK, TAU)
+    anchor = illum_map.regional_anchor(images, masks, rel, weight, estimate, locus, BLOCK)
+    maps = illum_map.frame_maps(images, masks, anchor, locus, BLOCK, TAU, rel=rel)
+    errs = []
+    for img, fmap, frame in zip(images, maps, names, strict=True):
+        hb, wb = fmap.shape[:2]
+        crop = img[: hb * BLOCK, : wb * BLOCK]
+        full = np.repeat(np.repeat(fmap, BLOCK, 0), BLOCK, 1)
+        errs.append(weighted_error(full, true_map(folder, sim, frame, crop.shape[:2]), crop))
+    return float(np.mean(errs))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default="all")
+    ap.add_argument("--out", default="reports/estimator_choice")
+    args = ap.parse_args()
+    record, rows = {}, []
+    for name, folder in simulated_folders(args.scenes):
+        sim = json.loads((folder / "sim.json").read_text())
+        images, masks = raw_images(folder)
+        test = set(sim.get("test_frames", []))
+        names = [n for n in raw_files(folder) if n not in test]
+        locus = il.planckian_locus(sim["xyz_to_cam"])
+        spread = spreads(images, masks, locus)
+        pick = min(spread, key=lambda n: spread[n][1])
+        cons = il.consensus([e for e, _ in spread.values()], locus)
+        odd = max(spread, key=lambda n: il.angular_error_deg(spread[n][0], cons))
+        safe = min((n for n in spread if n != odd), key=lambda n: spread[n][1])
+        rec = {"pick": pick, "safe_pick": safe,
+               "spread_deg": {n: s for n, (_, s) in spread.items()},
+               "mixed_light": bool(sim.get("mixed_light"))}
+        if not rec["mixed_light"]:
+            true = np.asarray(sim["illuminant_neutral_cam"], np.float64)
+            rec["capture_consensus"] = float(il.angular_error_deg(
+                il.consensus([e for e, _ in spread.values()], locus), true))
+            rec["capture_pick"] = float(il.angular_error_deg(spread[pick][0], true))
+        for key, est in (("map_consensus", "consensus"), ("map_pick", pick),
+                         ("map_safe_pick", safe)):
+            rec[key] = regional_map_error(folder, sim, images, masks, names,
+                                          partial(il.capture_estimate, est, locus=locus),
+                                          locus)
+        record[name] = rec
+        rows.append([name, pick, *(fmt(spread[n][1]) for n in il.CONSENSUS),
+                     *(fmt(rec[k]) if k in rec else "" for k in ("capture_consensus",
+                                                                  "capture_pick")),
+                     fmt(rec["map_consensus"]), fmt(rec["map_pick"]), safe,
+                     fmt(rec["map_safe_pick"])])
+        print(" | ".join(rows[-1]), flush=True)
+    keys = ("capture_consensus", "capture_pick", "map_consensus", "map_pick", "",
+            "map_safe_pick")
+    for label, group in REPORT_GROUPS:
+        got = [record[n] for n in group if n in record]
+        if got:
+            means = [fmt(float(np.mean([g[k] for g in got if k in g])))
+                     if k and any(k in g for g in got) else "" for k in keys]
+            rows.append([f"**mean, {label}** ({len(got)})", "", "", "", "", *means])
+    md = ("# Choosing the illuminant estimator by its consistency\n\n"
+          f"`python experiments/estimator_choice.py --scenes {args.scenes}`. Binned raw "
+          "training frames; angular errors (deg) against the simulator's white. `spread`: "
+          "mean angle of each estimator's quadrant estimates from its whole-capture "
+          "estimate (on the locus); `pick`: the estimator that spreads least; `capture`: "
+          "one estimate for the capture (single-light scenes); `map`: the default L_ca map "
+          "(regional anchor) with the consensus, the pick or the safe pick (the least "
+          "spread of the two estimates nearer the consensus) in both halves, "
+          "green-weighted per pixel.\n\n"
+          + markdown_table(["scene", "pick", *(f"spread {n}" for n in il.CONSENSUS),
+                            "capture: consensus", "capture: pick", "map: consensus",
+                            "map: pick", "safe pick", "map: safe pick"], rows) + "\n")
+    write_report(args.out, md, record)
+
+
+if __name__ == "__main__":
+    main()
