@@ -19,8 +19,14 @@ per-pixel white, as in experiments/illuminant_maps.py):
   chromaticity and the step's run along the locus (within 10 deg), the same way, the
   former the longer. Paint edges give any ratio.
 
-Both rules mistake some paint for light (a white beside a warm paint reads as a cool light
-added), and that is what the table measures, under one light as under two.
+- `crease` (an oracle of geometry): also keep a step between blocks whose surfaces face
+  directions more than 20 deg apart (the simulator's true normals, averaged over each
+  block): a face turned to another light. It tells whether geometry, were the grid's
+  good enough, would point out the light's steps.
+
+The first two mistake some paint for light (a white beside a warm paint reads as a cool
+light added); the third keeps every paint edge that falls on a crease or an outline.
+The table measures what each costs, under one light as under two.
 
     python experiments/retinex_edges.py [--scenes all] [--block 16] [--tau 0.1]
 
@@ -31,19 +37,35 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 import numpy as np
 
 from common import REPORT_GROUPS, fmt, markdown_table, simulated_folders, write_report
-from gridnerf import illum_map
+from gridnerf import illum_map, raw
 from gridnerf import illuminant as il
 from gridnerf.scene import raw_files
+from gridnerf.sim import capture
+from gridnerf.sim.scenes import build_scene
 from illuminant_maps import rgb_from_log_chroma, true_map, weighted_error, with_true_level
 from illuminants import raw_images
 
-RULES = ("retinex", "chord", "shadow")
+RULES = ("retinex", "chord", "shadow", "crease")
 ACROSS, ALONG = 0.02, 0.3  # the chord rule's limits (log chromaticity)
 SHADOW_DEG, SHADOW_MIN_RATIO = 10.0, 0.05  # the shadow rule's angle; b / d - 1 floor
+CREASE_DEG = 20.0  # the crease rule's angle between neighbouring blocks' normals
+
+
+def true_normals(folder, frame: str, sim: dict, shape: tuple[int, int]) -> np.ndarray:
+    """(h, w, 3) the simulator's mean surface normal of each binned pixel of `frame`
+    (shape: the binned frame's), from its pose in transforms.json and the scene's spec."""
+    meta = json.loads((folder / "transforms.json").read_text())
+    pose = next(np.asarray(f["transform_matrix"], np.float64) for f in meta["frames"]
+                if Path(f["file_path"]).stem == frame)
+    intr = capture.Intrinsics(meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"],
+                              meta["w"], meta["h"])
+    full = capture.render_normals(build_scene(sim["scene"]), pose, intr).astype(np.float64)
+    return raw.downscale(full, 2)[: shape[0], : shape[1]]
 
 
 def locus_axes(xyz_to_cam) -> tuple[np.ndarray, np.ndarray]:
@@ -53,9 +75,11 @@ def locus_axes(xyz_to_cam) -> tuple[np.ndarray, np.ndarray]:
     return along, np.array([-along[1], along[0]])
 
 
-def edge_rules(means, chroma, along, across, tau: float) -> dict[str, np.ndarray]:
+def edge_rules(means, chroma, along, across, tau: float, normals=None
+               ) -> dict[str, np.ndarray]:
     """Each rule's kept edges (E,) bool (illum_map.neighbour_pairs order). means: (hb, wb,
-    3) the blocks' mean camera RGB; chroma: (hb, wb, 2) their log chromaticity."""
+    3) the blocks' mean camera RGB; chroma: (hb, wb, 2) their log chromaticity; normals:
+    (hb, wb, 3) the blocks' mean surface normals, or None (no crease rule)."""
     a, b = illum_map.neighbour_pairs(*chroma.shape[:2])
     flat_c, flat_m = chroma.reshape(-1, 2), means.reshape(-1, 3)
     step = flat_c[b] - flat_c[a]
@@ -74,20 +98,27 @@ def edge_rules(means, chroma, along, across, tau: float) -> dict[str, np.ndarray
               & (np.abs(q @ across) <= tan * np.abs(qa))
               & (np.sign(sa) == np.sign(qa))
               & (np.hypot(*q.T) >= np.hypot(*s.T)))
-    return {"retinex": small, "chord": small | chord, "shadow": small | shadow}
+    rules = {"retinex": small, "chord": small | chord, "shadow": small | shadow}
+    if normals is not None:
+        n = np.asarray(normals, np.float64).reshape(-1, 3)
+        n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+        turned = np.sum(n[a] * n[b], -1) < np.cos(np.deg2rad(CREASE_DEG))
+        rules["crease"] = small | turned
+    return rules
 
 
-def frame_errors(img, mask, truth, along, across, block: int, tau: float) -> dict:
+def frame_errors(img, mask, truth, normals, along, across, block: int, tau: float) -> dict:
     """Each rule's map of one frame at the truth's level: green-weighted angular error
     (deg) against truth (hb * block, wb * block, 3), and the share of edges it keeps that
-    the default rule drops ('<rule>_extra')."""
+    the default rule drops ('<rule>_extra'); normals: (h, w, 3) true_normals."""
     chroma, weight = illum_map.block_chroma(img, mask, block)
     hb, wb = weight.shape
     means = illum_map.block_means(img, mask, block)[0]
     a, b = illum_map.neighbour_pairs(hb, wb)
     flat_c = chroma.reshape(-1, 2)
     crop = img[: hb * block, : wb * block]
-    rules = edge_rules(means, chroma, along, across, tau)
+    rules = edge_rules(means, chroma, along, across, tau,
+                       illum_map.block_means(normals, None, block)[0])
     out = {}
     for name, keep in rules.items():
         f = illum_map.integrate_steps(flat_c[b] - flat_c[a], keep, weight)
@@ -115,7 +146,9 @@ def main() -> None:
         for img, mask, frame in zip(images, masks, names, strict=True):
             hb, wb = (s // args.block for s in img.shape[:2])
             truth = true_map(folder, sim, frame, (hb * args.block, wb * args.block))
-            per.append(frame_errors(img, mask, truth, along, across, args.block, args.tau))
+            normals = true_normals(folder, frame, sim, img.shape[:2])
+            per.append(frame_errors(img, mask, truth, normals, along, across, args.block,
+                                    args.tau))
         record[name] = {k: float(np.mean([p[k] for p in per])) for k in per[0]}
         record[name]["mixed_light"] = bool(sim.get("mixed_light"))
         rows.append([name, *(fmt(record[name][r]) for r in RULES),
@@ -134,8 +167,8 @@ def main() -> None:
           "alone), 2x2-binned raw training frames, blocks of "
           f"{args.block}, tau {args.tau}; `extra`: the share of edges a rule keeps that "
           "the default (`retinex`) drops. Rules in the script's docstring.\n\n"
-          + markdown_table(["scene", *(f"{r} (deg)" for r in RULES), "chord extra",
-                            "shadow extra"], rows) + "\n")
+          + markdown_table(["scene", *(f"{r} (deg)" for r in RULES),
+                            *(f"{r} extra" for r in RULES[1:])], rows) + "\n")
     write_report(args.out, md, record)
 
 

@@ -18,7 +18,14 @@ from gridnerf.sim import DEV, HELDOUT, HELDOUT_MIXED, MIXED, SCENES, simulate_sc
 from gridnerf.sim import scenes as sc
 from gridnerf.sim import sensor as sn
 from gridnerf.sim import textures as tx
-from gridnerf.sim.capture import camera_path, intrinsics, look_at, pixel_rays, render_view
+from gridnerf.sim.capture import (
+    camera_path,
+    intrinsics,
+    look_at,
+    pixel_rays,
+    render_normals,
+    render_view,
+)
 from gridnerf.sim.geometry import Primitive, cast, occluded, rotation
 
 WHITE = tx.solid((1.0, 1.0, 1.0))
@@ -96,6 +103,22 @@ def test_camera_rays_follow_opengl_convention():
 
 
 # ---------------------------------------------------------------- sensor
+
+
+def test_true_normals_face_the_camera_and_shorten_on_creases():
+    """render_normals: unit normals facing the camera where a pixel sees one flat face, 0
+    where it sees nothing, shorter where its sub-rays straddle a crease or an outline."""
+    spec = sc.build_scene("box")
+    intr = intrinsics(48, 27)
+    c2w = camera_path(spec, 1, np.random.default_rng(0))[0]
+    normals = render_normals(spec, c2w, intr, ssaa=2)
+    assert normals.shape == (27, 48, 3) and np.isfinite(normals).all()
+    length = np.linalg.norm(normals, axis=-1)
+    assert length.max() <= 1.0 + 1e-5 and (length > 0.999).mean() > 0.5
+    assert (length < 0.99).any()  # some pixel straddles an edge
+    _, dirs = pixel_rays(c2w, intr)
+    facing = np.einsum("hwc,hwc->hw", normals, dirs[:, :, 0])
+    assert (facing[length > 0.999] < 0).all()
 
 
 def test_noise_variance_follows_gain_and_read_noise():

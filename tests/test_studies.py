@@ -250,7 +250,11 @@ def test_edge_rules_keep_a_lights_shadow_and_drop_paint():
     rules = retinex_edges.edge_rules(means, chroma, along, across, tau=0.1)
     # edges: (left, middle) = the shadow's, (middle, right) = the paint's
     assert not rules["retinex"][0] and rules["chord"][0] and rules["shadow"][0]
-    assert not any(r[1] for r in rules.values())
+    assert not any(r[1] for r in rules.values()) and "crease" not in rules
+    # the crease rule keeps the step between faces turned 90 deg apart, paint or not
+    normals = np.array([[[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]])
+    crease = retinex_edges.edge_rules(means, chroma, along, across, 0.1, normals)["crease"]
+    assert list(crease) == [False, True]
 
 
 def test_every_output_matrix_shows_a_grey_surface_grey_under_its_own_white():

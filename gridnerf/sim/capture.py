@@ -279,6 +279,15 @@ def render_view(spec: SceneSpec, c2w: np.ndarray, intr: Intrinsics, ssaa: int = 
                    lambda p, n, a: shade(spec, p, n, a), 3)
 
 
+def render_normals(spec: SceneSpec, c2w: np.ndarray, intr: Intrinsics, ssaa: int = 1,
+                   tile: int = 64) -> np.ndarray:
+    """(H, W, 3) float32: the mean of the unit surface normals (facing the camera) of each
+    pixel's sub-rays, 0 where they miss: its length is below 1 where a pixel straddles a
+    crease or an outline. For scoring only (experiments/retinex_edges.py); no trainer sees
+    it."""
+    return _render(spec, c2w, intr, ssaa, tile, lambda p, n, a: n, 3)[0]
+
+
 def render_view_layers(spec: SceneSpec, c2w: np.ndarray, intr: Intrinsics, ssaa: int = 2,
                        tile: int = 64):
     """Clean view rendered light by light (mixed illuminants; see shade_layers).
