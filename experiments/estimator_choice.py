@@ -39,7 +39,7 @@ from common import REPORT_GROUPS, fmt, markdown_table, simulated_folders, write_
 from gridnerf import illum_map
 from gridnerf import illuminant as il
 from gridnerf.scene import raw_files
-from illuminant_maps import true_map, weighted_error
+from illuminant_maps import to_pixels, true_map, weighted_error
 from illuminants import raw_images
 
 BLOCK, TAU = 16, 0.1  # the default map's (loss.ca_map_block, loss.ca_map_tau)
@@ -81,8 +81,8 @@ def regional_map_error(folder, sim, images, masks, names, estimate, locus) -> fl
     for img, fmap, frame in zip(images, maps, names, strict=True):
         hb, wb = fmap.shape[:2]
         crop = img[: hb * BLOCK, : wb * BLOCK]
-        full = np.repeat(np.repeat(fmap, BLOCK, 0), BLOCK, 1)
-        errs.append(weighted_error(full, true_map(folder, sim, frame, crop.shape[:2]), crop))
+        errs.append(weighted_error(to_pixels(fmap, BLOCK),
+                                   true_map(folder, sim, frame, crop.shape[:2]), crop))
     return float(np.mean(errs))
 
 

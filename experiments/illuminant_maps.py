@@ -80,9 +80,19 @@ def weighted_error(estimate, truth, rgb_cam) -> float:
     return float((il.angular_error_deg(estimate, truth) * w).sum() / w.sum())
 
 
-def rgb_from_log_chroma(f) -> np.ndarray:
-    """(..., 2) log R/G, log B/G -> (..., 3) camera RGB with green 1."""
-    return np.stack([np.exp(f[..., 0]), np.ones(f.shape[:-1]), np.exp(f[..., 1])], -1)
+def to_pixels(block_map, block: int) -> np.ndarray:
+    """(hb, wb, ...) one value per block -> (hb * block, wb * block, ...) per pixel."""
+    return np.repeat(np.repeat(block_map, block, 0), block, 1)
+
+
+def shape_error(f, truth, crop, block: int) -> float:
+    """Green-weighted angular error (deg) of a relative map f (hb, wb, 2) (log R/G, log
+    B/G per block, as illum_map.integrate_steps gives it) against truth (h, w, 3) once its
+    level is the truth's (with_true_level): the error of its shape alone. crop: the frame's
+    camera RGB (h, w, 3) = (hb * block, wb * block, 3), for the weights."""
+    rgb = np.stack([np.exp(f[..., 0]), np.ones(f.shape[:-1]), np.exp(f[..., 1])], -1)
+    full = to_pixels(rgb, block)
+    return weighted_error(with_true_level(full, truth, crop), truth, crop)
 
 
 def shape_split(img, mask, truth, block: int, tau: float) -> dict:
@@ -102,9 +112,7 @@ def shape_split(img, mask, truth, block: int, tau: float) -> dict:
     size = np.hypot(steps[:, 0], steps[:, 1]) * np.minimum(weight.ravel()[a], weight.ravel()[b])
 
     def error(kept):
-        f = illum_map.integrate_steps(steps, kept, weight)
-        full = np.repeat(np.repeat(rgb_from_log_chroma(f), block, 0), block, 1)
-        return weighted_error(with_true_level(full, truth, crop), truth, crop)
+        return shape_error(illum_map.integrate_steps(steps, kept, weight), truth, crop, block)
 
     return {"true_steps_kept_edges": error(keep),
             "true_steps_all_edges": error(np.ones_like(keep)),
@@ -140,8 +148,7 @@ def main() -> None:
             crop = img[: hb * args.block, : wb * args.block]
             truth = true_map(folder, sim, frame, crop.shape[:2])
             err_c.append(weighted_error(np.broadcast_to(capture, truth.shape), truth, crop))
-            full, full_r = (np.repeat(np.repeat(m, args.block, 0), args.block, 1)
-                            for m in (fmap, fmap_r))
+            full, full_r = (to_pixels(m, args.block) for m in (fmap, fmap_r))
             err_m.append(weighted_error(full, truth, crop))
             err_r.append(weighted_error(full_r, truth, crop))
             err_l.append(weighted_error(with_true_level(full_r, truth, crop), truth, crop))

@@ -47,7 +47,7 @@ from gridnerf import illuminant as il
 from gridnerf.scene import raw_files
 from gridnerf.sim import capture
 from gridnerf.sim.scenes import build_scene
-from illuminant_maps import rgb_from_log_chroma, true_map, weighted_error, with_true_level
+from illuminant_maps import shape_error, true_map
 from illuminants import raw_images
 
 RULES = ("retinex", "chord", "shadow", "crease")
@@ -56,16 +56,19 @@ SHADOW_DEG, SHADOW_MIN_RATIO = 10.0, 0.05  # the shadow rule's angle; b / d - 1 
 CREASE_DEG = 20.0  # the crease rule's angle between neighbouring blocks' normals
 
 
-def true_normals(folder, frame: str, sim: dict, shape: tuple[int, int]) -> np.ndarray:
-    """(h, w, 3) the simulator's mean surface normal of each binned pixel of `frame`
-    (shape: the binned frame's), from its pose in transforms.json and the scene's spec."""
+def true_normals(folder, sim: dict, frames: list[str], shape: tuple[int, int]
+                 ) -> list[np.ndarray]:
+    """(h, w, 3) per frame of `frames`: the simulator's mean surface normal of each binned
+    pixel (shape: the binned frames'), from the frame's pose in transforms.json and the
+    scene's spec (each read or built once)."""
     meta = json.loads((folder / "transforms.json").read_text())
-    pose = next(np.asarray(f["transform_matrix"], np.float64) for f in meta["frames"]
-                if Path(f["file_path"]).stem == frame)
+    poses = {Path(f["file_path"]).stem: np.asarray(f["transform_matrix"], np.float64)
+             for f in meta["frames"]}
     intr = capture.Intrinsics(meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"],
                               meta["w"], meta["h"])
-    full = capture.render_normals(build_scene(sim["scene"]), pose, intr).astype(np.float64)
-    return raw.downscale(full, 2)[: shape[0], : shape[1]]
+    spec = build_scene(sim["scene"])
+    return [raw.downscale(capture.render_normals(spec, poses[f], intr).astype(np.float64),
+                          2)[: shape[0], : shape[1]] for f in frames]
 
 
 def locus_axes(xyz_to_cam) -> tuple[np.ndarray, np.ndarray]:
@@ -121,9 +124,8 @@ def frame_errors(img, mask, truth, normals, along, across, block: int, tau: floa
                        illum_map.block_means(normals, None, block)[0])
     out = {}
     for name, keep in rules.items():
-        f = illum_map.integrate_steps(flat_c[b] - flat_c[a], keep, weight)
-        full = np.repeat(np.repeat(rgb_from_log_chroma(f), block, 0), block, 1)
-        out[name] = weighted_error(with_true_level(full, truth, crop), truth, crop)
+        out[name] = shape_error(illum_map.integrate_steps(flat_c[b] - flat_c[a], keep, weight),
+                                truth, crop, block)
         out[f"{name}_extra"] = float(np.mean(keep & ~rules["retinex"]))
     return out
 
@@ -143,11 +145,11 @@ def main() -> None:
         names = [n for n in raw_files(folder) if n not in test]
         along, across = locus_axes(sim["xyz_to_cam"])
         per = []
-        for img, mask, frame in zip(images, masks, names, strict=True):
+        normals = true_normals(folder, sim, names, images[0].shape[:2])
+        for img, mask, frame, nrm in zip(images, masks, names, normals, strict=True):
             hb, wb = (s // args.block for s in img.shape[:2])
             truth = true_map(folder, sim, frame, (hb * args.block, wb * args.block))
-            normals = true_normals(folder, frame, sim, img.shape[:2])
-            per.append(frame_errors(img, mask, truth, normals, along, across, args.block,
+            per.append(frame_errors(img, mask, truth, nrm, along, across, args.block,
                                     args.tau))
         record[name] = {k: float(np.mean([p[k] for p in per])) for k in per[0]}
         record[name]["mixed_light"] = bool(sim.get("mixed_light"))
