@@ -492,7 +492,8 @@ def test_held_out_mixed_scene_differs_from_the_mixed_ones(tmp_path):
         assert spec.sensor.cfa_pattern not in {t.sensor.cfa_pattern for t in tuned}
         assert set(spec.kelvins).isdisjoint(k for t in tuned for k in t.kelvins)
     held = [sc.build_scene(name) for name in HELDOUT_MIXED]  # unlike each other, too
-    assert len({s.rig for s in held}) == len(held) and len({s.kelvins for s in held}) == len(held)
+    assert len({s.kelvins for s in held}) == len(held)
+    assert len({(s.rig, s.sensor.camera_model, s.sensor.cfa_pattern) for s in held}) == len(held)
     out = simulate_scene(HELDOUT_MIXED[0], tmp_path / "s", width=64, height=36, n_frames=2)
     record = _manifest(out)
     assert record["held_out"] is True and record["mixed_light"] is True

@@ -48,7 +48,10 @@ DEV: tuple[str, ...] = ("dev_arc_shop", "dev_slide_bench")
 MIXED: tuple[str, ...] = ("mixed_lamp_window", "mixed_desk_daylight")
 # Mixed light, held out: other rigs (a converging arc, a slider), lights, sensors and
 # content (warm, cool) than MIXED; no default of the mixed-light path is chosen on them.
-HELDOUT_MIXED: tuple[str, ...] = ("held_mixed_arc", "held_mixed_slide")
+# held_mixed_hall and held_mixed_toys (session 19) add two lamps whose light changes with
+# depth, and two lights only 1500 K apart on saturated content.
+HELDOUT_MIXED: tuple[str, ...] = ("held_mixed_arc", "held_mixed_slide", "held_mixed_hall",
+                                   "held_mixed_toys")
 # every scene name the simulator knows
 ALL_SCENES: tuple[str, ...] = SCENES + HELDOUT + DEV + MIXED + HELDOUT_MIXED
 RIGS: tuple[str, ...] = ("tripod", "arc", "slide")
@@ -166,6 +169,8 @@ _SENSORS = {
     "mixed_desk_daylight": (2400, "Canon EOS 5D Mark IV", "RGGB", 16.0, 0.03, 4.5),
     "held_mixed_arc": (3000, "Nikon D850", "GRBG", 10.0, 0.02, 5.5),
     "held_mixed_slide": (2200, "Sony ILCE-7SM2", "GRBG", 12.0, 0.024, 5.0),
+    "held_mixed_hall": (2850, "Canon EOS 5D Mark IV", "GBRG", 8.0, 0.016, 5.5),
+    "held_mixed_toys": (3400, "Nikon D850", "BGGR", 20.0, 0.04, 4.5),
 }
 
 
@@ -795,8 +800,87 @@ def _held_mixed_slide() -> SceneSpec:
                      height=0.25, rig="slide", baseline=0.4)
 
 
+def _held_mixed_hall() -> SceneSpec:
+    """Held out, mixed light (added in session 19, before anything ran on it): two lamps
+    and no daylight, the light changing with depth. A slider capture down a 7 m room: a
+    2850 K pendant low over a small table near the cameras (a white mug, a green book),
+    white chairs and a potted plant midway, a blue cabinet and a poster at the back under
+    a 4400 K ceiling lamp; a red door in the left wall, a printed right wall, grey stone
+    tiles. Each lamp falls off with distance, so the near part is warm and the far part
+    cool, with both mixed between; the ambient fill is the far lamp's. Subject ~3 m away,
+    depth 1-7.5 m."""
+    tiles = tx.checker((0.45, 0.45, 0.44), (0.36, 0.36, 0.35), (30, 14))
+    plaster = tx.noise((0.82, 0.8, 0.74), (0.72, 0.7, 0.64), cells=40, seed=81)
+    room = (
+        _b([0, -0.5, -2.5], [2.6, 0.5, 5.5], tiles),  # floor y = 0, z in [-8, 3]
+        _b([-2.4, 1.5, -2.5], [0.2, 1.5, 5.5], plaster),
+        _b([2.4, 1.5, -2.5], [0.2, 1.5, 5.5], tx.image("immunohistochemistry", (24, 4),
+                                                       tint=(0.9, 0.85, 0.8))),
+        _b([0, 1.5, -7.2], [2.6, 1.5, 0.2], plaster),
+        _board([-2.19, 1.0, -3.0], [0.01, 1.0, 0.45], tx.solid((0.6, 0.12, 0.1)),
+               tx.solid((0.6, 0.12, 0.1)), yaw=np.pi / 2),  # red door
+        _board([0.7, 1.6, -6.99], [0.45, 0.6, 0.01], tx.image("rocket", size=512),
+               tx.solid((0.1, 0.1, 0.1))),
+    )
+    white = tx.solid((0.88, 0.87, 0.84))
+    legs = tx.solid((0.2, 0.2, 0.22))
+    props = [
+        _b([0.2, 0.7, -0.9], [0.35, 0.02, 0.3], tx.wood((0.6, 0.45, 0.3), (0.45, 0.32, 0.2),
+                                                        rings=6, planks=2, seed=82)),
+        *_legs([(-0.1, -1.15), (0.5, -1.15), (-0.1, -0.65), (0.5, -0.65)], 0.68, 0.02, legs),
+        _f([0.05, 0.77, -0.85], 0.04, 0.05, 0.045, white),  # mug
+        _b([0.35, 0.735, -0.95], [0.12, 0.015, 0.09], tx.per_face(
+            {3: tx.text((0.9, 0.9, 0.8), (0.1, 0.4, 0.2), rows=2, cols=8, seed=83)},
+            tx.solid((0.1, 0.4, 0.2))), yaw=0.3),  # green book
+        _b([-0.9, 0.45, -2.8], [0.22, 0.45, 0.22], white),  # chairs
+        _b([0.6, 0.45, -3.1], [0.22, 0.45, 0.22], white, yaw=0.4),
+        _f([1.5, 0.2, -2.3], 0.15, 0.2, 0.18, tx.solid((0.6, 0.35, 0.25))),  # pot
+        _e([1.5, 0.75, -2.3], [0.3, 0.4, 0.3], tx.dots((0.18, 0.42, 0.16),
+                                                       [(0.3, 0.6, 0.2), (0.1, 0.28, 0.1)],
+                                                       n=10, radius=0.3)),
+        _b([-0.8, 0.7, -6.6], [0.5, 0.7, 0.3], tx.solid((0.15, 0.3, 0.6))),  # cabinet
+    ]
+    lights = (PointLight((0.2, 1.4, -0.8), 1.5, radius=0.05, kelvin=2850.0),
+              PointLight((-0.3, 2.7, -5.2), 2.5, radius=0.08, kelvin=4400.0))
+    return SceneSpec(name="held_mixed_hall", room=room, props=tuple(props),
+                     sensor=_sensor("held_mixed_hall"), lights=lights, ambient=0.08,
+                     ambient_kelvin=4400.0, target=(0.0, 0.7, -3.0), distance=3.2,
+                     height=0.4, rig="slide", baseline=0.3)
+
+
+def _held_mixed_toys() -> SceneSpec:
+    """Held out, mixed light (added in session 19, before anything ran on it): two lights
+    only 1500 K apart (the closest pair: a field has the least to add) on saturated
+    content. A converging handheld arc ~1.2 m around toys on a pale table: a red cube,
+    a yellow cylinder, a blue ball, a green box, an orange cone, a magenta-and-cyan
+    striped ball and a colour-wheel print, before a grey-green wall. 4900 K window light
+    from the left (directional, with its ambient fill) and a 3400 K lamp close at the
+    right."""
+    wall = tx.noise((0.62, 0.66, 0.6), (0.55, 0.6, 0.54), cells=30, seed=91)
+    table = tx.noise((0.8, 0.79, 0.76), (0.74, 0.73, 0.7), cells=50, seed=92)
+    props = [
+        _b([-0.3, 0.08, 0.0], [0.08, 0.08, 0.08], tx.solid((0.75, 0.1, 0.08)), yaw=0.4),
+        _f([-0.05, 0.1, -0.15], 0.05, 0.1, 0.05, tx.solid((0.9, 0.75, 0.1))),
+        _e([0.18, 0.07, 0.05], [0.07] * 3, tx.solid((0.1, 0.2, 0.7))),
+        _b([0.4, 0.05, -0.12], [0.1, 0.05, 0.07], tx.solid((0.15, 0.55, 0.2)), yaw=-0.3),
+        _f([-0.15, 0.08, 0.2], 0.06, 0.08, 0.005, tx.solid((0.95, 0.45, 0.08))),
+        _e([0.05, 0.06, 0.25], [0.06] * 3, tx.stripes([(0.8, 0.15, 0.6), (0.1, 0.7, 0.75)],
+                                                       6, angle_deg=45)),
+        _board([0.05, 0.25, -0.45], [0.2, 0.2, 0.01], tx.image("colorwheel", size=512),
+               tx.solid((0.9, 0.9, 0.9)), pitch=-0.15),
+    ]
+    room = (_b([0.0, 3.0, -1.2], [12.0, 7.0, 0.5], wall), _floor(table))
+    lights = (Light((-0.7, 0.6, 0.35), 0.55, kelvin=4900.0),
+              PointLight((0.7, 0.6, 0.25), 0.5, radius=0.04, kelvin=3400.0))
+    return SceneSpec(name="held_mixed_toys", room=room, props=tuple(props),
+                     sensor=_sensor("held_mixed_toys"), lights=lights, ambient=0.1,
+                     ambient_kelvin=4900.0, target=(0.0, 0.12, 0.0), distance=1.2,
+                     height=0.45, rig="arc", yaw_spread_deg=20.0)
+
+
 _MIX = {"mixed_lamp_window": _mixed_lamp_window, "mixed_desk_daylight": _mixed_desk_daylight,
-        "held_mixed_arc": _held_mixed_arc, "held_mixed_slide": _held_mixed_slide}
+        "held_mixed_arc": _held_mixed_arc, "held_mixed_slide": _held_mixed_slide,
+        "held_mixed_hall": _held_mixed_hall, "held_mixed_toys": _held_mixed_toys}
 
 
 def build_scene(name: str) -> SceneSpec:
