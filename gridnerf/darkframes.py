@@ -9,7 +9,7 @@ of the dark parts once the exposure is raised, and a shift of every illuminant e
 made from the frames. Astrophotographers measure it the standard way, with a few frames
 shot with the lens cap on at the capture's ISO and exposure time: their mean per CFA
 position, less the file's black level, is the offset (2 frames of 480x270 photosites with
-~7 DN of read noise and row noise: within 0.13 DN of the simulator's offsets on all 19
+~7 DN of read noise and row noise: within 0.13 DN of the simulator's offsets on all 21
 simulated scenes, `python experiments/noise_table.py`).
 
 `data.black_offset = "dark"` reads `<scene>/dark/*` (any RAW format `raw/` takes),
