@@ -27,6 +27,13 @@ the other need a different one on each side. This module finds out which, from t
   light with the capture's own estimator on its pixels alone, takes off each half's mean
   map value and averages the two anchors so found (weighted by signal). One light leaves
   both halves with the same light up to noise: the anchor stays the capture's estimate.
+- Its limit (measured on the six mixed-light scenes, `python experiments/illuminant_maps.py`,
+  second table): the light often changes in steps (shadows, faces turned to different
+  lights), and 58-74 % of the true change lies on edges whose step exceeds tau, which this
+  rule takes for paint; integrating the true steps over the edges it keeps leaves 1.2-4.1
+  deg, over every edge 0.6-1.6. Rules that keep larger steps along the locus, shaped like
+  one light's shadow, or on the true geometry's creases were tried and hurt more than they
+  help (`experiments/retinex_edges.py`).
 
 Shapes: rgb_cam (h, w, 3) linear camera RGB, mask (h, w) or (h, w, 3); maps (hb, wb, ...)
 with hb = h // block, wb = w // block (edge pixels that do not fill a block are dropped).
