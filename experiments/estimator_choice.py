@@ -30,17 +30,15 @@ Writes reports/estimator_choice.md and reports/estimator_choice.json.
 from __future__ import annotations
 
 import argparse
-import json
 from functools import partial
 
 import numpy as np
 
-from common import REPORT_GROUPS, fmt, markdown_table, simulated_folders, write_report
+from common import REPORT_GROUPS, fmt, markdown_table, write_report
 from gridnerf import illum_map
 from gridnerf import illuminant as il
-from gridnerf.scene import raw_files
 from illuminant_maps import to_pixels, true_map, weighted_error
-from illuminants import raw_images
+from illuminants import training_frames
 
 BLOCK, TAU = 16, 0.1  # the default map's (loss.ca_map_block, loss.ca_map_tau)
 
@@ -92,11 +90,7 @@ def main() -> None:
     ap.add_argument("--out", default="reports/estimator_choice")
     args = ap.parse_args()
     record, rows = {}, []
-    for name, folder in simulated_folders(args.scenes):
-        sim = json.loads((folder / "sim.json").read_text())
-        images, masks = raw_images(folder)
-        test = set(sim.get("test_frames", []))
-        names = [n for n in raw_files(folder) if n not in test]
+    for name, folder, sim, images, masks, names in training_frames(args.scenes):
         locus = il.planckian_locus(sim["xyz_to_cam"])
         spread = spreads(images, masks, locus)
         pick = min(spread, key=lambda n: spread[n][1])

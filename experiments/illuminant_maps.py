@@ -28,19 +28,17 @@ Writes reports/illuminant_maps.md and reports/illuminant_maps.json.
 from __future__ import annotations
 
 import argparse
-import json
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
-from common import markdown_table, simulated_folders, write_report
+from common import markdown_table, write_report
 from gridnerf import illum_map, raw
 from gridnerf import illuminant as il
-from gridnerf.scene import raw_files
 from gridnerf.sim import DEV, HELDOUT, HELDOUT_MIXED, MIXED, SCENES
-from illuminants import raw_images
+from illuminants import training_frames
 
 KEYS = ("capture", "map", "map_regions", "map_true_level", "spread_p90")
 SHAPE_KEYS = ("map_true_level", "true_steps_kept_edges", "true_steps_all_edges",
@@ -128,11 +126,7 @@ def main() -> None:
     ap.add_argument("--out", default="reports/illuminant_maps")
     args = ap.parse_args()
     record, rows = {}, []
-    for name, folder in simulated_folders(args.scenes):
-        sim = json.loads((folder / "sim.json").read_text())
-        images, masks = raw_images(folder)
-        test = set(sim.get("test_frames", []))
-        names = [n for n in raw_files(folder) if n not in test]
+    for name, folder, sim, images, masks, names in training_frames(args.scenes):
         locus = il.planckian_locus(sim["xyz_to_cam"])
         estimate = partial(il.capture_estimate, "consensus", locus=locus)
         capture = estimate(images, masks)

@@ -52,6 +52,17 @@ def raw_images(scene_dir: Path) -> tuple[list[np.ndarray], list[np.ndarray]]:
     return images, masks
 
 
+def training_frames(spec: str):
+    """Per simulated scene of `spec` (common.simulated_folders): (name, folder, sim: its
+    sim.json, images, masks: raw_images, frames: the training frames' names in that
+    order)."""
+    for name, folder in simulated_folders(spec):
+        sim = json.loads((folder / "sim.json").read_text())
+        test = set(sim.get("test_frames", []))
+        yield (name, folder, sim, *raw_images(folder),
+               [n for n in raw_files(folder) if n not in test])
+
+
 def estimates(images, masks) -> dict[str, np.ndarray]:
     """Each estimator on a list of (h, w, 3) images with (h, w) or (h, w, 3) masks, the way
     `loss.ca_target=scene` estimates a capture's illuminant (illuminant.frames_estimate)."""

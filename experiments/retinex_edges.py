@@ -41,14 +41,13 @@ from pathlib import Path
 
 import numpy as np
 
-from common import REPORT_GROUPS, fmt, markdown_table, simulated_folders, write_report
+from common import REPORT_GROUPS, fmt, markdown_table, write_report
 from gridnerf import illum_map, raw
 from gridnerf import illuminant as il
-from gridnerf.scene import raw_files
 from gridnerf.sim import capture
 from gridnerf.sim.scenes import build_scene
 from illuminant_maps import shape_error, true_map
-from illuminants import raw_images
+from illuminants import training_frames
 
 RULES = ("retinex", "chord", "shadow", "crease")
 ACROSS, ALONG = 0.02, 0.3  # the chord rule's limits (log chromaticity)
@@ -138,11 +137,7 @@ def main() -> None:
     ap.add_argument("--out", default="reports/retinex_edges")
     args = ap.parse_args()
     record, rows = {}, []
-    for name, folder in simulated_folders(args.scenes):
-        sim = json.loads((folder / "sim.json").read_text())
-        images, masks = raw_images(folder)
-        test = set(sim.get("test_frames", []))
-        names = [n for n in raw_files(folder) if n not in test]
+    for name, folder, sim, images, masks, names in training_frames(args.scenes):
         along, across = locus_axes(sim["xyz_to_cam"])
         per = []
         normals = true_normals(folder, sim, names, images[0].shape[:2])
