@@ -37,10 +37,12 @@ import numpy as np
 from common import REPORT_GROUPS, fmt, markdown_table, write_report
 from gridnerf import illum_map
 from gridnerf import illuminant as il
+from gridnerf.config import LossConfig
 from illuminant_maps import to_pixels, true_map, weighted_error
 from illuminants import training_frames
 
-BLOCK, TAU = 16, 0.1  # the default map's (loss.ca_map_block, loss.ca_map_tau)
+_LOSS = LossConfig()
+BLOCK, TAU = _LOSS.ca_map_block, _LOSS.ca_map_tau  # the default map's
 
 
 def quadrants(images, masks) -> list[tuple[list, list]]:
@@ -69,18 +71,16 @@ def spreads(images, masks, locus) -> dict[str, tuple[np.ndarray, float]]:
     return out
 
 
-def regional_map_error(folder, sim, images, masks, names, estimate, locus) -> float:
+def regional_map_error(images, masks, rel, weight, truths, estimate, locus) -> float:
     """Mean over the frames of the per-pixel error of the regional-anchor map built with
-    `estimate` (images, masks) -> (3,)."""
-    rel, weight = illum_map.relative_maps(images, masks, BLOCK, TAU)
+    `estimate` (images, masks) -> (3,); rel, weight: the frames' illum_map.relative_maps;
+    truths: each frame's true white per pixel over its whole blocks (true_map)."""
     anchor = illum_map.regional_anchor(images, masks, rel, weight, estimate, locus, BLOCK)
     maps = illum_map.frame_maps(images, masks, anchor, locus, BLOCK, TAU, rel=rel)
     errs = []
-    for img, fmap, frame in zip(images, maps, names, strict=True):
-        hb, wb = fmap.shape[:2]
-        crop = img[: hb * BLOCK, : wb * BLOCK]
-        errs.append(weighted_error(to_pixels(fmap, BLOCK),
-                                   true_map(folder, sim, frame, crop.shape[:2]), crop))
+    for img, fmap, truth in zip(images, maps, truths, strict=True):
+        crop = img[: truth.shape[0], : truth.shape[1]]
+        errs.append(weighted_error(to_pixels(fmap, BLOCK), truth, crop))
     return float(np.mean(errs))
 
 
@@ -102,12 +102,14 @@ def main() -> None:
                "mixed_light": bool(sim.get("mixed_light"))}
         if not rec["mixed_light"]:
             true = np.asarray(sim["illuminant_neutral_cam"], np.float64)
-            rec["capture_consensus"] = float(il.angular_error_deg(
-                il.consensus([e for e, _ in spread.values()], locus), true))
+            rec["capture_consensus"] = float(il.angular_error_deg(cons, true))
             rec["capture_pick"] = float(il.angular_error_deg(spread[pick][0], true))
+        rel, weight = illum_map.relative_maps(images, masks, BLOCK, TAU)
+        truths = [true_map(folder, sim, frame, (r.shape[0] * BLOCK, r.shape[1] * BLOCK))
+                  for r, frame in zip(rel, names, strict=True)]
         for key, est in (("map_consensus", "consensus"), ("map_pick", pick),
                          ("map_safe_pick", safe)):
-            rec[key] = regional_map_error(folder, sim, images, masks, names,
+            rec[key] = regional_map_error(images, masks, rel, weight, truths,
                                           partial(il.capture_estimate, est, locus=locus),
                                           locus)
         record[name] = rec

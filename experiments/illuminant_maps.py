@@ -37,6 +37,7 @@ from PIL import Image
 from common import markdown_table, write_report
 from gridnerf import illum_map, raw
 from gridnerf import illuminant as il
+from gridnerf.config import LossConfig
 from gridnerf.sim import DEV, HELDOUT, HELDOUT_MIXED, MIXED, SCENES
 from illuminants import training_frames
 
@@ -118,13 +119,20 @@ def shape_split(img, mask, truth, block: int, tau: float) -> dict:
             "edges_dropped": float(np.mean(~keep))}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def map_arguments(description: str, out: str) -> argparse.Namespace:
+    """A raw-frame map study's command line: --scenes, --block and --tau (the default map's,
+    loss.ca_map_block and loss.ca_map_tau), --out."""
+    ap = argparse.ArgumentParser(description=description)
     ap.add_argument("--scenes", default="all")
-    ap.add_argument("--block", type=int, default=16)
-    ap.add_argument("--tau", type=float, default=0.1)
-    ap.add_argument("--out", default="reports/illuminant_maps")
-    args = ap.parse_args()
+    loss = LossConfig()
+    ap.add_argument("--block", type=int, default=loss.ca_map_block)
+    ap.add_argument("--tau", type=float, default=loss.ca_map_tau)
+    ap.add_argument("--out", default=out)
+    return ap.parse_args()
+
+
+def main() -> None:
+    args = map_arguments(__doc__.splitlines()[0], "reports/illuminant_maps")
     record, rows = {}, []
     for name, folder, sim, images, masks, names in training_frames(args.scenes):
         locus = il.planckian_locus(sim["xyz_to_cam"])

@@ -35,7 +35,6 @@ Writes reports/retinex_edges.md and reports/retinex_edges.json.
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -46,7 +45,7 @@ from gridnerf import illum_map, raw
 from gridnerf import illuminant as il
 from gridnerf.sim import capture
 from gridnerf.sim.scenes import build_scene
-from illuminant_maps import shape_error, true_map
+from illuminant_maps import map_arguments, shape_error, true_map
 from illuminants import training_frames
 
 RULES = ("retinex", "chord", "shadow", "crease")
@@ -130,12 +129,7 @@ def frame_errors(img, mask, truth, normals, along, across, block: int, tau: floa
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="all")
-    ap.add_argument("--block", type=int, default=16)
-    ap.add_argument("--tau", type=float, default=0.1)
-    ap.add_argument("--out", default="reports/retinex_edges")
-    args = ap.parse_args()
+    args = map_arguments(__doc__.splitlines()[0], "reports/retinex_edges")
     record, rows = {}, []
     for name, folder, sim, images, masks, names in training_frames(args.scenes):
         along, across = locus_axes(sim["xyz_to_cam"])
