@@ -17,7 +17,16 @@ colour differs from `ours`):
   (illuminant/<frame>.png, written by the simulator), elsewhere the one light.
 
 `true_local - true_global` is what a perfect gain *field* could add over a perfect single
-gain on that reconstruction; `true_local - ours` is what colour still costs the run. The
+gain on that reconstruction; `true_local - ours` is what colour still costs the run.
+
+Two more rows split that cost between the white's level (its mean colour: colour
+constancy) and its shape (how it varies over the view), for runs with gains:
+`field_true_level`, the field's own white per pixel (opacity / composited gain) moved to
+the truth's mean log chromaticity, and `true_shape`, the true white per pixel moved to the
+field's mean log chromaticity (illuminant_maps.with_true_level, green-weighted over the
+pixels the grid renders). `field_true_level - global_gw` is what the field would beat one
+grey-world gain by with perfect colour constancy, `true_shape - global_gw` the same with a
+perfect shape at the field's own level. The
 truth is read for scoring only; no trainer sees it. Run folders whose config uses the
 adapted matrix are shown with the D65 matrix here (the adapted one needs one white).
 
@@ -37,9 +46,10 @@ import numpy as np
 from common import REPORT_GROUPS, fmt, markdown_table, simulated_folders, write_report
 from gridnerf import color, eval_run, evaluate, exposure, illuminant
 from gridnerf.sim import HELDOUT_MIXED, MIXED
-from illuminant_maps import true_map, weighted_error
+from illuminant_maps import true_map, weighted_error, with_true_level
 
 ROWS = ("ours", "field_global", "global_gw", "true_global", "true_local")
+SPLIT = ("field_true_level", "true_shape")  # the level / shape split (runs with gains)
 GROUPS = REPORT_GROUPS
 
 
@@ -73,16 +83,36 @@ def view_rows(out: dict, shown: dict, matrix: np.ndarray, truth: np.ndarray,
     ours, _ = shown["gridnerf"].show(out)
     target = float(np.mean(color.luminance(ours)))
     low = np.asarray(out["rgb_low"], np.float64)
-    local = np.asarray(illuminant.gains_from_illuminant(truth))
-    one = np.asarray(illuminant.gains_from_illuminant(truth.reshape(-1, 3).mean(0)))
+    local, one = gains(truth), gains(truth.reshape(-1, 3).mean(0))
     rows = {"ours": ours}
-    field_one = np.asarray(illuminant.gains_from_illuminant(field_white))
-    for name, rgb_cam in (("field_global", low * field_one),
-                          ("global_gw", low * shown["global_grey_world"].gains),
-                          ("true_global", low * one), ("true_local", low * local)):
+    field_one = gains(field_white)
+    shows = [("field_global", low * field_one),
+             ("global_gw", low * shown["global_grey_world"].gains),
+             ("true_global", low * one), ("true_local", low * local)]
+    if "gain" in out:
+        field, rendered = pixel_white(out, field_white)
+        shows += [("field_true_level", low * gains(with_true_level(field, truth, rendered))),
+                  ("true_shape", low * gains(with_true_level(truth, field, rendered)))]
+    for name, rgb_cam in shows:
         rgb = rgb_cam @ matrix.T
         rows[name] = (exposure.alpha_for_luminance(rgb, target) * rgb).astype(np.float32)
     return rows
+
+
+def gains(white) -> np.ndarray:
+    """Von Kries gains (..., 3) for a white (..., 3), as float64 host arrays."""
+    return np.asarray(illuminant.gains_from_illuminant(np.asarray(white, np.float64)))
+
+
+def pixel_white(out: dict, fallback: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(field, rendered): the gain field's own white per pixel (H, W, 3), opacity /
+    composited gain (`fallback`, the (3,) white of its mean gain, where the opacity is
+    below 0.05 and the ratio means nothing), and the camera RGB of the pixels the grid
+    renders (opacity > 0.5, else 0), the weights of every comparison of whites."""
+    acc = np.asarray(out["acc"], np.float64)[..., None]
+    gain = np.maximum(np.asarray(out["gain"], np.float64), 1e-12)
+    field = np.where(acc > 0.05, acc / gain, np.asarray(fallback, np.float64))
+    return field, np.asarray(out["rgb_low"], np.float64) * (acc > 0.5)
 
 
 def white_errors(out: dict, truth: np.ndarray, whites: dict) -> dict:
@@ -90,11 +120,9 @@ def white_errors(out: dict, truth: np.ndarray, whites: dict) -> dict:
     'field' the gain field's own (opacity / composited gain, per pixel), the others (3,)
     whites of one gain; over the pixels the grid renders (opacity > 0.5), weighted by
     their rendered green signal."""
-    acc = np.asarray(out["acc"], np.float64)
-    rgb_cam = np.asarray(out["rgb_low"], np.float64) * (acc > 0.5)[..., None]
+    field, rgb_cam = pixel_white(out, np.ones(3))  # the fallback's pixels weigh nothing
     if not np.any(rgb_cam[..., 1] > 0):
         return {}
-    field = acc[..., None] / np.maximum(np.asarray(out["gain"], np.float64), 1e-12)
     return {name: weighted_error(np.broadcast_to(white, truth.shape), truth, rgb_cam)
             for name, white in {"field": field, **whites}.items()}
 
@@ -122,6 +150,31 @@ def white_table(record: dict) -> str:
             + markdown_table(["scene", *WHITES], rows))
 
 
+def split_table(record: dict) -> str:
+    """Markdown: each run's PSNR over one grey-world gain, as it is and with a perfect
+    level or a perfect shape of its white ('' when no run has the split rows)."""
+    cols = ("ours", *SPLIT, "true_local")
+
+    def row(name: str, got: list[dict]) -> list[str]:
+        return [name, *(fmt(float(np.mean([g[c]["psnr"] - g["global_gw"]["psnr"]
+                                            for g in got]))) for c in cols)]
+
+    rows = [row(n, [r]) for n, r in record.items() if SPLIT[0] in r]
+    for label, group in GROUPS:
+        got = [record[n] for n in group if SPLIT[0] in record.get(n, {})]
+        if got:
+            rows.append(row(f"**mean, {label}** ({len(got)})", got))
+    if not rows:
+        return ""
+    return ("\n\n## Level or shape: what a perfect one of each would add\n\nPSNR (dB) over "
+            "one grey-world gain on the same render (issue 8's bar: +1.5 on mixed light): "
+            "`ours` the run's output, `field_true_level` the field's white per pixel at the "
+            "truth's mean colour (perfect colour constancy, the field's shape), `true_shape` "
+            "the true white per pixel at the field's mean colour (a perfect shape, the "
+            "field's level), `true_local` both (the ceiling).\n\n"
+            + markdown_table(["scene", *cols], rows))
+
+
 def table_row(name: str, summary: dict) -> list[str]:
     """One line of the table: PSNR / CIEDE2000 of each row, then the three differences."""
     return [name, *(f"{fmt(summary[r]['psnr'])} / {fmt(summary[r]['delta_e'])}" for r in ROWS),
@@ -147,7 +200,7 @@ def main() -> None:
         field_white = (eval_run.field_neutral(train_out) if cfg.loss.use_gains
                        else np.asarray(illuminant.grey_world(np.asarray(train_out["rgb_low"]))))
         matrix = exposure.display_matrix(scene.xyz_to_cam, cfg.output.use_color_matrix)
-        per_view = {r: [] for r in ROWS}
+        per_view = {r: [] for r in ROWS + (SPLIT if cfg.loss.use_gains else ())}
         whites = {"field_global": field_white,
                   "global_gw": 1.0 / shown["global_grey_world"].gains}
         white_err = []
@@ -170,7 +223,7 @@ def main() -> None:
             mean = {r: {m: float(np.mean([g[r][m] for g in got])) for m in ("psnr", "delta_e")}
                     for r in ROWS}
             table.append(table_row(f"**mean, {label}** ({len(got)})", mean))
-    md_white = white_table(record)
+    md_white = white_table(record) + split_table(record)
     md = ("# Colour ceiling: the run's render shown with the true white\n\n"
           f"`python experiments/colour_ceiling.py --scenes {args.scenes} --variant "
           f"{args.variant}`. PSNR / CIEDE2000 on the test views, every row at the run's own "

@@ -179,6 +179,32 @@ def test_colour_ceiling_rows_share_luminance_and_undo_the_true_white():
     assert np.allclose(same["true_local"], same["true_global"], rtol=1e-5)
 
 
+def test_colour_ceiling_splits_the_white_into_level_and_shape():
+    """view_rows' split rows: a field with the true white's shape but a cast (every pixel's
+    white times one colour) shows neutral once its level is the truth's
+    (field_true_level), and the true shape at the field's level is the field's own white
+    (true_shape equals the field shown per pixel)."""
+    from gridnerf import illuminant
+
+    warm, cool = np.array([0.6, 1.0, 0.35]), np.array([0.37, 1.0, 0.72])
+    truth = np.empty((8, 10, 3))
+    truth[:, :5], truth[:, 5:] = warm, cool
+    cast = np.array([1.3, 1.0, 0.8])
+    acc = np.full((8, 10), 0.9)
+    gain = acc[..., None] * np.asarray(illuminant.gains_from_illuminant(truth * cast))
+    out = {"rgb_low": 0.05 * truth, "acc": acc, "gain": gain}
+    shown = {"gridnerf": eval_run.Output("rgb_low", np.ones(3), np.eye(3), alpha=3.0),
+             "global_grey_world": eval_run.Output("rgb_low", np.ones(3), np.eye(3))}
+    rows = colour_ceiling.view_rows(out, shown, np.eye(3), truth, warm)
+    assert np.allclose(rows["field_true_level"], rows["true_local"], rtol=1e-5)
+    shown_field = out["rgb_low"] * np.asarray(illuminant.gains_from_illuminant(truth * cast))
+    ratio = rows["true_shape"] / shown_field
+    assert np.allclose(ratio, ratio[0, 0, 0], rtol=1e-5)  # the field's colours, one scale
+    assert not np.allclose(rows["true_shape"], rows["true_local"], rtol=1e-2)
+    assert "true_shape" not in colour_ceiling.view_rows({"rgb_low": out["rgb_low"]}, shown,
+                                                        np.eye(3), truth, warm)
+
+
 def test_white_errors_score_the_field_and_single_whites_against_the_truth():
     """colour_ceiling.white_errors: a gain field that undoes the per-pixel truth scores 0
     deg, one white scores its angle from each pixel's truth; transparent pixels (opacity
