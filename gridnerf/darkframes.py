@@ -40,14 +40,24 @@ _FIX = ("shoot 1-4 frames with the lens cap on at the capture's ISO and exposure
         "<scene>/dark/, or use data.black_offset=file")
 
 
-def dark_files(scene_dir) -> list[Path]:
-    """RAW files in <scene>/dark, sorted (SceneError naming the folder when there are none)."""
+def _raw_files(folder: Path) -> list[Path]:
+    """RAW files in a folder, sorted ([] when it does not exist)."""
     from gridnerf.scene import RAW_EXTENSIONS
 
+    return (sorted(p for p in folder.iterdir() if p.is_file()
+                   and p.suffix.lower() in RAW_EXTENSIONS) if folder.is_dir() else [])
+
+
+def has_dark_frames(scene_dir) -> bool:
+    """Whether <scene>/dark holds RAW files (for the trainer's hint under
+    data.black_offset=file: the default, since captures such as the paper's have none)."""
+    return bool(_raw_files(Path(scene_dir) / DARK_DIR))
+
+
+def dark_files(scene_dir) -> list[Path]:
+    """RAW files in <scene>/dark, sorted (SceneError naming the folder when there are none)."""
     folder = Path(scene_dir) / DARK_DIR
-    files = (sorted(p for p in folder.iterdir()
-                    if p.is_file() and p.suffix.lower() in RAW_EXTENSIONS)
-             if folder.is_dir() else [])
+    files = _raw_files(folder)
     if not files:
         raise SceneError(folder, "data.black_offset=dark needs dark frames and there are none",
                          _FIX)

@@ -553,6 +553,9 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         darkframes.save(run, measured)  # open_scene adds it to the file's black level
         print("black level from the dark frames: offsets (DN, CFA order) "
               f"{np.round(np.ravel(measured['offset_dn']), 2).tolist()}")
+    elif cfg.data.black_offset == "file" and darkframes.has_dark_frames(scene_dir):
+        print(f"note: {Path(scene_dir) / darkframes.DARK_DIR} has lens-cap frames; "
+              "--set data.black_offset=dark uses them for the black level (docs/colour.md)")
     scene = runfolder.open_scene(scene_dir, run, dark=cfg.data.black_offset == "dark")
     data = dataset.training_data(scene, cfg.data)
     near_t, far_t = dataset.grid_box(scene)[2:]

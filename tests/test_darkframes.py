@@ -70,7 +70,9 @@ def test_apply_shifts_the_normalised_frames_by_the_offsets(small_scene):
 
 def test_refuses_missing_lit_and_odd_dark_frames(scene_copy):
     like = next((scene_copy / "raw").iterdir())
+    assert darkframes.has_dark_frames(scene_copy)  # the simulator writes two
     shutil.rmtree(scene_copy / "dark")
+    assert not darkframes.has_dark_frames(scene_copy)
     with pytest.raises(SceneError, match="no dark frames|there are none"):
         darkframes.measure(scene_copy)
     (scene_copy / "dark").mkdir()
