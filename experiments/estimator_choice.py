@@ -45,32 +45,6 @@ _LOSS = LossConfig()
 BLOCK, TAU = _LOSS.ca_map_block, _LOSS.ca_map_tau  # the default map's
 
 
-def quadrants(images, masks) -> list[tuple[list, list]]:
-    """The frames' four quadrants, each (images, masks) pooled over the frames; a quadrant
-    with under 5 % valid pixels on average is left out."""
-    h, w = np.shape(images[0])[:2]
-    out = []
-    for ys in (slice(0, h // 2), slice(h // 2, None)):
-        for xs in (slice(0, w // 2), slice(w // 2, None)):
-            ims = [np.asarray(x)[ys, xs] for x in images]
-            ms = [np.asarray(m)[ys, xs] for m in masks]
-            if np.mean([m.mean() for m in ms]) > 0.05:
-                out.append((ims, ms))
-    return out
-
-
-def spreads(images, masks, locus) -> dict[str, tuple[np.ndarray, float]]:
-    """{estimator: ((3,) its capture estimate on the locus, its spread in deg)} for the
-    consensus's three estimators."""
-    parts = quadrants(images, masks)
-    out = {}
-    for name in il.CONSENSUS:
-        whole = il.capture_estimate(name, images, masks, locus)
-        out[name] = (whole, float(np.mean([il.angular_error_deg(
-            il.capture_estimate(name, ims, ms, locus), whole) for ims, ms in parts])))
-    return out
-
-
 def regional_map_error(images, masks, rel, weight, truths, estimate, locus) -> float:
     """Mean over the frames of the per-pixel error of the regional-anchor map built with
     `estimate` (images, masks) -> (3,); rel, weight: the frames' illum_map.relative_maps;
@@ -92,8 +66,8 @@ def main() -> None:
     record, rows = {}, []
     for name, folder, sim, images, masks, names in training_frames(args.scenes):
         locus = il.planckian_locus(sim["xyz_to_cam"])
-        spread = spreads(images, masks, locus)
-        pick = min(spread, key=lambda n: spread[n][1])
+        spread = il.quadrant_spreads(images, masks, locus)
+        pick = il.least_spread(spread)
         cons = il.consensus([e for e, _ in spread.values()], locus)
         odd = max(spread, key=lambda n: il.angular_error_deg(spread[n][0], cons))
         safe = min((n for n in spread if n != odd), key=lambda n: spread[n][1])
@@ -105,6 +79,9 @@ def main() -> None:
             rec["capture_consensus"] = float(il.angular_error_deg(cons, true))
             rec["capture_pick"] = float(il.angular_error_deg(spread[pick][0], true))
         rel, weight = illum_map.relative_maps(images, masks, BLOCK, TAU)
+        rec["map_spread"] = illum_map.map_spread_deg(
+            illum_map.frame_maps(images, masks, cons, locus, BLOCK, TAU, rel=rel), cons)
+        one_light = rec["map_spread"] < _LOSS.ca_one_light_deg
         truths = [true_map(folder, sim, frame, (r.shape[0] * BLOCK, r.shape[1] * BLOCK))
                   for r, frame in zip(rel, names, strict=True)]
         for key, est in (("map_consensus", "consensus"), ("map_pick", pick),
@@ -112,15 +89,17 @@ def main() -> None:
             rec[key] = regional_map_error(images, masks, rel, weight, truths,
                                           partial(il.capture_estimate, est, locus=locus),
                                           locus)
+        rec["map_consistent"] = rec["map_pick"] if one_light else rec["map_consensus"]
         record[name] = rec
         rows.append([name, pick, *(fmt(spread[n][1]) for n in il.CONSENSUS),
                      *(fmt(rec[k]) if k in rec else "" for k in ("capture_consensus",
                                                                   "capture_pick")),
                      fmt(rec["map_consensus"]), fmt(rec["map_pick"]), safe,
-                     fmt(rec["map_safe_pick"])])
+                     fmt(rec["map_safe_pick"]), fmt(rec["map_spread"]),
+                     fmt(rec["map_consistent"])])
         print(" | ".join(rows[-1]), flush=True)
     keys = ("capture_consensus", "capture_pick", "map_consensus", "map_pick", "",
-            "map_safe_pick")
+            "map_safe_pick", "", "map_consistent")
     for label, group in REPORT_GROUPS:
         got = [record[n] for n in group if n in record]
         if got:
@@ -135,10 +114,15 @@ def main() -> None:
           "one estimate for the capture (single-light scenes); `map`: the default L_ca map "
           "(regional anchor) with the consensus, the pick or the safe pick (the least "
           "spread of the two estimates nearer the consensus) in both halves, "
-          "green-weighted per pixel.\n\n"
+          "green-weighted per pixel; `map spread`: how far the maps anchored to the "
+          "consensus stray from it (illum_map.map_spread_deg); `consistent`: "
+          "loss.ca_illuminant=consistent, the pick where the map spread is below "
+          f"loss.ca_one_light_deg = {_LOSS.ca_one_light_deg} (one light), else the "
+          "consensus.\n\n"
           + markdown_table(["scene", "pick", *(f"spread {n}" for n in il.CONSENSUS),
                             "capture: consensus", "capture: pick", "map: consensus",
-                            "map: pick", "safe pick", "map: safe pick"], rows) + "\n")
+                            "map: pick", "safe pick", "map: safe pick", "map spread",
+                            "map: consistent"], rows) + "\n")
     write_report(args.out, md, record)
 
 

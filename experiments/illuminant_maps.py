@@ -143,7 +143,7 @@ def main() -> None:
                                              args.block)
         maps, maps_r = (illum_map.frame_maps(images, masks, a, locus, args.block, args.tau,
                                              rel=rel) for a in (capture, regional))
-        err_c, err_m, err_r, err_l, spread, split = [], [], [], [], [], []
+        err_c, err_m, err_r, err_l, split = [], [], [], [], []
         for img, mask, fmap, fmap_r, frame in zip(images, masks, maps, maps_r, names,
                                                   strict=True):
             hb, wb = fmap.shape[:2]
@@ -154,12 +154,11 @@ def main() -> None:
             err_m.append(weighted_error(full, truth, crop))
             err_r.append(weighted_error(full_r, truth, crop))
             err_l.append(weighted_error(with_true_level(full_r, truth, crop), truth, crop))
-            spread.append(float(np.percentile(il.angular_error_deg(fmap, capture), 90)))
             if sim.get("mixed_light"):
                 split.append(shape_split(img, mask, truth, args.block, args.tau))
         rec = {"capture": float(np.mean(err_c)), "map": float(np.mean(err_m)),
                "map_regions": float(np.mean(err_r)), "map_true_level": float(np.mean(err_l)),
-               "spread_p90": float(np.mean(spread)),
+               "spread_p90": illum_map.map_spread_deg(maps, capture),
                "mixed_light": bool(sim.get("mixed_light"))}
         if split:
             rec.update({k: float(np.mean([d[k] for d in split])) for k in split[0]})

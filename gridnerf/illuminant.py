@@ -289,6 +289,43 @@ def capture_estimate(name: str, images, masks, locus=None, p: float | None = Non
     return np.asarray(est[0] if locus is None else to_locus(est[0], locus), np.float64)
 
 
+def quadrants(images, masks) -> list[tuple[list, list]]:
+    """The frames' four quadrants, each (images, masks) pooled over the frames; a quadrant
+    with under 5 % valid pixels on average is left out."""
+    h, w = np.shape(images[0])[:2]
+    out = []
+    for ys in (slice(0, h // 2), slice(h // 2, None)):
+        for xs in (slice(0, w // 2), slice(w // 2, None)):
+            ims = [np.asarray(x)[ys, xs] for x in images]
+            ms = [np.asarray(m)[ys, xs] for m in masks]
+            if np.mean([m.mean() for m in ms]) > 0.05:
+                out.append((ims, ms))
+    return out
+
+
+def quadrant_spreads(images, masks, locus=None, p: float | None = None
+                     ) -> dict[str, tuple[np.ndarray, float]]:
+    """{estimator: ((3,) its capture_estimate, its spread in deg)} for CONSENSUS's three.
+
+    An estimator that reacts to the light rather than the content gives the same answer on
+    different parts of a scene lit by one light: its spread is the mean angle of its
+    estimates on the frames' four quadrants (pooled over the frames) from its estimate on
+    the whole capture. Under two lights the quadrants see different lights too, so the
+    spread measures both (docs/colour.md, session 19)."""
+    parts = quadrants(images, masks)
+    out = {}
+    for name in CONSENSUS:
+        whole = capture_estimate(name, images, masks, locus, p)
+        out[name] = (whole, float(np.mean([angular_error_deg(
+            capture_estimate(name, ims, ms, locus, p), whole) for ims, ms in parts])))
+    return out
+
+
+def least_spread(spreads: dict[str, tuple[np.ndarray, float]]) -> str:
+    """The estimator of quadrant_spreads whose quadrants agree best."""
+    return min(spreads, key=lambda n: spreads[n][1])
+
+
 def planckian_locus(xyz_to_cam, kelvin=None) -> np.ndarray:
     """Camera-RGB colours of blackbody illuminants: (n, 3) float64 unit vectors.
 

@@ -326,6 +326,29 @@ def with_illuminant_map(data: dataset.RayData, scene, cfg: Config,
     return dataclasses.replace(data, illuminant_map=jnp.asarray(maps, jnp.float32)), anchor
 
 
+def consistent_estimator(scene, cfg: Config, frames) -> str:
+    """The estimator loss.ca_illuminant = "consistent" stands for on this capture: under one
+    light (its illuminant maps, anchored to the consensus, stray less than
+    loss.ca_one_light_deg from it: illum_map.map_spread_deg) the one of the consensus's
+    three whose quadrant estimates agree best (illuminant.quadrant_spreads), else
+    "consensus" (under two lights the quadrants see different lights, and the spread
+    would measure them). frames: (images, masks) of _estimate_frames. Prints the choice."""
+    images, masks = frames
+    lc = cfg.loss
+    locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
+    cons = illuminant.capture_estimate("consensus", images, masks, locus, lc.ca_illuminant_p)
+    maps = illum_map.frame_maps(images, masks, cons, locus, lc.ca_map_block, lc.ca_map_tau)
+    spread = illum_map.map_spread_deg(maps, cons)
+    if spread >= lc.ca_one_light_deg:
+        print(f"L_ca estimator: consensus (the maps stray {spread:.2f} deg: lights mix)")
+        return "consensus"
+    spreads = illuminant.quadrant_spreads(images, masks, locus, lc.ca_illuminant_p)
+    name = illuminant.least_spread(spreads)
+    print(f"L_ca estimator: {name} (one light: the maps stray {spread:.2f} deg; quadrant "
+          "spreads " + ", ".join(f"{n} {s:.2f}" for n, (_, s) in spreads.items()) + " deg)")
+    return name
+
+
 def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> tuple[dataset.RayData, dict]:
     """The L_ca inputs, as the config chooses them: (data, make_step keyword arguments).
 
@@ -338,6 +361,9 @@ def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> tuple[dataset.Ra
         return data, {}
     if cfg.loss.ca_target in ("scene", "map"):
         frames = _estimate_frames(data, scene)  # binned once for every estimate
+        if cfg.loss.ca_illuminant == "consistent":
+            cfg = dataclasses.replace(cfg, loss=dataclasses.replace(
+                cfg.loss, ca_illuminant=consistent_estimator(scene, cfg, frames)))
         if cfg.loss.ca_target == "map":  # its own anchor: of the whole capture or by region
             data, anchor = with_illuminant_map(data, scene, cfg, frames=frames)
         else:

@@ -143,3 +143,40 @@ def test_regional_anchor_is_not_pulled_to_the_brighter_light():
     np.testing.assert_array_equal(illum_map.frame_maps([rgb_cam], [None], capture, block=8),
                                   illum_map.frame_maps([rgb_cam], [None], capture, block=8,
                                                        rel=rel))
+
+
+def test_map_spread_tells_one_light_from_two():
+    """illum_map.map_spread_deg: the maps of paint under one light stay within a fraction of
+    a degree of their anchor; a lamp-to-window blend strays by degrees."""
+    one = [_paint(s) * WARM for s in range(2)]
+    two = [_paint(s) * _light(WARM, COOL) for s in range(2)]
+    spreads = []
+    for frames in (one, two):
+        masks = [None] * len(frames)
+        anchor = illuminant.capture_estimate("consensus", frames, [np.ones((H, W))] * 2)
+        maps = illum_map.frame_maps(frames, masks, anchor)
+        spreads.append(illum_map.map_spread_deg(maps, anchor))
+    assert spreads[0] < 0.5 < 3.0 < spreads[1]
+
+
+def test_consistent_estimator_picks_per_light_count():
+    """train.consistent_estimator: under one light the estimator whose quadrants agree
+    (quadrant_spreads' least), under two the consensus; the quadrant spreads do not change
+    with the frames' scale."""
+    from gridnerf import train
+    from gridnerf.config import Config, LossConfig
+
+    cfg = Config(loss=LossConfig(ca_illuminant="consistent", ca_locus=False))
+    masks = [np.ones((H, W))] * 2
+    one = [_paint(s) * WARM for s in range(2)]
+    spreads = illuminant.quadrant_spreads(one, masks)
+    assert set(spreads) == set(illuminant.CONSENSUS)
+    name = train.consistent_estimator(None, cfg, (one, masks))
+    assert name == illuminant.least_spread(spreads)
+    assert spreads[name][1] == min(s for _, s in spreads.values())
+    scaled = illuminant.quadrant_spreads([7.0 * x for x in one], masks)
+    for n, (est, s) in spreads.items():
+        np.testing.assert_allclose(scaled[n][0], est, atol=1e-9)
+        assert scaled[n][1] == pytest.approx(s, abs=1e-6)
+    two = [_paint(s) * _light(WARM, COOL) for s in range(2)]
+    assert train.consistent_estimator(None, cfg, (two, masks)) == "consensus"

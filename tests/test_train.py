@@ -404,6 +404,10 @@ def test_consensus_needs_the_scene_target():
     assert cfgmod.override(cfg, ["loss.ca_target=scene"]).loss.ca_target == "scene"
     with pytest.raises(ConfigError, match="loss.ca_illuminant"):
         cfgmod.override(cfg, ["loss.ca_target=batch"])
+    with pytest.raises(ConfigError, match="loss.ca_illuminant"):
+        cfgmod.override(cfg, ["loss.ca_illuminant=consistent", "loss.ca_target=batch"])
+    with pytest.raises(ConfigError, match="loss.ca_one_light_deg"):
+        cfgmod.override(cfg, ["loss.ca_one_light_deg=-1"])
 
 
 def test_illuminant_map_target_trains(small_scene, tmp_path):
