@@ -50,7 +50,6 @@ from illuminant_maps import true_map, weighted_error, with_true_level
 
 ROWS = ("ours", "field_global", "global_gw", "true_global", "true_local")
 SPLIT = ("field_true_level", "true_shape")  # the level / shape split (runs with gains)
-GROUPS = REPORT_GROUPS
 
 
 def test_views(run: Path, folder: Path):
@@ -134,7 +133,7 @@ def white_table(record: dict) -> str:
     """Markdown: white_error_deg of each scene and group mean ('' when no run has it)."""
     rows = [[n, *(fmt(r["white_error_deg"][k]) for k in WHITES)]
             for n, r in record.items() if "white_error_deg" in r]
-    for label, group in GROUPS:
+    for label, group in REPORT_GROUPS:
         got = [record[n]["white_error_deg"] for n in group
                if "white_error_deg" in record.get(n, {})]
         if got:
@@ -160,7 +159,7 @@ def split_table(record: dict) -> str:
                                             for g in got]))) for c in cols)]
 
     rows = [row(n, [r]) for n, r in record.items() if SPLIT[0] in r]
-    for label, group in GROUPS:
+    for label, group in REPORT_GROUPS:
         got = [record[n] for n in group if SPLIT[0] in record.get(n, {})]
         if got:
             rows.append(row(f"**mean, {label}** ({len(got)})", got))
@@ -217,7 +216,7 @@ def main() -> None:
                                                for k in white_err[0]}
         table.append(table_row(name, summary))
         print(name, table[-1][1:], flush=True)
-    for label, group in GROUPS:
+    for label, group in REPORT_GROUPS:
         got = [record[n] for n in group if n in record]
         if got:
             mean = {r: {m: float(np.mean([g[r][m] for g in got])) for m in ("psnr", "delta_e")}

@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from colour_ceiling import GROUPS, test_views
-from common import fmt, markdown_table, simulated_folders, write_report
+from colour_ceiling import test_views
+from common import REPORT_GROUPS, fmt, markdown_table, simulated_folders, write_report
 from gridnerf import color, evaluate, exposure, illuminant
 from gridnerf.sim import HELDOUT_MIXED, MIXED
 from offset_effect import offset_rgb
@@ -109,7 +109,7 @@ def table(record: dict) -> str:
     lines = [[n, *(f"{fmt(r[c]['psnr'])} / {fmt(r[c]['delta_e'])}" for c in columns)]
              for n, r in record.items()]
     mixed = MIXED + HELDOUT_MIXED
-    for label, group in (*GROUPS, ("all mixed light", mixed),
+    for label, group in (*REPORT_GROUPS, ("all mixed light", mixed),
                          ("all single light", tuple(n for n in record if n not in mixed)),
                          ("all shown", tuple(record))):
         got = [record[n] for n in group if n in record]

@@ -303,7 +303,8 @@ def quadrants(images, masks) -> list[tuple[list, list]]:
     return out
 
 
-def quadrant_spreads(images, masks, locus=None, p: float | None = None
+def quadrant_spreads(images, masks, locus=None, p: float | None = None,
+                     wholes: dict[str, np.ndarray] | None = None
                      ) -> dict[str, tuple[np.ndarray, float]]:
     """{estimator: ((3,) its capture_estimate, its spread in deg)} for CONSENSUS's three.
 
@@ -311,11 +312,13 @@ def quadrant_spreads(images, masks, locus=None, p: float | None = None
     different parts of a scene lit by one light: its spread is the mean angle of its
     estimates on the frames' four quadrants (pooled over the frames) from its estimate on
     the whole capture. Under two lights the quadrants see different lights too, so the
-    spread measures both (docs/colour.md, session 19)."""
+    spread measures both (docs/colour.md, session 19). wholes: the three capture_estimates
+    when the caller has them already."""
     parts = quadrants(images, masks)
     out = {}
     for name in CONSENSUS:
-        whole = capture_estimate(name, images, masks, locus, p)
+        whole = (capture_estimate(name, images, masks, locus, p) if wholes is None
+                 else wholes[name])
         out[name] = (whole, float(np.mean([angular_error_deg(
             capture_estimate(name, ims, ms, locus, p), whole) for ims, ms in parts])))
     return out

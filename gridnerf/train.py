@@ -336,13 +336,15 @@ def consistent_estimator(scene, cfg: Config, frames) -> str:
     images, masks = frames
     lc = cfg.loss
     locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
-    cons = illuminant.capture_estimate("consensus", images, masks, locus, lc.ca_illuminant_p)
+    wholes = {n: illuminant.capture_estimate(n, images, masks, locus, lc.ca_illuminant_p)
+              for n in illuminant.CONSENSUS}
+    cons = illuminant.consensus(list(wholes.values()), locus)
     maps = illum_map.frame_maps(images, masks, cons, locus, lc.ca_map_block, lc.ca_map_tau)
     spread = illum_map.map_spread_deg(maps, cons)
     if spread >= lc.ca_one_light_deg:
         print(f"L_ca estimator: consensus (the maps stray {spread:.2f} deg: lights mix)")
         return "consensus"
-    spreads = illuminant.quadrant_spreads(images, masks, locus, lc.ca_illuminant_p)
+    spreads = illuminant.quadrant_spreads(images, masks, locus, lc.ca_illuminant_p, wholes)
     name = illuminant.least_spread(spreads)
     print(f"L_ca estimator: {name} (one light: the maps stray {spread:.2f} deg; quadrant "
           "spreads " + ", ".join(f"{n} {s:.2f}" for n, (_, s) in spreads.items()) + " deg)")
