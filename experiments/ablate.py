@@ -13,8 +13,8 @@ scene (its `global_grey_world` output), which is what "no gains" vs "gains" shou
 Writes <out>.md and <out>.json: per scene, then the mean over the nine built-in scenes and,
 apart, over the held-out ones.
 
-    python experiments/ablate.py [--scenes all|nine|heldout|a,b] [--study parts|colour]
-                                 [--quick]
+    python experiments/ablate.py [--scenes all|nine|heldout|a,b]
+                                 [--study parts|colour|smoothness] [--quick]
 """
 
 from __future__ import annotations
@@ -68,7 +68,15 @@ COLOUR_VARIANTS = [
     ("black_dark", "default + black level from lens-cap frames", "dark_black", "default",
      ["data.black_offset=dark"]),
 ]
-STUDIES = {"parts": VARIANTS, "colour": COLOUR_VARIANTS}
+# --study smoothness: the gains' grid TV weight loss.w_smooth at a tenth of the default's
+# (session 21: does the field follow its illuminant map closer, and at what cost where
+# one light?). Tuned on mixed_lamp_window and mixed_desk_daylight, tested on the rest
+SMOOTHNESS_VARIANTS = [
+    ("map_regions", "field, loss.w_smooth = 0.1 (default)", "default", "default", []),
+    ("smooth_0.01", "field, loss.w_smooth = 0.01", "ws0.01", "default",
+     ["loss.w_smooth=0.01"]),
+]
+STUDIES = {"parts": VARIANTS, "colour": COLOUR_VARIANTS, "smoothness": SMOOTHNESS_VARIANTS}
 # (column, eval summary key) shown for every variant; the no-gain run adds its global gain
 OUTPUTS = [("matrix", "gridnerf"), ("matrix_free", "gridnerf_matrix_free"),
            ("global_gain", "global_grey_world")]
@@ -144,14 +152,15 @@ def main() -> None:
     ap.add_argument("--scenes", default="all", help="names and groups: all, nine, heldout, "
                     "mixed (e.g. nine,mixed for the colour study)")
     ap.add_argument("--study", default="parts", choices=list(STUDIES),
-                    help="parts: Bright-NeRF's parts; colour: white balance and estimators")
+                    help="parts: Bright-NeRF's parts; colour: white balance and estimators; "
+                    "smoothness: the gains' TV weight")
     ap.add_argument("--runs", default="runs")
     ap.add_argument("--out", default=None,
-                    help="default reports/ablation (parts), reports/ablation_colour (colour)")
+                    help="default reports/ablation (parts), reports/ablation_<study> (others)")
     ap.add_argument("--quick", action="store_true", help="small scenes, shrunk presets")
     args = ap.parse_args()
     out = args.out or ("reports/ablation" if args.study == "parts"
-                       else "reports/ablation_colour")
+                       else f"reports/ablation_{args.study}")
     print(build(scene_names(args.scenes), Path(args.runs), out, args.quick,
                 STUDIES[args.study]))
 

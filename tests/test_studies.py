@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from gridnerf import color, eval_run
+from gridnerf import config as cfgmod
 from gridnerf.sim import DEV, HELDOUT, MIXED, SCENES
 
 REPO = Path(__file__).resolve().parent.parent
@@ -150,6 +151,18 @@ def test_ablation_scene_groups_and_colour_study():
     assert set(nine) == {"grey_world", "map_regions"}
     assert "illuminant map anchored by region, consensus (default)" in ablate.markdown(
         record, nine, {}, ablate.COLOUR_VARIANTS)
+
+
+def test_every_study_variant_is_a_valid_config_and_shared_folders_agree():
+    """A run folder shared by studies (e.g. `default`) must mean one config everywhere,
+    else run_variant refuses it in the second study; every override must validate."""
+    seen: dict = {}
+    for variants in ablate.STUDIES.values():
+        for _key, _label, folder, preset, sets in variants:
+            cfg = cfgmod.override(cfgmod.preset(preset), sets)
+            assert seen.setdefault(folder, cfg) == cfg, folder
+    assert seen["ws0.01"].loss.w_smooth == 0.01
+    assert seen["default"] == cfgmod.preset("default")
 
 
 def test_colour_ceiling_rows_share_luminance_and_undo_the_true_white():
