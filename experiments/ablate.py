@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from common import (
+    REPORT_GROUPS,
     fmt,
     markdown_table,
     run_variant,
@@ -110,7 +111,9 @@ def means(record: dict, group, variants=VARIANTS) -> dict:
 
 
 def markdown(record: dict, mean_nine: dict, mean_held: dict, variants=VARIANTS,
-             command: str = "") -> str:
+             command: str = "", more_means: dict | None = None) -> str:
+    """The per-scene rows, then the means: nine, held out, and `more_means` ({group label:
+    means}, e.g. the mixed-light groups), each group apart."""
     labels = {key: label for key, label, *_ in variants}
 
     def rows(scene: str, per: dict) -> list[list[str]]:
@@ -119,7 +122,8 @@ def markdown(record: dict, mean_nine: dict, mean_held: dict, variants=VARIANTS,
                 for key, outs in per.items() for name, m in outs.items()]
 
     lines = [r for scene, per in record.items() for r in rows(scene, per)]
-    for label, mean in (("nine", mean_nine), ("held out", mean_held)):
+    for label, mean in (("nine", mean_nine), ("held out", mean_held),
+                        *(more_means or {}).items()):
         n = max((m["n"] for outs in mean.values() for m in outs.values()), default=0)
         lines += rows(f"**mean, {label}** (n={n})", mean)
     return ("# Ablation\n\nTest views, PSNR / SSIM / CIEDE2000 and aligned PSNR. Outputs: "
@@ -176,9 +180,11 @@ def build(scenes: list[str], runs: Path, out, quick: bool, variants=VARIANTS,
     record = ablate(scenes, runs, quick, variants)
     mean_nine = means(record, SCENES, variants)
     mean_held = means(record, HELDOUT, variants)
-    text = markdown(record, mean_nine, mean_held, variants, command)
+    more = {label: means(record, group, variants) for label, group in REPORT_GROUPS
+            if label not in ("nine", "held out") and any(s in record for s in group)}
+    text = markdown(record, mean_nine, mean_held, variants, command, more)
     write_report(out, text, {"quick": quick, "scenes": record, "mean_nine": mean_nine,
-                             "mean_heldout": mean_held})
+                             "mean_heldout": mean_held, "mean_groups": more})
     if not quick and variants is VARIANTS and Path(out) == Path("reports/ablation"):
         update_readme("ablation", means_table(mean_nine, mean_held))
     return text

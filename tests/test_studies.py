@@ -151,6 +151,12 @@ def test_ablation_scene_groups_and_colour_study():
     assert set(nine) == {"grey_world", "map_regions"}
     assert "illuminant map anchored by region, consensus (default)" in ablate.markdown(
         record, nine, {}, ablate.COLOUR_VARIANTS)
+    mixed = {"mixed_lamp_window": {"map_regions": {"matrix": _m(25.0)}}}
+    text = ablate.markdown(mixed, {}, {}, ablate.COLOUR_VARIANTS, more_means={
+        "mixed light": ablate.means(mixed, MIXED, ablate.COLOUR_VARIANTS)})
+    assert "| **mean, mixed light** (n=1) | field, illuminant map anchored by region, " \
+        "consensus (default) | matrix | 25.00 |" in text
+    assert "mean, nine" not in text
 
 
 def test_every_study_variant_is_a_valid_config_and_shared_folders_agree():
