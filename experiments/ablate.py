@@ -10,8 +10,8 @@ runs that other studies share are reused, not trained twice):
 Each is scored with the colour matrix (the shown output) and without it (the paper's
 matrix-free output); the no-gain variant is also shown with one grey-world gain for the
 scene (its `global_grey_world` output), which is what "no gains" vs "gains" should compare.
-Writes <out>.md and <out>.json: per scene, then the mean over the nine built-in scenes and,
-apart, over the held-out ones.
+Writes <out>.md and <out>.json: per scene, then the mean over each report group the scenes
+cover (nine built-in, tuning, held out, mixed light, held-out mixed light), each apart.
 
     python experiments/ablate.py [--scenes all|nine|heldout|a,b]
                                  [--study parts|colour|smoothness] [--quick]
@@ -33,7 +33,6 @@ from common import (
     update_readme,
     write_report,
 )
-from gridnerf.sim import HELDOUT, SCENES
 
 # (key, label, run folder, preset, overrides)
 VARIANTS = [
@@ -110,10 +109,15 @@ def means(record: dict, group, variants=VARIANTS) -> dict:
     return out
 
 
-def markdown(record: dict, mean_nine: dict, mean_held: dict, variants=VARIANTS,
-             command: str = "", more_means: dict | None = None) -> str:
-    """The per-scene rows, then the means: nine, held out, and `more_means` ({group label:
-    means}, e.g. the mixed-light groups), each group apart."""
+def group_means(record: dict, variants=VARIANTS) -> dict:
+    """{group label: means} for each of common.REPORT_GROUPS the record has a scene of
+    (nine, tuning, held out, mixed light, held-out mixed light: each group apart)."""
+    return {label: means(record, group, variants) for label, group in REPORT_GROUPS
+            if any(s in record for s in group)}
+
+
+def markdown(record: dict, groups: dict, variants=VARIANTS, command: str = "") -> str:
+    """The per-scene rows, then the means of each group ({label: means}, group_means)."""
     labels = {key: label for key, label, *_ in variants}
 
     def rows(scene: str, per: dict) -> list[list[str]]:
@@ -122,8 +126,7 @@ def markdown(record: dict, mean_nine: dict, mean_held: dict, variants=VARIANTS,
                 for key, outs in per.items() for name, m in outs.items()]
 
     lines = [r for scene, per in record.items() for r in rows(scene, per)]
-    for label, mean in (("nine", mean_nine), ("held out", mean_held),
-                        *(more_means or {}).items()):
+    for label, mean in groups.items():
         n = max((m["n"] for outs in mean.values() for m in outs.values()), default=0)
         lines += rows(f"**mean, {label}** (n={n})", mean)
     return ("# Ablation\n\nTest views, PSNR / SSIM / CIEDE2000 and aligned PSNR. Outputs: "
@@ -178,15 +181,12 @@ def build(scenes: list[str], runs: Path, out, quick: bool, variants=VARIANTS,
                           + (f" --study {study}" if study != "parts" else "")
                           + (" --quick" if quick else ""))
     record = ablate(scenes, runs, quick, variants)
-    mean_nine = means(record, SCENES, variants)
-    mean_held = means(record, HELDOUT, variants)
-    more = {label: means(record, group, variants) for label, group in REPORT_GROUPS
-            if label not in ("nine", "held out") and any(s in record for s in group)}
-    text = markdown(record, mean_nine, mean_held, variants, command, more)
-    write_report(out, text, {"quick": quick, "scenes": record, "mean_nine": mean_nine,
-                             "mean_heldout": mean_held, "mean_groups": more})
+    groups = group_means(record, variants)
+    text = markdown(record, groups, variants, command)
+    write_report(out, text, {"quick": quick, "scenes": record, "means": groups})
     if not quick and variants is VARIANTS and Path(out) == Path("reports/ablation"):
-        update_readme("ablation", means_table(mean_nine, mean_held))
+        update_readme("ablation", means_table(groups.get("nine", {}),
+                                              groups.get("held out", {})))
     return text
 
 

@@ -43,12 +43,12 @@ def test_ablation_means_keep_nine_and_held_out_apart():
         "deer": {"no_cr": {"matrix": _m(14.0)}, "full_tv": {"matrix": _m(22.0)}},
         "held_arc_brick": {"full_tv": {"matrix": _m(15.0)}},
     }
-    nine = ablate.means(record, ablate.SCENES)
-    held = ablate.means(record, ablate.HELDOUT)
+    nine = ablate.means(record, SCENES)
+    held = ablate.means(record, HELDOUT)
     assert nine["full_tv"]["matrix"]["psnr"] == 21.0 and nine["full_tv"]["matrix"]["n"] == 2
     assert nine["no_cr"]["global_gain"]["n"] == 1  # only where the output exists
     assert held["full_tv"]["matrix"]["psnr"] == 15.0 and "no_cr" not in held
-    text = ablate.markdown(record, nine, held)
+    text = ablate.markdown(record, {"nine": nine, "held out": held})
     assert "**mean, held out** (n=1)" in text and "global_gain" in text
     assert "**mean, nine** (n=2)" in text
 
@@ -147,13 +147,13 @@ def test_ablation_scene_groups_and_colour_study():
     assert "| full, smoothness as grid TV (default) | 21.00 / 0.500 / 10.00 (n=2) | - |" in table
     record = {"bucket": {"grey_world": {"matrix": _m(18.0)},
                          "map_regions": {"matrix": _m(19.0)}}}
-    nine = ablate.means(record, ablate.SCENES, ablate.COLOUR_VARIANTS)
+    nine = ablate.means(record, SCENES, ablate.COLOUR_VARIANTS)
     assert set(nine) == {"grey_world", "map_regions"}
     assert "illuminant map anchored by region, consensus (default)" in ablate.markdown(
-        record, nine, {}, ablate.COLOUR_VARIANTS)
+        record, {"nine": nine}, ablate.COLOUR_VARIANTS)
     mixed = {"mixed_lamp_window": {"map_regions": {"matrix": _m(25.0)}}}
-    text = ablate.markdown(mixed, {}, {}, ablate.COLOUR_VARIANTS, more_means={
-        "mixed light": ablate.means(mixed, MIXED, ablate.COLOUR_VARIANTS)})
+    text = ablate.markdown(mixed, ablate.group_means(mixed, ablate.COLOUR_VARIANTS),
+                           ablate.COLOUR_VARIANTS)
     assert "| **mean, mixed light** (n=1) | field, illuminant map anchored by region, " \
         "consensus (default) | matrix | 25.00 |" in text
     assert "mean, nine" not in text
