@@ -400,12 +400,14 @@ def test_consensus_needs_the_scene_target():
     from gridnerf.errors import ConfigError
 
     cfg = cfgmod.preset("default")
-    assert cfg.loss.ca_illuminant == "consensus" and cfg.loss.ca_target == "map"
+    assert cfg.loss.ca_illuminant == "consistent" and cfg.loss.ca_target == "map"
     assert cfgmod.override(cfg, ["loss.ca_target=scene"]).loss.ca_target == "scene"
     with pytest.raises(ConfigError, match="loss.ca_illuminant"):
         cfgmod.override(cfg, ["loss.ca_target=batch"])
     with pytest.raises(ConfigError, match="loss.ca_illuminant"):
-        cfgmod.override(cfg, ["loss.ca_illuminant=consistent", "loss.ca_target=batch"])
+        cfgmod.override(cfg, ["loss.ca_illuminant=consensus", "loss.ca_target=batch"])
+    batch = cfgmod.override(cfg, ["loss.ca_illuminant=grey_world", "loss.ca_target=batch"])
+    assert batch.loss.ca_target == "batch"
     with pytest.raises(ConfigError, match="loss.ca_one_light_deg"):
         cfgmod.override(cfg, ["loss.ca_one_light_deg=-1"])
 
