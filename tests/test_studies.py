@@ -22,6 +22,7 @@ sys.path.insert(0, str(REPO / "experiments"))
 
 import ablate  # noqa: E402
 import black_level  # noqa: E402
+import carry_runs  # noqa: E402
 import colour_ceiling  # noqa: E402
 import common  # noqa: E402
 import consistency  # noqa: E402
@@ -345,3 +346,16 @@ def test_black_level_table_differences_and_group_means():
     assert "held out" not in md.split("|---|")[1]  # no group without scenes
     readme = black_level.readme_table(record, "cmd")  # the group means alone
     assert "| nine (2) | 21.00 / 9.00 |" in readme and "bucket" not in readme
+
+
+def test_carry_runs_compares_the_l_ca_inputs(small_scene, tmp_path):
+    """A run's L_ca inputs are identical under its own estimator and differ under one that
+    moves the estimate; runs without gains do not read the estimator."""
+    cfg = cfgmod.override(cfgmod.preset("default"), ["loss.ca_illuminant=consensus"])
+    run = tmp_path / "run"
+    run.mkdir()
+    assert carry_runs.same_inputs(run, small_scene, cfg, "consensus")
+    assert not carry_runs.same_inputs(run, small_scene, cfg, "grey_world")
+    assert carry_runs.reads_estimator(cfg)
+    assert not carry_runs.reads_estimator(cfgmod.preset("nogain"))
+    assert not carry_runs.reads_estimator(cfgmod.preset("llnerf"))
