@@ -292,10 +292,11 @@ def scene_illuminant(data: dataset.RayData, scene, cfg: Config, frames=None) -> 
     onto the camera's Planckian locus when loss.ca_locus; "consensus" is the per-channel
     median of illuminant.CONSENSUS's estimates (illuminant.consensus). The mosaic mode bins
     the frames for this estimate only. frames: (images, masks) of _estimate_frames when the
-    caller has them already.
+    caller has them already. loss.ca_illuminant = "consistent" is resolved on these frames
+    (resolve_estimator).
     """
     images, masks = _estimate_frames(data, scene) if frames is None else frames
-    lc = cfg.loss
+    lc = resolve_estimator(scene, cfg, (images, masks)).loss
     locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
     return illuminant.capture_estimate(lc.ca_illuminant, images, masks, locus,
                                        lc.ca_illuminant_p)
@@ -309,8 +310,10 @@ def with_illuminant_map(data: dataset.RayData, scene, cfg: Config,
     of loss.ca_map_block binned pixels) anchored, with loss.ca_map_anchor = "regions", to
     the lights of the maps' warm and cool halves (illum_map.regional_anchor, each by
     loss.ca_illuminant; `anchor` is not used) or, with "capture", to `anchor` (3,) (default:
-    scene_illuminant); on the locus when loss.ca_locus; frames as in scene_illuminant."""
+    scene_illuminant); on the locus when loss.ca_locus; frames as in scene_illuminant (the
+    whole capture's: "consistent" is resolved on them, resolve_estimator)."""
     images, masks = _estimate_frames(data, scene) if frames is None else frames
+    cfg = resolve_estimator(scene, cfg, (images, masks))
     lc = cfg.loss
     locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
     rel, weight = illum_map.relative_maps(images, masks, lc.ca_map_block, lc.ca_map_tau)
@@ -351,6 +354,16 @@ def consistent_estimator(scene, cfg: Config, frames) -> str:
     return name
 
 
+def resolve_estimator(scene, cfg: Config, frames) -> Config:
+    """cfg with loss.ca_illuminant = "consistent" replaced by the estimator it stands for on
+    this capture (consistent_estimator; frames: the whole capture's (images, masks) of
+    _estimate_frames), any other cfg as it is."""
+    if cfg.loss.ca_illuminant != "consistent":
+        return cfg
+    name = consistent_estimator(scene, cfg, frames)
+    return dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, ca_illuminant=name))
+
+
 def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> tuple[dataset.RayData, dict]:
     """The L_ca inputs, as the config chooses them: (data, make_step keyword arguments).
 
@@ -363,9 +376,7 @@ def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> tuple[dataset.Ra
         return data, {}
     if cfg.loss.ca_target in ("scene", "map"):
         frames = _estimate_frames(data, scene)  # binned once for every estimate
-        if cfg.loss.ca_illuminant == "consistent":
-            cfg = dataclasses.replace(cfg, loss=dataclasses.replace(
-                cfg.loss, ca_illuminant=consistent_estimator(scene, cfg, frames)))
+        cfg = resolve_estimator(scene, cfg, frames)  # "consistent" picked once
         if cfg.loss.ca_target == "map":  # its own anchor: of the whole capture or by region
             data, anchor = with_illuminant_map(data, scene, cfg, frames=frames)
         else:
