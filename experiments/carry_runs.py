@@ -32,18 +32,11 @@ from common import RESULTS, fingerprint, load_results
 from gridnerf import atomic, dataset, runfolder
 from gridnerf import config as cfgmod
 from gridnerf.errors import ConfigError
-from gridnerf.train import colour_inputs
+from gridnerf.train import colour_inputs, estimates_from_frames
 
 
 def with_estimator(cfg: cfgmod.Config, name: str) -> cfgmod.Config:
     return dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, ca_illuminant=name))
-
-
-def reads_estimator(cfg: cfgmod.Config) -> bool:
-    """Whether training reads loss.ca_illuminant from the frames (gains on, not the
-    LLNeRF-style method, a target estimated once from the frames)."""
-    lc = cfg.loss
-    return lc.use_gains and lc.method != "llnerf" and lc.ca_target in ("scene", "map")
 
 
 def same_inputs(run: Path, scene_dir: Path, cfg: cfgmod.Config, other: str) -> bool:
@@ -76,7 +69,7 @@ def main() -> None:
             cfg = cfgmod.load(path)
         except ConfigError:  # a removed option's run: not today's config in either case
             continue
-        if not reads_estimator(cfg) or cfg.loss.ca_illuminant != args.old:
+        if not estimates_from_frames(cfg) or cfg.loss.ca_illuminant != args.old:
             continue
         scene = run.parent.name
         same = same_inputs(run, Path(args.scenes_root) / scene, cfg, args.new)

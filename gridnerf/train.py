@@ -364,6 +364,14 @@ def resolve_estimator(scene, cfg: Config, frames) -> Config:
     return dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, ca_illuminant=name))
 
 
+def estimates_from_frames(cfg: Config) -> bool:
+    """Whether training estimates the L_ca illuminant from the training frames before it
+    starts (gains on, not loss.method = "llnerf", the "scene" or "map" target): the runs
+    whose training loss.ca_illuminant can change, through colour_inputs alone."""
+    lc = cfg.loss
+    return lc.use_gains and lc.method != "llnerf" and lc.ca_target in ("scene", "map")
+
+
 def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> tuple[dataset.RayData, dict]:
     """The L_ca inputs, as the config chooses them: (data, make_step keyword arguments).
 
@@ -374,7 +382,7 @@ def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> tuple[dataset.Ra
     """
     if not cfg.loss.use_gains or cfg.loss.method == "llnerf":
         return data, {}
-    if cfg.loss.ca_target in ("scene", "map"):
+    if estimates_from_frames(cfg):
         frames = _estimate_frames(data, scene)  # binned once for every estimate
         cfg = resolve_estimator(scene, cfg, frames)  # "consistent" picked once
         if cfg.loss.ca_target == "map":  # its own anchor: of the whole capture or by region

@@ -356,6 +356,8 @@ def test_carry_runs_compares_the_l_ca_inputs(small_scene, tmp_path):
     run.mkdir()
     assert carry_runs.same_inputs(run, small_scene, cfg, "consensus")
     assert not carry_runs.same_inputs(run, small_scene, cfg, "grey_world")
-    assert carry_runs.reads_estimator(cfg)
-    assert not carry_runs.reads_estimator(cfgmod.preset("nogain"))
-    assert not carry_runs.reads_estimator(cfgmod.preset("llnerf"))
+    assert carry_runs.estimates_from_frames(cfg)
+    for preset in ("nogain", "llnerf"):
+        assert not carry_runs.estimates_from_frames(cfgmod.preset(preset))
+    batch = ["loss.ca_illuminant=grey_world", "loss.ca_target=batch"]
+    assert not carry_runs.estimates_from_frames(cfgmod.override(cfg, batch))
