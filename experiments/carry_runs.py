@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import dataclasses
 import io
 import json
 import shutil
@@ -35,17 +34,13 @@ from gridnerf.errors import ConfigError
 from gridnerf.train import colour_inputs, estimates_from_frames
 
 
-def with_estimator(cfg: cfgmod.Config, name: str) -> cfgmod.Config:
-    return dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, ca_illuminant=name))
-
-
 def same_inputs(run: Path, scene_dir: Path, cfg: cfgmod.Config, other: str) -> bool:
     """Whether the run's L_ca inputs under `other` are bit-identical to its own."""
     scene = runfolder.open_scene(scene_dir, run, dark=cfg.data.black_offset == "dark")
     data = dataset.training_data(scene, cfg.data)
     with contextlib.redirect_stdout(io.StringIO()):  # the estimators' choice lines
         d1, k1 = colour_inputs(data, scene, cfg)
-        d2, k2 = colour_inputs(data, scene, with_estimator(cfg, other))
+        d2, k2 = colour_inputs(data, scene, cfgmod.override(cfg, [f"loss.ca_illuminant={other}"]))
     maps = (d1.illuminant_map is None and d2.illuminant_map is None) or (
         d1.illuminant_map is not None and d2.illuminant_map is not None
         and np.array_equal(np.asarray(d1.illuminant_map), np.asarray(d2.illuminant_map)))
@@ -78,7 +73,7 @@ def main() -> None:
         if not args.apply:
             continue
         if same:
-            new = with_estimator(cfg, args.new)
+            new = cfgmod.override(cfg, [f"loss.ca_illuminant={args.new}"])
             entry = results.get(f"{scene}/{run.name}")
             if entry and entry["fingerprint"] == fingerprint(cfg):
                 entry["fingerprint"] = fingerprint(new)
