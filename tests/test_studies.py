@@ -150,13 +150,13 @@ def test_ablation_scene_groups_and_colour_study():
                          "map_regions": {"matrix": _m(19.0)}}}
     nine = ablate.means(record, SCENES, ablate.COLOUR_VARIANTS)
     assert set(nine) == {"grey_world", "map_regions"}
-    assert "illuminant map anchored by region, consensus (default)" in ablate.markdown(
+    assert "illuminant map anchored by region (default)" in ablate.markdown(
         record, {"nine": nine}, ablate.COLOUR_VARIANTS)
     mixed = {"mixed_lamp_window": {"map_regions": {"matrix": _m(25.0)}}}
     text = ablate.markdown(mixed, ablate.group_means(mixed, ablate.COLOUR_VARIANTS),
                            ablate.COLOUR_VARIANTS)
-    assert "| **mean, mixed light** (n=1) | field, illuminant map anchored by region, " \
-        "consensus (default) | matrix | 25.00 |" in text
+    assert "| **mean, mixed light** (n=1) | field, illuminant map anchored by region " \
+        "(default) | matrix | 25.00 |" in text
     assert "mean, nine" not in text
 
 
