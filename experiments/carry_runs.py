@@ -41,10 +41,9 @@ def same_inputs(run: Path, scene_dir: Path, cfg: cfgmod.Config, other: str) -> b
     with contextlib.redirect_stdout(io.StringIO()):  # the estimators' choice lines
         d1, k1 = colour_inputs(data, scene, cfg)
         d2, k2 = colour_inputs(data, scene, cfgmod.override(cfg, [f"loss.ca_illuminant={other}"]))
-    maps = (d1.illuminant_map is None and d2.illuminant_map is None) or (
-        d1.illuminant_map is not None and d2.illuminant_map is not None
-        and np.array_equal(np.asarray(d1.illuminant_map), np.asarray(d2.illuminant_map)))
-    return maps and np.array_equal(np.asarray(k1["scene_ill"]), np.asarray(k2["scene_ill"]))
+    m1, m2 = d1.illuminant_map, d2.illuminant_map
+    maps = (m1 is None) == (m2 is None) and (m1 is None or np.array_equal(m1, m2))
+    return maps and np.array_equal(k1["scene_ill"], k2["scene_ill"])
 
 
 def main() -> None:

@@ -41,7 +41,10 @@ from gridnerf.sim import DEV, HELDOUT
 def row_for(scene: str, oracle: bool) -> dict:
     ours = run_variant(scene, "default", "default", [], need_run=True)
     s = ours["summary"]
-    summary = json.loads((Path(ours["run"]) / "summary.json").read_text())
+    # the folder run_variant trained: a metrics file's recorded path goes stale when a run
+    # folder is renamed
+    summary = json.loads((Path("runs") / Path(scene).name / "default" / "summary.json")
+                         .read_text())
     row = {
         "scene": scene,
         "held_out": scene in HELDOUT,
