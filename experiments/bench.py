@@ -177,14 +177,14 @@ def _training_setup(run: str, scale: float, dense: bool, sets: list[str]):
     (grid.resample) to round(scale * resolution) vertices per axis; dense replaces it by a
     full grid of that resolution and box (grid.init_grid) and turns off empty skipping."""
 
+    from gridnerf import colour_target, dataset, eval_run, grid, stages, train
     from gridnerf import config as cfgmod
-    from gridnerf import dataset, eval_run, grid, train
 
     cfg, scene, structure, params, _ = eval_run.load_run(Path(run))
     cfg = cfgmod.override(cfg, sets)
     data = dataset.training_data(scene, cfg.data)
     near_t, far_t = dataset.grid_box(scene)[2:]
-    data, extra = train.colour_inputs(data, scene, cfg)  # the L_ca inputs, as training has
+    data, extra = colour_target.colour_inputs(data, scene, cfg)  # the L_ca inputs, as training has
     res = tuple(max(2, int(round(r * scale))) for r in structure.resolution)
     if dense:
         structure, params = grid.init_grid(
@@ -196,7 +196,7 @@ def _training_setup(run: str, scale: float, dense: bool, sets: list[str]):
     structure = grid.update_occupancy(structure, params, cfg.grid.occupancy_threshold)
     stage = len(cfg.train.steps_per_stage) - 1
     tx = train.make_optimizer(cfg, cfg.train.steps_per_stage[-1], stage)
-    cfg = train.with_fitted_candidates(train.stage_config(cfg, stage), structure, data,
+    cfg = stages.with_fitted_candidates(train.stage_config(cfg, stage), structure, data,
                                        near_t, far_t)  # the last stage's step config
     step = train.make_step(cfg, tx, near_t, far_t, **extra)
     return cfg, structure, params, tx.init(params), step, data, near_t, far_t

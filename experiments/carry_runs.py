@@ -1,7 +1,7 @@
 """Carry kept runs over a change of the L_ca estimator (`loss.ca_illuminant`) without
 training them again where the change cannot touch them.
 
-The estimator reaches training only through the L_ca inputs (train.colour_inputs: the
+The estimator reaches training only through the L_ca inputs (colour_target.colour_inputs: the
 capture's or each region's illuminant, and the per-frame illuminant maps). For every run
 folder under --runs whose config reads the estimator with the value --from, this computes
 those inputs on the run's own frames (its bounds and black level) under --from and under
@@ -30,8 +30,8 @@ import numpy as np
 from common import RESULTS, fingerprint, load_results
 from gridnerf import atomic, dataset, runfolder
 from gridnerf import config as cfgmod
+from gridnerf.colour_target import colour_inputs, estimates_from_frames
 from gridnerf.errors import ConfigError
-from gridnerf.train import colour_inputs, estimates_from_frames
 
 
 def same_inputs(run: Path, scene_dir: Path, cfg: cfgmod.Config, other: str) -> bool:

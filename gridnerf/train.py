@@ -29,17 +29,18 @@ from tqdm import tqdm
 from gridnerf import (
     atomic,
     checkpoint,
+    colour_target,
     darkframes,
     dataset,
     devices,
     grid,
-    illum_map,
     illuminant,
     llnerf,
     losses,
     render,
     runfolder,
     sensorfit,
+    stages,
 )
 from gridnerf import config as cfgmod
 from gridnerf.config import Config
@@ -47,24 +48,6 @@ from gridnerf.errors import CheckpointError, NumericsError
 from gridnerf.runfolder import load_state, save_state
 
 CHECKPOINT = runfolder.CHECKPOINT
-
-
-def resolve_resolution(res, bbox_min, bbox_max, image_hw: tuple[int, int],
-                       forward_facing: bool) -> tuple[int, int, int]:
-    """Vertex counts of a stage: `res` (x, y, z), where y = 0 means "from the aspect".
-
-    A y of 0 becomes the count that gives y voxels the footprint of x voxels: in NDC the
-    box's x and y extents map to image pixels at W/2 and H/2 pixels per unit, so a 16:9
-    frame gets y = 0.56 x on the full NDC box (a square grid would spend 1.8x the vertices
-    on y for nothing); a world box uses the ratio of its extents.
-    """
-    rx, ry, rz = (int(r) for r in res)
-    if ry > 0:
-        return rx, ry, rz
-    ext = np.asarray(bbox_max, np.float64) - np.asarray(bbox_min, np.float64)
-    h, w = image_hw
-    ratio = ext[1] * h / (ext[0] * w) if forward_facing else ext[1] / ext[0]
-    return rx, max(2, int(round((rx - 1) * ratio)) + 1), rz
 
 
 def make_optimizer(cfg: Config, steps: int, stage: int = 0) -> optax.GradientTransformation:
@@ -92,7 +75,7 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
 
     locus: (n, 3) camera-RGB Planckian locus (illuminant.planckian_locus) when
     loss.ca_locus, the L_ca illuminant estimate is projected onto it; else None.
-    scene_ill: (3,) the capture's illuminant (scene_illuminant) when loss.ca_target is
+    scene_ill: (3,) the capture's illuminant (colour_target.scene_illuminant) when loss.ca_target is
     "scene": the L_ca target for every batch, no per-batch estimate; else None.
     loss.method = "llnerf": the LLNeRF-style terms (llnerf_terms) replace the data term,
     L_ca and the smoothness; the terms after them are shared.
@@ -119,7 +102,7 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
         if lc.ca_target == "map":
             if "illuminant" not in flat:
                 raise ValueError("loss.ca_target = 'map' needs the data's illuminant map "
-                                 "(train.with_illuminant_map)")
+                                 "(colour_target.with_illuminant_map)")
             c_ill = flat["illuminant"]  # (n, 3): each ray's block of its frame's map
         elif scene_ill is not None:
             c_ill = scene_ill
@@ -205,7 +188,7 @@ def make_step(cfg: Config, tx, near_t: float, far_t: float, locus=None, scene_il
     if (cfg.loss.use_gains and cfg.loss.method == "brightnerf" and cfg.loss.ca_target != "batch"
             and scene_ill is None):
         raise ValueError("loss.ca_target = 'scene' needs the capture's illuminant: pass "
-                         "make_step(..., **colour_inputs(data, scene, cfg)[1])")
+                         "make_step(..., **colour_target.colour_inputs(data, scene, cfg)[1])")
 
     @jax.jit
     def step(params, opt_state, structure, data, key):
@@ -233,32 +216,6 @@ def stage_config(cfg: Config, stage: int) -> Config:
 
 # margin on the longest training ray when fitting the candidate count (a batch ray's pixel
 # may sit a fraction of a pixel off the fitted ones)
-CANDIDATE_MARGIN = 1.05
-
-
-def with_fitted_candidates(cfg: Config, structure, data: dataset.RayData, near_t: float,
-                           far_t: float) -> Config:
-    """cfg with render.n_candidates fitted to this stage's grid and the training rays
-    (render.fit_n_candidates over every training pixel, times CANDIDATE_MARGIN), where
-    the config leaves it 0 (auto); otherwise cfg itself.
-
-    The auto count crosses the box diagonal (192x118x64: 351 candidates per ray), but a
-    forward-facing NDC ray crosses little more than the z voxels: every training ray keeps
-    its full 1 / samples_per_voxel spacing either way, so the samples are the same and
-    only the candidate test (occupancy lookups, running count, search) shrinks.
-    Renders of other cameras (eval) keep the auto count.
-    """
-    if cfg.render.n_candidates:
-        return cfg
-    longest = 0
-    for oc, dc, _ in _training_rays(data, 1 << 16, stride=1):
-        longest = max(longest, render.fit_n_candidates(
-            structure, oc, dc, near_t, far_t, cfg.render.samples_per_voxel))
-    n = min(int(np.ceil(longest * CANDIDATE_MARGIN)) + 1,
-            render.n_candidates(structure, cfg.render))
-    return dataclasses.replace(cfg, render=dataclasses.replace(cfg.render, n_candidates=n))
-
-
 def data_statistics(data: dataset.RayData, key, n_patches: int = 256
                     ) -> tuple[float, np.ndarray, np.ndarray]:
     """Mean target level, grey-world log gains (3,) and mean colour (3,) of the training
@@ -269,131 +226,6 @@ def data_statistics(data: dataset.RayData, key, n_patches: int = 256
     means = (y * m).sum(0) / np.maximum(m.sum(0), 1.0)
     gains = illuminant.gains_from_illuminant(illuminant.grey_world(y, m), floor=1e-6)
     return float(max(means.mean(), 1e-12)), np.log(gains), means
-
-
-def _estimate_frames(data: dataset.RayData, scene) -> tuple[list, list]:
-    """The training frames as the capture-level estimators see them: (h, w, 3) camera RGB
-    divided by the frame's exposure and (h, w[, 3]) validity, 2x2-binned in mosaic mode."""
-    if data.mosaic:
-        pairs = [scene.rgb_cam_binned(int(i)) for i in scene.train_idx]
-        images = [p[0] / float(scene.exposure[i]) for p, i in zip(pairs, scene.train_idx,
-                                                                   strict=True)]
-        return images, [p[1] for p in pairs]
-    inv = np.asarray(data.inv_exposure, np.float64)
-    return (list(np.asarray(data.pixels, np.float64) * inv[:, None, None, None]),
-            list(np.asarray(data.valid)))
-
-
-def scene_illuminant(data: dataset.RayData, scene, cfg: Config, frames=None) -> np.ndarray:
-    """The capture's illuminant (3,) unit camera RGB, estimated once from all training frames.
-
-    loss.ca_illuminant on the 2x2-binned frames divided by their exposure, saturated blocks
-    left out (illuminant.frames_estimate: pooled pixels; grey edge per frame), then projected
-    onto the camera's Planckian locus when loss.ca_locus; "consensus" is the per-channel
-    median of illuminant.CONSENSUS's estimates (illuminant.consensus). The mosaic mode bins
-    the frames for this estimate only. frames: (images, masks) of _estimate_frames when the
-    caller has them already. loss.ca_illuminant = "consistent" is resolved on these frames
-    (resolve_estimator).
-    """
-    images, masks = _estimate_frames(data, scene) if frames is None else frames
-    lc = resolve_estimator(scene, cfg, (images, masks)).loss
-    locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
-    return illuminant.capture_estimate(lc.ca_illuminant, images, masks, locus,
-                                       lc.ca_illuminant_p)
-
-
-def with_illuminant_map(data: dataset.RayData, scene, cfg: Config,
-                        anchor: np.ndarray | None = None, frames=None
-                        ) -> tuple[dataset.RayData, np.ndarray]:
-    """(data with its per-frame L_ca illuminant map, the maps' anchor (3,)) for
-    loss.ca_target = "map": each training frame's Retinex map (gridnerf.illum_map, blocks
-    of loss.ca_map_block binned pixels) anchored, with loss.ca_map_anchor = "regions", to
-    the lights of the maps' warm and cool halves (illum_map.regional_anchor, each by
-    loss.ca_illuminant; `anchor` is not used) or, with "capture", to `anchor` (3,) (default:
-    scene_illuminant); on the locus when loss.ca_locus; frames as in scene_illuminant (the
-    whole capture's: "consistent" is resolved on them, resolve_estimator)."""
-    images, masks = _estimate_frames(data, scene) if frames is None else frames
-    cfg = resolve_estimator(scene, cfg, (images, masks))
-    lc = cfg.loss
-    locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
-    rel, weight = illum_map.relative_maps(images, masks, lc.ca_map_block, lc.ca_map_tau)
-    if lc.ca_map_anchor == "regions":
-        anchor = illum_map.regional_anchor(
-            images, masks, rel, weight,
-            lambda ims, mks: scene_illuminant(data, scene, cfg, (ims, mks)), locus,
-            lc.ca_map_block)
-    elif anchor is None:
-        anchor = scene_illuminant(data, scene, cfg, (images, masks))
-    maps = illum_map.frame_maps(images, masks, anchor, locus, lc.ca_map_block, lc.ca_map_tau,
-                                rel=rel)
-    return dataclasses.replace(data, illuminant_map=jnp.asarray(maps, jnp.float32)), anchor
-
-
-def consistent_estimator(scene, cfg: Config, frames) -> str:
-    """The estimator loss.ca_illuminant = "consistent" stands for on this capture: under one
-    light (its illuminant maps, anchored to the consensus, stray less than
-    loss.ca_one_light_deg from it: illum_map.map_spread_deg) the one of the consensus's
-    three whose quadrant estimates agree best (illuminant.quadrant_spreads), else
-    "consensus" (under two lights the quadrants see different lights, and the spread
-    would measure them). frames: (images, masks) of _estimate_frames. Prints the choice."""
-    images, masks = frames
-    lc = cfg.loss
-    locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
-    wholes = {n: illuminant.capture_estimate(n, images, masks, locus, lc.ca_illuminant_p)
-              for n in illuminant.CONSENSUS}
-    cons = illuminant.consensus(list(wholes.values()), locus)
-    maps = illum_map.frame_maps(images, masks, cons, locus, lc.ca_map_block, lc.ca_map_tau)
-    spread = illum_map.map_spread_deg(maps, cons)
-    if spread >= lc.ca_one_light_deg:
-        print(f"L_ca estimator: consensus (the maps stray {spread:.2f} deg: lights mix)")
-        return "consensus"
-    spreads = illuminant.quadrant_spreads(images, masks, locus, lc.ca_illuminant_p, wholes)
-    name = illuminant.least_spread(spreads)
-    print(f"L_ca estimator: {name} (one light: the maps stray {spread:.2f} deg; quadrant "
-          "spreads " + ", ".join(f"{n} {s:.2f}" for n, (_, s) in spreads.items()) + " deg)")
-    return name
-
-
-def resolve_estimator(scene, cfg: Config, frames) -> Config:
-    """cfg with loss.ca_illuminant = "consistent" replaced by the estimator it stands for on
-    this capture (consistent_estimator; frames: the whole capture's (images, masks) of
-    _estimate_frames), any other cfg as it is."""
-    if cfg.loss.ca_illuminant != "consistent":
-        return cfg
-    name = consistent_estimator(scene, cfg, frames)
-    return dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, ca_illuminant=name))
-
-
-def estimates_from_frames(cfg: Config) -> bool:
-    """Whether training estimates the L_ca illuminant from the training frames before it
-    starts (gains on, not loss.method = "llnerf", the "scene" or "map" target): the runs
-    whose training loss.ca_illuminant can change, through colour_inputs alone."""
-    lc = cfg.loss
-    return lc.use_gains and lc.method != "llnerf" and lc.ca_target in ("scene", "map")
-
-
-def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> tuple[dataset.RayData, dict]:
-    """The L_ca inputs, as the config chooses them: (data, make_step keyword arguments).
-
-    data gains its illuminant map for loss.ca_target = "map" (with_illuminant_map);
-    kwargs: {"scene_ill": (3,)} for the "scene" and "map" targets (the map's anchor, and
-    where the gains start), {"locus": (n, 3)} for the batch target with loss.ca_locus, {}
-    otherwise (no gains, loss.method = "llnerf", or the batch's own estimate).
-    """
-    if not cfg.loss.use_gains or cfg.loss.method == "llnerf":
-        return data, {}
-    if estimates_from_frames(cfg):
-        frames = _estimate_frames(data, scene)  # binned once for every estimate
-        cfg = resolve_estimator(scene, cfg, frames)  # "consistent" picked once
-        if cfg.loss.ca_target == "map":  # its own anchor: of the whole capture or by region
-            data, anchor = with_illuminant_map(data, scene, cfg, frames=frames)
-        else:
-            anchor = scene_illuminant(data, scene, cfg, frames)
-        return data, {"scene_ill": jnp.asarray(anchor, jnp.float32)}
-    if cfg.loss.ca_locus:
-        return data, {"locus": jnp.asarray(illuminant.planckian_locus(scene.xyz_to_cam),
-                                           jnp.float32)}
-    return data, {}
 
 
 def with_fitted_offsets(run: Path, data: dataset.RayData, structure, params, scene,
@@ -412,24 +244,24 @@ def with_fitted_offsets(run: Path, data: dataset.RayData, structure, params, sce
 
 
 def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage: int,
-                  stages: list) -> None:
+                  schedule: list) -> None:
     """CheckpointError unless the checkpoint's arrays fit `cfg` (shapes and stage count)."""
     problem = None
-    if stage > len(stages):
-        problem = f"it is at stage {stage} but the config has {len(stages)} stages"
+    if stage > len(schedule):
+        problem = f"it is at stage {stage} but the config has {len(schedule)} stages"
     elif structure.sh_degree != cfg.grid.sh_degree:
         problem = f"its sh_degree is {structure.sh_degree}, the config's {cfg.grid.sh_degree}"
-    elif opt_leaves and stage < len(stages):
-        want = tuple(stages[stage][0])
+    elif opt_leaves and stage < len(schedule):
+        want = tuple(schedule[stage][0])
         have = tuple(structure.resolution)
         if want[1] == 0:  # y from the aspect: compare x and z
             have, want = have[::2], want[::2]
         if have != want:
             problem = (f"its grid is {tuple(structure.resolution)}, the config's stage {stage} "
-                       f"is {tuple(stages[stage][0])}")
+                       f"is {tuple(schedule[stage][0])}")
         else:
             try:
-                template = make_optimizer(cfg, stages[stage][1], stage).init(params)
+                template = make_optimizer(cfg, schedule[stage][1], stage).init(params)
                 checkpoint.unflatten_like(template, opt_leaves)
             except ValueError as exc:
                 problem = f"its optimiser state does not fit ({exc})"
@@ -437,104 +269,6 @@ def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage:
         raise CheckpointError(path, f"the checkpoint does not match the run's config: {problem}",
                               "resume with the config it was trained with, or delete "
                               f"{CHECKPOINT} to train again from the start")
-
-
-def _training_rays(data: dataset.RayData, chunk: int, stride: int = 2):
-    """Every `stride`-th pixel per axis of each training frame as grid-space rays, in padded
-    chunks (origins, directions, n_real): (chunk, 3) each, the first n_real real; padding
-    rays start far outside the box, so they miss it and weigh nothing."""
-    h, w = data.image_hw
-    for f in range(int(data.c2w.shape[0])):
-        o, d = dataset.image_rays(data.c2w[f], data.intrinsics[f], h, w)
-        o, d = dataset.to_grid_space(data.ndc, data.ndc_intrinsics, o[::stride, ::stride],
-                                     d[::stride, ::stride])
-        o, d = np.asarray(o).reshape(-1, 3), np.asarray(d).reshape(-1, 3)
-        for s in range(0, o.shape[0], chunk):
-            sl = slice(s, s + chunk)
-            pad = chunk - o[sl].shape[0]
-            yield (np.pad(o[sl], ((0, pad), (0, 0)), constant_values=1e6),
-                   np.pad(d[sl], ((0, pad), (0, 0)), mode="edge"), chunk - pad)
-
-
-def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, near_t: float,
-                      far_t: float, stride: int = 2) -> tuple[np.ndarray, ...]:
-    """Per vertex (M,) over the training rays (every `stride`-th pixel per axis): max and
-    sum of the rendering weights and whether some ray needs it to keep grid.prune_mass of
-    its weight (render.vertex_visibility): the carving criteria and where the mass is."""
-    fn = jax.jit(render.vertex_visibility, static_argnames=("cfg", "mass"))
-    vis = np.zeros(structure.n_rows, np.float32)
-    essential = np.zeros(structure.n_rows, bool)
-    mass = np.zeros(structure.n_rows, np.float64)
-    for oc, dc, _ in _training_rays(data, int(cfg.render.chunk), stride):
-        v_max, v_sum, v_ess = fn(structure, params, oc, dc, near_t, far_t, cfg.render,
-                                 mass=cfg.grid.prune_mass)
-        vis = np.maximum(vis, np.asarray(v_max))
-        mass += np.asarray(v_sum, np.float64)
-        essential |= np.asarray(v_ess) > 0
-    return vis, mass, essential
-
-
-def carving_rescue(structure, params, keep: np.ndarray, data: dataset.RayData, cfg: Config,
-                   near_t: float, far_t: float, stride: int = 2) -> tuple[np.ndarray, float]:
-    """(M,) bool: vertices that training rays emptied by carving to `keep` need back
-    (render.carving_rescue with grid.prune_mass, prune_guard and prune_guard_acc), and the
-    share of the training rays (every `stride`-th pixel per axis) that were emptied."""
-    fn = jax.jit(render.carving_rescue, static_argnames=("cfg", "mass", "ratio", "min_acc"))
-    rescue = np.zeros(structure.n_rows, bool)
-    emptied, n = 0.0, 0
-    keep = jnp.asarray(keep)
-    for oc, dc, n_real in _training_rays(data, int(cfg.render.chunk), stride):
-        v_res, r_empty = fn(structure, params, keep, oc, dc, near_t, far_t, cfg.render,
-                            mass=cfg.grid.prune_mass, ratio=cfg.grid.prune_guard,
-                            min_acc=cfg.grid.prune_guard_acc)
-        rescue |= np.asarray(v_res) > 0
-        emptied += float(np.asarray(r_empty)[:n_real].sum())
-        n += n_real
-    return rescue, emptied / max(n, 1)
-
-
-def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fit: bool,
-                    forward_facing: bool = True):
-    """Carve, optionally refit the box to the content, and resample to resolution `res`
-    (a y of 0 is resolved on the new box, see resolve_resolution).
-
-    Carving keeps vertices some training ray weights by more than grid.prune_threshold
-    (visibility), or whose own alpha exceeds it (density), dilated by grid.prune_dilate;
-    "guarded" carves by visibility, then gives back what the training rays it would empty
-    need (carving_rescue). Returns (structure, params, info) with info = box and occupancy
-    figures (and the share of emptied training rays for "guarded").
-    """
-    gc = cfg.grid
-    vis, mass, essential = vertex_visibility(structure, params, data, cfg, near_t, far_t)
-    info = {}
-    if gc.prune_mode in ("visibility", "guarded"):
-        keep = grid.dilate_rows(structure, vis > gc.prune_threshold, gc.prune_dilate)
-        if gc.prune_mode == "guarded":
-            rescue, info["emptied_ray_fraction"] = carving_rescue(
-                structure, params, keep, data, cfg, near_t, far_t)
-            keep |= grid.dilate_rows(structure, rescue, gc.prune_dilate)
-    elif gc.prune_mode == "ray_mass":
-        keep = grid.dilate_rows(structure, essential, gc.prune_dilate)
-    else:
-        keep = grid.density_keep_mask(structure, params, gc.prune_threshold, gc.prune_dilate)
-    if not keep.any() or not mass.sum() > 0:
-        raise NumericsError(None, "the coarse grid is empty: no vertex is visible from the "
-                            "training views", "check the poses and the frames' exposure")
-    lo, hi = np.asarray(structure.bbox_min), np.asarray(structure.bbox_max)
-    if fit:
-        fit_lo, fit_hi = grid.content_box(structure, mass, gc.fit_quantile, margin=gc.fit_margin)
-        axes = slice(None) if gc.fit_xy else slice(2, 3)  # x/y kept: only depth is refitted
-        lo, hi = lo.copy(), hi.copy()
-        lo[axes], hi[axes] = fit_lo[axes], fit_hi[axes]
-    old_box = np.prod(np.asarray(structure.bbox_max) - np.asarray(structure.bbox_min))
-    structure, params = grid.prune(structure, params, keep)
-    res = resolve_resolution(res, lo, hi, data.image_hw, forward_facing)
-    structure, params = grid.resample(structure, params, res, lo, hi)
-    info.update({"bbox_min": np.asarray(lo).tolist(), "bbox_max": np.asarray(hi).tolist(),
-                 "box_fraction_of_previous": float(np.prod(hi - lo) / old_box),
-                 "occupied_fraction": structure.n_rows / float(np.prod(res)),
-                 "resolution": res})
-    return structure, params, info
 
 
 def _checked_loss(pending: list, run: Path, stage: int, step: int) -> float:
@@ -585,7 +319,7 @@ def initial_grid(data: dataset.RayData, scene, cfg: Config, key, scene_ill=None)
     if cfg.grid.background == "mean":  # the capture's mean colour, at the gains' start
         background = np.stack([mean_colour, np.exp(log_gain)])
     return grid.init_grid(
-        resolve_resolution(cfg.grid.resolutions[0], bbox_min, bbox_max, data.image_hw,
+        stages.resolve_resolution(cfg.grid.resolutions[0], bbox_min, bbox_max, data.image_hw,
                            scene.forward_facing),
         bbox_min, bbox_max, sh_degree=cfg.grid.sh_degree, init_density=cfg.grid.init_density,
         init_log_gain=log_gain, color_scale=color_scale, background=background,
@@ -606,7 +340,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     scene = runfolder.open_scene(scene_dir, run, dark=cfg.data.black_offset == "dark")
     data = dataset.training_data(scene, cfg.data)
     near_t, far_t = dataset.grid_box(scene)[2:]
-    data, colour = colour_inputs(data, scene, cfg)
+    data, colour = colour_target.colour_inputs(data, scene, cfg)
     scene_ill = None if "scene_ill" not in colour else np.asarray(colour["scene_ill"])
     if scene_ill is not None:
         print("L_ca target: the capture's illuminant (camera RGB) "
@@ -616,14 +350,14 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         print(f"L_ca illuminant map: {spread.shape[1]}x{spread.shape[2]} blocks per frame, "
               f"{np.percentile(spread, 90):.2f} deg from the capture's at the 90th percentile")
     key = jax.random.PRNGKey(cfg.train.seed)
-    stages = list(zip(cfg.grid.resolutions, cfg.train.steps_per_stage, strict=True))
+    schedule = list(zip(cfg.grid.resolutions, cfg.train.steps_per_stage, strict=True))
 
     if (run / CHECKPOINT).exists():
         structure, params, opt_leaves, header = load_state(run)
         stage, start, elapsed = header["stage"], header["step"], header["train_seconds"]
         key = jnp.asarray(np.array(header["key"], np.uint32))
-        _check_resume(run / CHECKPOINT, cfg, structure, params, opt_leaves, stage, stages)
-        if stage >= len(stages) and (run / "summary.json").exists():
+        _check_resume(run / CHECKPOINT, cfg, structure, params, opt_leaves, stage, schedule)
+        if stage >= len(schedule) and (run / "summary.json").exists():
             print(f"{run} is already trained; delete its checkpoint.npz to train again")
             session.started()
             return json.loads((run / "summary.json").read_text())
@@ -638,19 +372,19 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     session.started()
     log = open(run / runfolder.METRICS, "a")  # noqa: SIM115
     rays_per_step = cfg.train.batch_patches * cfg.train.patch_size**2
-    total_steps = sum(s for _, s in stages)
-    done_before = sum(s for _, s in stages[:stage]) + start
+    total_steps = sum(s for _, s in schedule)
+    done_before = sum(s for _, s in schedule[:stage]) + start
     bar = tqdm(
         total=total_steps, initial=done_before, unit="step", dynamic_ncols=True, mininterval=2.0
     )
     rate = 0.0
-    while stage < len(stages):
-        res, steps = stages[stage]
-        if (cfg.data.black_offset == "fit" and stage == len(stages) - 1
+    while stage < len(schedule):
+        res, steps = schedule[stage]
+        if (cfg.data.black_offset == "fit" and stage == len(schedule) - 1
                 and data.black_offset is None):  # against the previous stage's field
             data = with_fitted_offsets(run, data, structure, params, scene, cfg)
         if stage > 0 and start == 0 and not opt_leaves:
-            structure, params, info = next_stage_grid(
+            structure, params, info = stages.next_stage_grid(
                 structure, params, res, data, cfg, near_t, far_t,
                 fit=cfg.grid.fit_box and stage == 1, forward_facing=scene.forward_facing)
             print(f"stage {stage}: {info['resolution']} grid, box "
@@ -664,7 +398,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         if opt_leaves:
             opt_state = checkpoint.unflatten_like(opt_state, opt_leaves)
             opt_leaves = []
-        stage_cfg = with_fitted_candidates(stage_config(cfg, stage), structure, data,
+        stage_cfg = stages.with_fitted_candidates(stage_config(cfg, stage), structure, data,
                                            near_t, far_t)
         step_fn = make_step(stage_cfg, tx, near_t, far_t, **colour)
         structure = grid.update_occupancy(structure, params, cfg.grid.occupancy_threshold)

@@ -13,7 +13,8 @@ import pytest
 _SCRIPT = textwrap.dedent("""
     import json, sys
     import jax, numpy as np
-    from gridnerf import config as cfgmod, dataset, devices, grid, render, train
+    from gridnerf import colour_target, dataset, devices, grid, render, train
+    from gridnerf import config as cfgmod
     from gridnerf.scene import load_scene
     scene_dir, near, far = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
     cfg = cfgmod.preset("tiny")
@@ -25,7 +26,7 @@ _SCRIPT = textwrap.dedent("""
                                        color_scale=color_scale)
     tx = train.make_optimizer(cfg, 5)
     opt_state = tx.init(params)
-    data, colour = train.colour_inputs(data, scene, cfg)
+    data, colour = colour_target.colour_inputs(data, scene, cfg)
     step = train.make_step(cfg, tx, near_t, far_t, **colour)
     losses = []
     for k in range(3):

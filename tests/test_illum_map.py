@@ -160,10 +160,10 @@ def test_map_spread_tells_one_light_from_two():
 
 
 def test_consistent_estimator_picks_per_light_count():
-    """train.consistent_estimator: under one light the estimator whose quadrants agree
+    """colour_target.consistent_estimator: under one light the estimator whose quadrants agree
     (quadrant_spreads' least), under two the consensus; the quadrant spreads do not change
     with the frames' scale."""
-    from gridnerf import train
+    from gridnerf import colour_target
     from gridnerf.config import Config, LossConfig
 
     cfg = Config(loss=LossConfig(ca_illuminant="consistent", ca_locus=False))
@@ -171,7 +171,7 @@ def test_consistent_estimator_picks_per_light_count():
     one = [_paint(s) * WARM for s in range(2)]
     spreads = illuminant.quadrant_spreads(one, masks)
     assert set(spreads) == set(illuminant.CONSENSUS)
-    name = train.consistent_estimator(None, cfg, (one, masks))
+    name = colour_target.consistent_estimator(None, cfg, (one, masks))
     assert name == illuminant.least_spread(spreads)
     assert spreads[name][1] == min(s for _, s in spreads.values())
     scaled = illuminant.quadrant_spreads([7.0 * x for x in one], masks)
@@ -179,4 +179,4 @@ def test_consistent_estimator_picks_per_light_count():
         np.testing.assert_allclose(scaled[n][0], est, atol=1e-9)
         assert scaled[n][1] == pytest.approx(s, abs=1e-6)
     two = [_paint(s) * _light(WARM, COOL) for s in range(2)]
-    assert train.consistent_estimator(None, cfg, (two, masks)) == "consensus"
+    assert colour_target.consistent_estimator(None, cfg, (two, masks)) == "consensus"

@@ -37,12 +37,12 @@ def test_training_lowers_the_loss(tiny_run):
 
     import jax
 
-    from gridnerf import dataset, eval_run, grid, losses, render
+    from gridnerf import colour_target, dataset, eval_run, grid, losses, render
     from gridnerf import train as trainmod
 
     run, cfg, summary = tiny_run
     _, scene, structure, params, _ = eval_run.load_run(run)
-    data, colour = trainmod.colour_inputs(dataset.training_data(scene, cfg.data), scene, cfg)
+    data, colour = colour_target.colour_inputs(dataset.training_data(scene, cfg.data), scene, cfg)
     rays = dataset.batch(data, jax.random.PRNGKey(11), 128, 8)
     near_t, far_t = dataset.grid_box(scene)[2:]
 
@@ -219,7 +219,7 @@ def test_checkpoints_by_time_as_well_as_steps(small_scene, tmp_path, monkeypatch
 
 
 def test_resolve_resolution_follows_the_aspect():
-    from gridnerf.train import resolve_resolution
+    from gridnerf.stages import resolve_resolution
 
     lo, hi = np.array([-1.25, -1.25, -0.5]), np.array([1.25, 1.25, 0.9])
     # 16:9 frame on the square NDC box: y voxels get the pixel footprint of x voxels
@@ -248,6 +248,7 @@ def test_forward_facing_box_starts_at_the_near_bound():
 def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch):
     """y = 0 stages: the y count follows the frame aspect and the fitted box, and a run
     interrupted inside such a stage resumes (the checkpoint's y is not compared)."""
+    from gridnerf import stages
     from gridnerf import train as trainmod
 
     cfg = cfgmod.override(cfgmod.preset("tiny"), [
@@ -266,7 +267,7 @@ def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch
     from gridnerf.scene import load_scene
     scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
     h, w = scene.cameras.height // 2, scene.cameras.width // 2
-    assert structure.resolution == trainmod.resolve_resolution(
+    assert structure.resolution == stages.resolve_resolution(
         (24, 0, 12), lo, hi, (h, w), scene.forward_facing)
     monkeypatch.setattr(trainmod, "make_step", real_make_step)
     summary = trainmod.train(small_scene, run, cfg)
@@ -329,7 +330,7 @@ def test_scene_illuminant_from_the_training_frames(small_scene):
     """loss.ca_target = "scene": one estimate from the binned training frames, near the
     simulator's light for grey world, on the locus when ca_locus (binned and mosaic data
     give the same estimate)."""
-    from gridnerf import dataset, illuminant, train
+    from gridnerf import colour_target, dataset, illuminant
     from gridnerf.scene import load_scene
 
     sim = json.loads((small_scene / "sim.json").read_text())
@@ -339,14 +340,14 @@ def test_scene_illuminant_from_the_training_frames(small_scene):
     cfg = replace(cfg, loss=replace(cfg.loss, ca_target="scene", ca_illuminant="grey_world",
                                     ca_locus=False))
     binned = dataset.build(scene, scene.train_idx, True)
-    est = train.scene_illuminant(binned, scene, cfg)
+    est = colour_target.scene_illuminant(binned, scene, cfg)
     assert np.isfinite(est).all() and abs(np.linalg.norm(est) - 1) < 1e-9
     assert float(illuminant.angular_error_deg(est, truth)) < 15.0
     mosaic = dataset.build(scene, scene.train_idx, False)
-    np.testing.assert_allclose(train.scene_illuminant(mosaic, scene, cfg), est, atol=1e-6)
+    np.testing.assert_allclose(colour_target.scene_illuminant(mosaic, scene, cfg), est, atol=1e-6)
     on = replace(cfg, loss=replace(cfg.loss, ca_locus=True))
     locus = illuminant.planckian_locus(scene.xyz_to_cam)
-    assert np.min(illuminant.angular_error_deg(train.scene_illuminant(binned, scene, on),
+    assert np.min(illuminant.angular_error_deg(colour_target.scene_illuminant(binned, scene, on),
                                                locus)) < 1e-6
 
 
@@ -417,20 +418,20 @@ def test_illuminant_map_target_trains(small_scene, tmp_path):
     ray's block of it, training runs and stays finite; the step refuses data without it."""
     import jax
 
-    from gridnerf import dataset, train
+    from gridnerf import colour_target, dataset, train
     from gridnerf.scene import load_scene
 
     cfg = cfgmod.override(cfgmod.preset("tiny"), ["loss.ca_target=map", "loss.ca_map_block=4"])
     assert cfg.loss.ca_map_anchor == "regions"  # the default
     scene = load_scene(small_scene, near_far=(1.0, 10.0))
     data = dataset.build(scene, scene.train_idx, True)
-    anchor = train.scene_illuminant(data, scene, cfg)
+    anchor = colour_target.scene_illuminant(data, scene, cfg)
     capture = cfgmod.override(cfg, ["loss.ca_map_anchor=capture"])
-    mapped, kept = train.with_illuminant_map(data, scene, capture, anchor)
+    mapped, kept = colour_target.with_illuminant_map(data, scene, capture, anchor)
     np.testing.assert_array_equal(kept, anchor)  # "capture": the anchor given
     h, w = data.image_hw
     assert mapped.illuminant_map.shape == (len(scene.train_idx), h // 4, w // 4, 3)
-    _, found = train.with_illuminant_map(data, scene, cfg, anchor)
+    _, found = colour_target.with_illuminant_map(data, scene, cfg, anchor)
     assert found.shape == (3,) and np.all(np.isfinite(found))
     rays = dataset.batch(mapped, jax.random.PRNGKey(0), 4, 8)
     assert rays["illuminant"].shape == (4, 8, 8, 3)
@@ -513,7 +514,7 @@ def test_guarded_carving_gives_back_what_a_weight_threshold_empties(small_scene,
     """With a harsh weight threshold (the 90th percentile of the vertices' weights) some
     training rays lose most of their opacity; the guarded carving keeps every vertex the
     plain one keeps, plus what those rays need."""
-    from gridnerf import dataset
+    from gridnerf import dataset, stages
     from gridnerf import train as trainmod
     from gridnerf.eval_run import load_run
 
@@ -523,12 +524,12 @@ def test_guarded_carving_gives_back_what_a_weight_threshold_empties(small_scene,
     _, scene, structure, params, _ = load_run(tmp_path / "run")
     data = dataset.training_data(scene, cfg.data)
     _, _, near_t, far_t = dataset.grid_box(scene)
-    vis = trainmod.vertex_visibility(structure, params, data, cfg, near_t, far_t)[0]
+    vis = stages.vertex_visibility(structure, params, data, cfg, near_t, far_t)[0]
     harsh = float(np.percentile(vis, 90))
     kept = {}
     for mode in ("visibility", "guarded"):
         c = cfgmod.override(cfg, [f"grid.prune_mode={mode}", f"grid.prune_threshold={harsh}"])
-        st, _, info = trainmod.next_stage_grid(structure, params, (24, 0, 12), data, c, near_t,
+        st, _, info = stages.next_stage_grid(structure, params, (24, 0, 12), data, c, near_t,
                                                far_t, fit=False)
         kept[mode] = np.asarray(st.index) < st.n_rows
     assert 0.0 < info["emptied_ray_fraction"] <= 1.0
@@ -542,7 +543,7 @@ def test_fitted_candidates_render_the_training_rays_unchanged(tiny_run):
     import jax
 
     from gridnerf import dataset, eval_run, render
-    from gridnerf.train import with_fitted_candidates
+    from gridnerf.stages import with_fitted_candidates
 
     cfg, scene, structure, params, _ = eval_run.load_run(tiny_run[0])
     data = dataset.training_data(scene, cfg.data)

@@ -1,0 +1,153 @@
+"""The L_ca inputs, estimated from the training frames before training starts.
+
+The chromatic adaptation loss pulls each ray's gains towards a target white (the paper's
+eq. 12-13 use the batch's grey world). What the target is, the config chooses
+(loss.ca_target, loss.ca_illuminant, loss.ca_map_anchor; docs/colour.md):
+
+- "batch": each batch's own estimate (nothing to prepare here, but the Planckian locus
+  when loss.ca_locus);
+- "scene": one illuminant (3,) for the capture, from all training frames at once
+  (scene_illuminant);
+- "map": one illuminant per block of each training frame (gridnerf.illum_map's Retinex
+  maps), anchored to the capture's light or to the lights of its warm and cool halves
+  (with_illuminant_map).
+
+loss.ca_illuminant = "consistent" (the default) picks the estimator per capture
+(consistent_estimator). colour_inputs is the one entry point training (and the
+benchmarks, carry_runs) call; everything here is NumPy on the host, run once per training.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+
+from gridnerf import dataset, illum_map, illuminant
+from gridnerf.config import Config
+
+
+def estimate_frames(data: dataset.RayData, scene) -> tuple[list, list]:
+    """The training frames as the capture-level estimators see them: (h, w, 3) camera RGB
+    divided by the frame's exposure and (h, w[, 3]) validity, 2x2-binned in mosaic mode."""
+    if data.mosaic:
+        pairs = [scene.rgb_cam_binned(int(i)) for i in scene.train_idx]
+        images = [p[0] / float(scene.exposure[i]) for p, i in zip(pairs, scene.train_idx,
+                                                                   strict=True)]
+        return images, [p[1] for p in pairs]
+    inv = np.asarray(data.inv_exposure, np.float64)
+    return (list(np.asarray(data.pixels, np.float64) * inv[:, None, None, None]),
+            list(np.asarray(data.valid)))
+
+
+def scene_illuminant(data: dataset.RayData, scene, cfg: Config, frames=None) -> np.ndarray:
+    """The capture's illuminant (3,) unit camera RGB, estimated once from all training frames.
+
+    loss.ca_illuminant on the 2x2-binned frames divided by their exposure, saturated blocks
+    left out (illuminant.frames_estimate: pooled pixels; grey edge per frame), then projected
+    onto the camera's Planckian locus when loss.ca_locus; "consensus" is the per-channel
+    median of illuminant.CONSENSUS's estimates (illuminant.consensus). The mosaic mode bins
+    the frames for this estimate only. frames: (images, masks) of estimate_frames when the
+    caller has them already. loss.ca_illuminant = "consistent" is resolved on these frames
+    (resolve_estimator).
+    """
+    images, masks = estimate_frames(data, scene) if frames is None else frames
+    lc = resolve_estimator(scene, cfg, (images, masks)).loss
+    locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
+    return illuminant.capture_estimate(lc.ca_illuminant, images, masks, locus,
+                                       lc.ca_illuminant_p)
+
+
+def with_illuminant_map(data: dataset.RayData, scene, cfg: Config,
+                        anchor: np.ndarray | None = None, frames=None
+                        ) -> tuple[dataset.RayData, np.ndarray]:
+    """(data with its per-frame L_ca illuminant map, the maps' anchor (3,)) for
+    loss.ca_target = "map": each training frame's Retinex map (gridnerf.illum_map, blocks
+    of loss.ca_map_block binned pixels) anchored, with loss.ca_map_anchor = "regions", to
+    the lights of the maps' warm and cool halves (illum_map.regional_anchor, each by
+    loss.ca_illuminant; `anchor` is not used) or, with "capture", to `anchor` (3,) (default:
+    scene_illuminant); on the locus when loss.ca_locus; frames as in scene_illuminant (the
+    whole capture's: "consistent" is resolved on them, resolve_estimator)."""
+    images, masks = estimate_frames(data, scene) if frames is None else frames
+    cfg = resolve_estimator(scene, cfg, (images, masks))
+    lc = cfg.loss
+    locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
+    rel, weight = illum_map.relative_maps(images, masks, lc.ca_map_block, lc.ca_map_tau)
+    if lc.ca_map_anchor == "regions":
+        anchor = illum_map.regional_anchor(
+            images, masks, rel, weight,
+            lambda ims, mks: scene_illuminant(data, scene, cfg, (ims, mks)), locus,
+            lc.ca_map_block)
+    elif anchor is None:
+        anchor = scene_illuminant(data, scene, cfg, (images, masks))
+    maps = illum_map.frame_maps(images, masks, anchor, locus, lc.ca_map_block, lc.ca_map_tau,
+                                rel=rel)
+    return dataclasses.replace(data, illuminant_map=jnp.asarray(maps, jnp.float32)), anchor
+
+
+def consistent_estimator(scene, cfg: Config, frames) -> str:
+    """The estimator loss.ca_illuminant = "consistent" stands for on this capture: under one
+    light (its illuminant maps, anchored to the consensus, stray less than
+    loss.ca_one_light_deg from it: illum_map.map_spread_deg) the one of the consensus's
+    three whose quadrant estimates agree best (illuminant.quadrant_spreads), else
+    "consensus" (under two lights the quadrants see different lights, and the spread
+    would measure them). frames: (images, masks) of estimate_frames. Prints the choice."""
+    images, masks = frames
+    lc = cfg.loss
+    locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
+    wholes = {n: illuminant.capture_estimate(n, images, masks, locus, lc.ca_illuminant_p)
+              for n in illuminant.CONSENSUS}
+    cons = illuminant.consensus(list(wholes.values()), locus)
+    maps = illum_map.frame_maps(images, masks, cons, locus, lc.ca_map_block, lc.ca_map_tau)
+    spread = illum_map.map_spread_deg(maps, cons)
+    if spread >= lc.ca_one_light_deg:
+        print(f"L_ca estimator: consensus (the maps stray {spread:.2f} deg: lights mix)")
+        return "consensus"
+    spreads = illuminant.quadrant_spreads(images, masks, locus, lc.ca_illuminant_p, wholes)
+    name = illuminant.least_spread(spreads)
+    print(f"L_ca estimator: {name} (one light: the maps stray {spread:.2f} deg; quadrant "
+          "spreads " + ", ".join(f"{n} {s:.2f}" for n, (_, s) in spreads.items()) + " deg)")
+    return name
+
+
+def resolve_estimator(scene, cfg: Config, frames) -> Config:
+    """cfg with loss.ca_illuminant = "consistent" replaced by the estimator it stands for on
+    this capture (consistent_estimator; frames: the whole capture's (images, masks) of
+    estimate_frames), any other cfg as it is."""
+    if cfg.loss.ca_illuminant != "consistent":
+        return cfg
+    name = consistent_estimator(scene, cfg, frames)
+    return dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, ca_illuminant=name))
+
+
+def estimates_from_frames(cfg: Config) -> bool:
+    """Whether training estimates the L_ca illuminant from the training frames before it
+    starts (gains on, not loss.method = "llnerf", the "scene" or "map" target): the runs
+    whose training loss.ca_illuminant can change, through colour_inputs alone."""
+    lc = cfg.loss
+    return lc.use_gains and lc.method != "llnerf" and lc.ca_target in ("scene", "map")
+
+
+def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> tuple[dataset.RayData, dict]:
+    """The L_ca inputs, as the config chooses them: (data, make_step keyword arguments).
+
+    data gains its illuminant map for loss.ca_target = "map" (with_illuminant_map);
+    kwargs: {"scene_ill": (3,)} for the "scene" and "map" targets (the map's anchor, and
+    where the gains start), {"locus": (n, 3)} for the batch target with loss.ca_locus, {}
+    otherwise (no gains, loss.method = "llnerf", or the batch's own estimate).
+    """
+    if not cfg.loss.use_gains or cfg.loss.method == "llnerf":
+        return data, {}
+    if estimates_from_frames(cfg):
+        frames = estimate_frames(data, scene)  # binned once for every estimate
+        cfg = resolve_estimator(scene, cfg, frames)  # "consistent" picked once
+        if cfg.loss.ca_target == "map":  # its own anchor: of the whole capture or by region
+            data, anchor = with_illuminant_map(data, scene, cfg, frames=frames)
+        else:
+            anchor = scene_illuminant(data, scene, cfg, frames)
+        return data, {"scene_ill": jnp.asarray(anchor, jnp.float32)}
+    if cfg.loss.ca_locus:
+        return data, {"locus": jnp.asarray(illuminant.planckian_locus(scene.xyz_to_cam),
+                                           jnp.float32)}
+    return data, {}

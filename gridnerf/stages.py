@@ -1,0 +1,162 @@
+"""Coarse to fine: the grid between training stages, and the rays that decide it.
+
+Training runs one stage per resolution in grid.resolutions. Between stages the grid is
+carved to what the training rays see, its box optionally refitted to the content, and
+resampled to the next resolution (next_stage_grid; docs/reconstruction.md). Each stage's
+step then tests only as many candidate voxels per ray as its training rays cross
+(with_fitted_candidates). All of this walks the training rays in chunks (training_rays).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gridnerf import dataset, grid, render
+from gridnerf.config import Config
+from gridnerf.errors import NumericsError
+
+
+def resolve_resolution(res, bbox_min, bbox_max, image_hw: tuple[int, int],
+                       forward_facing: bool) -> tuple[int, int, int]:
+    """Vertex counts of a stage: `res` (x, y, z), where y = 0 means "from the aspect".
+
+    A y of 0 becomes the count that gives y voxels the footprint of x voxels: in NDC the
+    box's x and y extents map to image pixels at W/2 and H/2 pixels per unit, so a 16:9
+    frame gets y = 0.56 x on the full NDC box (a square grid would spend 1.8x the vertices
+    on y for nothing); a world box uses the ratio of its extents.
+    """
+    rx, ry, rz = (int(r) for r in res)
+    if ry > 0:
+        return rx, ry, rz
+    ext = np.asarray(bbox_max, np.float64) - np.asarray(bbox_min, np.float64)
+    h, w = image_hw
+    ratio = ext[1] * h / (ext[0] * w) if forward_facing else ext[1] / ext[0]
+    return rx, max(2, int(round((rx - 1) * ratio)) + 1), rz
+
+
+CANDIDATE_MARGIN = 1.05
+
+
+def with_fitted_candidates(cfg: Config, structure, data: dataset.RayData, near_t: float,
+                           far_t: float) -> Config:
+    """cfg with render.n_candidates fitted to this stage's grid and the training rays
+    (render.fit_n_candidates over every training pixel, times CANDIDATE_MARGIN), where
+    the config leaves it 0 (auto); otherwise cfg itself.
+
+    The auto count crosses the box diagonal (192x118x64: 351 candidates per ray), but a
+    forward-facing NDC ray crosses little more than the z voxels: every training ray keeps
+    its full 1 / samples_per_voxel spacing either way, so the samples are the same and
+    only the candidate test (occupancy lookups, running count, search) shrinks.
+    Renders of other cameras (eval) keep the auto count.
+    """
+    if cfg.render.n_candidates:
+        return cfg
+    longest = 0
+    for oc, dc, _ in training_rays(data, 1 << 16, stride=1):
+        longest = max(longest, render.fit_n_candidates(
+            structure, oc, dc, near_t, far_t, cfg.render.samples_per_voxel))
+    n = min(int(np.ceil(longest * CANDIDATE_MARGIN)) + 1,
+            render.n_candidates(structure, cfg.render))
+    return dataclasses.replace(cfg, render=dataclasses.replace(cfg.render, n_candidates=n))
+
+
+def training_rays(data: dataset.RayData, chunk: int, stride: int = 2):
+    """Every `stride`-th pixel per axis of each training frame as grid-space rays, in padded
+    chunks (origins, directions, n_real): (chunk, 3) each, the first n_real real; padding
+    rays start far outside the box, so they miss it and weigh nothing."""
+    h, w = data.image_hw
+    for f in range(int(data.c2w.shape[0])):
+        o, d = dataset.image_rays(data.c2w[f], data.intrinsics[f], h, w)
+        o, d = dataset.to_grid_space(data.ndc, data.ndc_intrinsics, o[::stride, ::stride],
+                                     d[::stride, ::stride])
+        o, d = np.asarray(o).reshape(-1, 3), np.asarray(d).reshape(-1, 3)
+        for s in range(0, o.shape[0], chunk):
+            sl = slice(s, s + chunk)
+            pad = chunk - o[sl].shape[0]
+            yield (np.pad(o[sl], ((0, pad), (0, 0)), constant_values=1e6),
+                   np.pad(d[sl], ((0, pad), (0, 0)), mode="edge"), chunk - pad)
+
+
+def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, near_t: float,
+                      far_t: float, stride: int = 2) -> tuple[np.ndarray, ...]:
+    """Per vertex (M,) over the training rays (every `stride`-th pixel per axis): max and
+    sum of the rendering weights and whether some ray needs it to keep grid.prune_mass of
+    its weight (render.vertex_visibility): the carving criteria and where the mass is."""
+    fn = jax.jit(render.vertex_visibility, static_argnames=("cfg", "mass"))
+    vis = np.zeros(structure.n_rows, np.float32)
+    essential = np.zeros(structure.n_rows, bool)
+    mass = np.zeros(structure.n_rows, np.float64)
+    for oc, dc, _ in training_rays(data, int(cfg.render.chunk), stride):
+        v_max, v_sum, v_ess = fn(structure, params, oc, dc, near_t, far_t, cfg.render,
+                                 mass=cfg.grid.prune_mass)
+        vis = np.maximum(vis, np.asarray(v_max))
+        mass += np.asarray(v_sum, np.float64)
+        essential |= np.asarray(v_ess) > 0
+    return vis, mass, essential
+
+
+def carving_rescue(structure, params, keep: np.ndarray, data: dataset.RayData, cfg: Config,
+                   near_t: float, far_t: float, stride: int = 2) -> tuple[np.ndarray, float]:
+    """(M,) bool: vertices that training rays emptied by carving to `keep` need back
+    (render.carving_rescue with grid.prune_mass, prune_guard and prune_guard_acc), and the
+    share of the training rays (every `stride`-th pixel per axis) that were emptied."""
+    fn = jax.jit(render.carving_rescue, static_argnames=("cfg", "mass", "ratio", "min_acc"))
+    rescue = np.zeros(structure.n_rows, bool)
+    emptied, n = 0.0, 0
+    keep = jnp.asarray(keep)
+    for oc, dc, n_real in training_rays(data, int(cfg.render.chunk), stride):
+        v_res, r_empty = fn(structure, params, keep, oc, dc, near_t, far_t, cfg.render,
+                            mass=cfg.grid.prune_mass, ratio=cfg.grid.prune_guard,
+                            min_acc=cfg.grid.prune_guard_acc)
+        rescue |= np.asarray(v_res) > 0
+        emptied += float(np.asarray(r_empty)[:n_real].sum())
+        n += n_real
+    return rescue, emptied / max(n, 1)
+
+
+def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fit: bool,
+                    forward_facing: bool = True):
+    """Carve, optionally refit the box to the content, and resample to resolution `res`
+    (a y of 0 is resolved on the new box, see resolve_resolution).
+
+    Carving keeps vertices some training ray weights by more than grid.prune_threshold
+    (visibility), or whose own alpha exceeds it (density), dilated by grid.prune_dilate;
+    "guarded" carves by visibility, then gives back what the training rays it would empty
+    need (carving_rescue). Returns (structure, params, info) with info = box and occupancy
+    figures (and the share of emptied training rays for "guarded").
+    """
+    gc = cfg.grid
+    vis, mass, essential = vertex_visibility(structure, params, data, cfg, near_t, far_t)
+    info = {}
+    if gc.prune_mode in ("visibility", "guarded"):
+        keep = grid.dilate_rows(structure, vis > gc.prune_threshold, gc.prune_dilate)
+        if gc.prune_mode == "guarded":
+            rescue, info["emptied_ray_fraction"] = carving_rescue(
+                structure, params, keep, data, cfg, near_t, far_t)
+            keep |= grid.dilate_rows(structure, rescue, gc.prune_dilate)
+    elif gc.prune_mode == "ray_mass":
+        keep = grid.dilate_rows(structure, essential, gc.prune_dilate)
+    else:
+        keep = grid.density_keep_mask(structure, params, gc.prune_threshold, gc.prune_dilate)
+    if not keep.any() or not mass.sum() > 0:
+        raise NumericsError(None, "the coarse grid is empty: no vertex is visible from the "
+                            "training views", "check the poses and the frames' exposure")
+    lo, hi = np.asarray(structure.bbox_min), np.asarray(structure.bbox_max)
+    if fit:
+        fit_lo, fit_hi = grid.content_box(structure, mass, gc.fit_quantile, margin=gc.fit_margin)
+        axes = slice(None) if gc.fit_xy else slice(2, 3)  # x/y kept: only depth is refitted
+        lo, hi = lo.copy(), hi.copy()
+        lo[axes], hi[axes] = fit_lo[axes], fit_hi[axes]
+    old_box = np.prod(np.asarray(structure.bbox_max) - np.asarray(structure.bbox_min))
+    structure, params = grid.prune(structure, params, keep)
+    res = resolve_resolution(res, lo, hi, data.image_hw, forward_facing)
+    structure, params = grid.resample(structure, params, res, lo, hi)
+    info.update({"bbox_min": np.asarray(lo).tolist(), "bbox_max": np.asarray(hi).tolist(),
+                 "box_fraction_of_previous": float(np.prod(hi - lo) / old_box),
+                 "occupied_fraction": structure.n_rows / float(np.prod(res)),
+                 "resolution": res})
+    return structure, params, info
