@@ -19,7 +19,6 @@ cover (nine built-in, tuning, held out, mixed light, held-out mixed light), each
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +29,7 @@ from common import (
     markdown_table,
     run_variant,
     scene_names,
+    study_parser,
     update_readme,
     write_report,
 )
@@ -155,16 +155,10 @@ def means_table(mean_nine: dict, mean_held: dict, variants=VARIANTS) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="all", help="names and groups: all, nine, heldout, "
-                    "mixed (e.g. nine,mixed for the colour study)")
+    ap = study_parser(__doc__, None, runs=True, quick=True)
     ap.add_argument("--study", default="parts", choices=list(STUDIES),
                     help="parts: Bright-NeRF's parts; colour: white balance and estimators; "
                     "smoothness: the gains' TV weight")
-    ap.add_argument("--runs", default="runs")
-    ap.add_argument("--out", default=None,
-                    help="default reports/ablation (parts), reports/ablation_<study> (others)")
-    ap.add_argument("--quick", action="store_true", help="small scenes, shrunk presets")
     args = ap.parse_args()
     out = args.out or ("reports/ablation" if args.study == "parts"
                        else f"reports/ablation_{args.study}")

@@ -20,12 +20,18 @@ group means into the README between its black_level markers.
 
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 
 import common
-from common import REPORT_GROUPS, fmt, markdown_table, run_variant, scene_names, write_report
+from common import (
+    REPORT_GROUPS,
+    fmt,
+    markdown_table,
+    run_variant,
+    scene_names,
+    study_parser,
+    write_report,
+)
 
 VARIANTS = (("file", "default", []), ("dark", "dark_black", ["data.black_offset=dark"]))
 OUTPUTS = (("ours", "gridnerf"), ("global_gw", "global_grey_world"))
@@ -93,9 +99,7 @@ def table(record: dict, command: str) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="all", help="'all' or groups / names, comma-separated")
-    ap.add_argument("--out", default="reports/black_level")
+    ap = study_parser(__doc__, "reports/black_level")
     args = ap.parse_args()
     scenes = scene_names(args.scenes, ("nine", "dev", "heldout", "mixed", "heldmixed"))
     record = measure(scenes)

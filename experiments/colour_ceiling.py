@@ -37,13 +37,12 @@ Writes reports/colour_ceiling.md and reports/colour_ceiling.json.
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
 import numpy as np
 
-from common import REPORT_GROUPS, fmt, markdown_table, simulated_folders, write_report
+from common import REPORT_GROUPS, fmt, markdown_table, simulated_folders, study_parser, write_report
 from gridnerf import color, eval_run, evaluate, exposure, illuminant
 from gridnerf.sim import HELDOUT_MIXED, MIXED
 from illuminant_maps import true_map, weighted_error, with_true_level
@@ -183,11 +182,8 @@ def table_row(name: str, summary: dict) -> list[str]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="all")
+    ap = study_parser(__doc__, "reports/colour_ceiling", runs=True)
     ap.add_argument("--variant", default="default")
-    ap.add_argument("--runs", default="runs")
-    ap.add_argument("--out", default="reports/colour_ceiling")
     args = ap.parse_args()
     record, table = {}, []
     for name, folder in simulated_folders(args.scenes):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 from pathlib import Path
@@ -90,6 +91,24 @@ def scene_names(spec: str, all_groups: tuple[str, ...] = ("nine", "heldout")) ->
                  else GROUPS.get(item, (item,)))
         out += [n for n in group if n not in out]
     return out
+
+
+def study_parser(doc: str, out: str | None, scenes: str = "all", runs: bool = False,
+                 quick: bool = False) -> argparse.ArgumentParser:
+    """A study's command line with the options the studies share: --scenes (scene_names'
+    spec; `all` as the study's docstring says), --out (the reports' path without its
+    suffix) and, for a study that trains or reads run folders, --runs (their root) and
+    --quick (small scenes, shrunk presets). doc: the study's docstring (its first line
+    describes the command). The caller adds its own options."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
+    ap.add_argument("--scenes", default=scenes, help="comma-separated scene names and groups ("
+                    + ", ".join(GROUPS) + ", all)")
+    ap.add_argument("--out", default=out, help="reports path without its suffix")
+    if runs:
+        ap.add_argument("--runs", default="runs", help="root of the run folders")
+    if quick:
+        ap.add_argument("--quick", action="store_true", help="small scenes, shrunk presets")
+    return ap
 
 
 def simulated_folders(spec: str):

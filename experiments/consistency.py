@@ -25,7 +25,6 @@ scored them.
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -39,6 +38,7 @@ from common import (
     scene_dir,
     scene_names,
     stale_run,
+    study_parser,
     update_readme,
     write_report,
 )
@@ -209,9 +209,7 @@ def build(scenes: list[str], runs: Path, out, quick: bool, command: str) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="all")
-    ap.add_argument("--out", default="reports/consistency")
+    ap = study_parser(__doc__, "reports/consistency")
     args = ap.parse_args()
     print(build(scene_names(args.scenes), Path("runs"), args.out, False,
                 f"python experiments/consistency.py --scenes {args.scenes}"))

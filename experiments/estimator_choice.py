@@ -29,12 +29,11 @@ Writes reports/estimator_choice.md and reports/estimator_choice.json.
 
 from __future__ import annotations
 
-import argparse
 from functools import partial
 
 import numpy as np
 
-from common import REPORT_GROUPS, fmt, markdown_table, write_report
+from common import REPORT_GROUPS, fmt, markdown_table, study_parser, write_report
 from gridnerf import illum_map
 from gridnerf import illuminant as il
 from gridnerf.config import LossConfig
@@ -59,9 +58,7 @@ def regional_map_error(images, masks, rel, weight, truths, estimate, locus) -> f
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="all")
-    ap.add_argument("--out", default="reports/estimator_choice")
+    ap = study_parser(__doc__, "reports/estimator_choice")
     args = ap.parse_args()
     record, rows = {}, []
     for name, folder, sim, images, masks, names in training_frames(args.scenes):

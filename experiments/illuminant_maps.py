@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from common import markdown_table, write_report
+from common import markdown_table, study_parser, write_report
 from gridnerf import illum_map, raw
 from gridnerf import illuminant as il
 from gridnerf.config import LossConfig
@@ -122,12 +122,10 @@ def shape_split(img, mask, truth, block: int, tau: float) -> dict:
 def map_arguments(description: str, out: str) -> argparse.Namespace:
     """A raw-frame map study's command line: --scenes, --block and --tau (the default map's,
     loss.ca_map_block and loss.ca_map_tau), --out."""
-    ap = argparse.ArgumentParser(description=description)
-    ap.add_argument("--scenes", default="all")
+    ap = study_parser(description, out)
     loss = LossConfig()
     ap.add_argument("--block", type=int, default=loss.ca_map_block)
     ap.add_argument("--tau", type=float, default=loss.ca_map_tau)
-    ap.add_argument("--out", default=out)
     return ap.parse_args()
 
 

@@ -23,13 +23,12 @@ Writes reports/illuminants.md and reports/illuminants.json.
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
 import numpy as np
 
-from common import simulated_folders, write_report
+from common import simulated_folders, study_parser, write_report
 from gridnerf import illuminant as il
 from gridnerf import raw
 from gridnerf.scene import raw_files
@@ -98,13 +97,10 @@ def render_estimates(run: Path, area: bool = False) -> dict[str, np.ndarray]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="all",
-                    help="'all' (nine + held-out + mixed) or comma-separated names")
+    ap = study_parser(__doc__, "reports/illuminants")
     ap.add_argument("--runs", default=None, help="also estimate on renders of runs/<scene>/RUN")
     ap.add_argument("--area", action="store_true",
                     help="renders: weighted_grey weighs pixels by surface area (depth^2)")
-    ap.add_argument("--out", default="reports/illuminants")
     args = ap.parse_args()
     rows, record = [], {}
     columns = [*ORDER, "consensus", *(k + "+locus" for k in (*ORDER, "consensus"))]

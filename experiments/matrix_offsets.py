@@ -25,13 +25,12 @@ Writes reports/matrix_offsets.md and reports/matrix_offsets.json.
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np
 
 from colour_ceiling import test_views
-from common import REPORT_GROUPS, fmt, markdown_table, simulated_folders, write_report
+from common import REPORT_GROUPS, fmt, markdown_table, simulated_folders, study_parser, write_report
 from gridnerf import color, evaluate, exposure, illuminant
 from gridnerf.sim import HELDOUT_MIXED, MIXED
 from offset_effect import offset_rgb
@@ -81,11 +80,10 @@ def run_rows(run: Path, folder: Path) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="mixed,heldmixed,rabbit,bucket,box,dora,head,"
-                    "held_deep_hall,held_arc_table")
+    ap = study_parser(__doc__, "reports/matrix_offsets",
+                      scenes="mixed,heldmixed,rabbit,bucket,box,dora,head,held_deep_hall,"
+                      "held_arc_table")
     ap.add_argument("--variant", default="default")
-    ap.add_argument("--out", default="reports/matrix_offsets")
     args = ap.parse_args()
     record = {}
     for name, folder in simulated_folders(args.scenes):

@@ -19,12 +19,11 @@ Writes reports/noise.md and reports/noise.json.
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np
 
-from common import simulated_folders, write_report
+from common import simulated_folders, study_parser, write_report
 from gridnerf import noisefit
 from gridnerf.sim import HELDOUT_MIXED, MIXED
 
@@ -66,10 +65,8 @@ def _row(name: str, source: str, got: dict, truth: dict) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="all", help="'all' or comma-separated scene names")
+    ap = study_parser(__doc__, "reports/noise")
     ap.add_argument("--runs", default=None, help="also fit with renders of runs/<scene>/RUN")
-    ap.add_argument("--out", default="reports/noise")
     args = ap.parse_args()
     rows, record = [], {}
     for name, folder in simulated_folders(args.scenes):

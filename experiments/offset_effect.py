@@ -15,12 +15,11 @@ Writes reports/offset_effect.md and reports/offset_effect.json.
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np
 
-from common import markdown_table, write_report
+from common import markdown_table, study_parser, write_report
 from gridnerf import eval_run, evaluate, noisefit, raw
 
 
@@ -58,10 +57,8 @@ def score(run: Path, fix) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="bucket,box,rabbit")
+    ap = study_parser(__doc__, "reports/offset_effect", scenes="bucket,box,rabbit")
     ap.add_argument("--run", default="default")
-    ap.add_argument("--out", default="reports/offset_effect")
     args = ap.parse_args()
     rows, record = [], {}
     for name in args.scenes.split(","):

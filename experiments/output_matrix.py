@@ -15,20 +15,17 @@ Writes reports/output_matrix.md and reports/output_matrix.json.
 
 from __future__ import annotations
 
-import argparse
 import json
 
 import numpy as np
 
-from common import markdown_table, simulated_folders, write_report
+from common import markdown_table, simulated_folders, study_parser, write_report
 from gridnerf import evaluate, exposure, illuminant, image_io
 from gridnerf.sim import sensor
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="all")
-    ap.add_argument("--out", default="reports/output_matrix")
+    ap = study_parser(__doc__, "reports/output_matrix")
     args = ap.parse_args()
     rows, record = [], {}
     for name, folder in simulated_folders(args.scenes):

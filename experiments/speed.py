@@ -14,7 +14,6 @@ in <runs>/speed/<preset>/cache. Writes <out>.md (time-to-quality table), <out>.j
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 from pathlib import Path
@@ -28,6 +27,7 @@ from common import (
     save_figure,
     scene_dir,
     scene_names,
+    study_parser,
     write_report,
 )
 from gridnerf import config as cfgmod
@@ -105,14 +105,9 @@ def plot(record: dict, path: Path) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="bucket", help="names and groups: all, nine, heldout, "
-                    "dev, mixed (comma-separated)")
+    ap = study_parser(__doc__, "reports/speed", scenes="bucket", runs=True, quick=True)
     ap.add_argument("--presets", default=",".join(PRESETS))
     ap.add_argument("--every", type=int, default=200, help="steps between scored checkpoints")
-    ap.add_argument("--runs", default="runs")
-    ap.add_argument("--out", default="reports/speed")
-    ap.add_argument("--quick", action="store_true", help="small scenes, shrunk presets")
     args = ap.parse_args()
     print(build(scene_names(args.scenes),
                 [p for p in args.presets.split(",") if p], args.every, Path(args.runs),

@@ -14,7 +14,6 @@ and scene).
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +25,7 @@ from common import (
     run_variant,
     save_figure,
     scene_names,
+    study_parser,
     write_report,
 )
 
@@ -89,14 +89,9 @@ def plot(record: dict, gammas: list[float], path: Path) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="bucket", help="names and groups: all, nine, heldout, "
-                    "dev, mixed (comma-separated)")
+    ap = study_parser(__doc__, "reports/sweep", scenes="bucket", runs=True, quick=True)
     ap.add_argument("--methods", default="default,llnerf")
     ap.add_argument("--gammas", default=",".join(f"{g:g}" for g in (EXTREME, *GAMMAS)))
-    ap.add_argument("--runs", default="runs")
-    ap.add_argument("--out", default="reports/sweep")
-    ap.add_argument("--quick", action="store_true", help="small scenes, shrunk presets")
     args = ap.parse_args()
     methods = [m for m in args.methods.split(",") if m]
     unknown = [m for m in methods if m not in METHODS]
