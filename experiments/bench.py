@@ -27,7 +27,9 @@ Every figure is measured on the package's own code, in its own process, and cach
 
 Every record carries the machine (cores, CPU model, jax version, platform, load average)
 and the command that produced it. Results are cached per item in <out>/cache/<item>-<key>.json,
-keyed by the item and its configuration; a re-run reuses them (`--fresh` measures again).
+keyed by the item and its configuration (a training's by the fingerprint of the config it
+trains, so a changed preset or default measures again); a re-run reuses them (`--fresh`
+measures again).
 Timings taken while other processes use the CPU are not comparable: check load_average.
 
     LD_PRELOAD=/usr/lib/x86_64-linux-gnu/libtcmalloc_minimal.so.4 \\
@@ -51,7 +53,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from common import fmt, markdown_table, update_readme, write_report
+from common import fingerprint, fmt, markdown_table, update_readme, write_report
+from gridnerf import config as cfgmod
 
 HERE = Path(__file__).resolve()
 REPO = HERE.parent.parent
@@ -321,6 +324,16 @@ WORKERS = {"step": worker_step, "render": worker_render, "psnr": worker_psnr}
 # items: cached measurements
 
 
+def train_spec(scene: Path, preset: str, sets: list[str], run: Path) -> dict:
+    """The cache key's configuration of a training item: the scene, the preset and its
+    --set overrides, and the fingerprint of the config they make (common.fingerprint), so
+    a changed preset or default trains (and measures) again instead of reading a
+    measurement of what it no longer trains."""
+    trained = cfgmod.override(cfgmod.preset(preset), sets)
+    return {"scene": str(scene), "preset": preset, "sets": list(sets),
+            "config": fingerprint(trained), "run": str(run)}
+
+
 class Bench:
     def __init__(self, out: Path, cfg: dict, fresh: bool, quick: bool, scene: str,
                  folder: Path | None = None):
@@ -413,8 +426,7 @@ class Bench:
         if snapshots:
             sets += [f"train.checkpoint_every={self.cfg['snapshot_every']}",
                      "train.checkpoint_seconds=0"]
-        spec = {"scene": str(scene), "preset": self.cfg["preset"], "sets": sets,
-                "run": str(run)}
+        spec = train_spec(scene, self.cfg["preset"], sets, run)
 
         def measure():
             shutil.rmtree(run, ignore_errors=True)  # never resume: time the whole training

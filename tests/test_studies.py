@@ -361,3 +361,19 @@ def test_carry_runs_compares_the_l_ca_inputs(small_scene, tmp_path):
         assert not carry_runs.estimates_from_frames(cfgmod.preset(preset))
     batch = ["loss.ca_illuminant=grey_world", "loss.ca_target=batch"]
     assert not carry_runs.estimates_from_frames(cfgmod.override(cfg, batch))
+
+
+def test_bench_training_key_follows_the_config_not_the_preset_name(monkeypatch, tmp_path):
+    """experiments/bench.train_spec: the same preset name training a different config (a
+    changed default) gets a different cache key; the same config, the same key."""
+    import bench
+
+    scene, run = tmp_path / "scene", tmp_path / "run"
+    before = bench.train_spec(scene, "default", [], run)
+    assert before == bench.train_spec(scene, "default", [], run)
+    assert before["config"] != bench.train_spec(scene, "fast", [], run)["config"]
+    changed = dict(cfgmod.PRESETS)
+    changed["default"] = lambda: cfgmod.override(cfgmod.Config(), ["loss.w_ca=0.5"])
+    monkeypatch.setattr(cfgmod, "PRESETS", changed)
+    after = bench.train_spec(scene, "default", [], run)
+    assert after["preset"] == before["preset"] and after["config"] != before["config"]
