@@ -1,7 +1,8 @@
 """The L_ca inputs, estimated from the training frames before training starts.
 
-The chromatic adaptation loss pulls each ray's gains towards a target white (the paper's
-eq. 12-13 use the batch's grey world). What the target is, the config chooses
+The chromatic adaptation loss (the paper's eq. 14) pulls each ray's integrated gains S_k
+towards a target; in the paper K_avg / C_k, with C_k the batch's mean of channel k and
+K_avg their mean: the batch's grey world. Here the config chooses the target
 (loss.ca_target, loss.ca_illuminant, loss.ca_map_anchor; docs/colour.md):
 
 - "batch": each batch's own estimate (nothing to prepare here, but the Planckian locus
@@ -14,7 +15,7 @@ eq. 12-13 use the batch's grey world). What the target is, the config chooses
 
 loss.ca_illuminant = "consistent" (the default) picks the estimator per capture
 (consistent_estimator). colour_inputs is the one entry point training (and the
-benchmarks, carry_runs) call; everything here is NumPy on the host, run once per training.
+benchmarks, carry_runs) call; it runs once per training, on the host (NumPy).
 """
 
 from __future__ import annotations
