@@ -453,9 +453,8 @@ class Bench:
                    "--preset", self.cfg["preset"], "--set", *sets]
             r = run_measured(cmd, self.log(f"train_{tag}"), on_poll=grab if snapshots else None)
             summary = json.loads((run / "summary.json").read_text())
-            steps = sum(json.loads((run / "config.json").read_text())["train"]["steps_per_stage"])
-            cfg = json.loads((run / "config.json").read_text())["train"]
-            rays = steps * cfg["batch_patches"] * cfg["patch_size"] ** 2
+            tc = json.loads((run / "config.json").read_text())["train"]
+            rays = sum(tc["steps_per_stage"]) * tc["batch_patches"] * tc["patch_size"] ** 2
             for s in snaps:
                 s["wall_s"] = s.pop("mtime") - r["t_start"]
             return {"run": str(run), "scene": str(scene), "image": list(size),

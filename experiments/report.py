@@ -199,8 +199,8 @@ def markdown(record: dict, scenes: list[str], folder: Path, views: str | None) -
         if not md.is_file():
             text += f"\n## {title}\n\nNot built yet: `python experiments/{script}.py`.\n"
             continue
-        body = md.read_text().split("\n", 1)[1] if md.read_text().startswith("# ") \
-            else md.read_text()
+        body = md.read_text()
+        body = body.split("\n", 1)[1] if body.startswith("# ") else body  # its own title
         # the study's own headings sit one level under its title
         body = "\n".join("#" + ln if ln.startswith("#") else ln for ln in body.split("\n"))
         text += f"\n## {title}\n\n" + body.strip("\n") + "\n"
