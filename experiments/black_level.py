@@ -23,15 +23,6 @@ from __future__ import annotations
 import numpy as np
 
 import common
-from common import (
-    REPORT_GROUPS,
-    fmt,
-    markdown_table,
-    run_variant,
-    scene_names,
-    study_parser,
-    write_report,
-)
 
 VARIANTS = (("file", "default", []), ("dark", "dark_black", ["data.black_offset=dark"]))
 OUTPUTS = (("ours", "gridnerf"), ("global_gw", "global_grey_world"))
@@ -42,7 +33,7 @@ def measure(scenes: list[str]) -> dict:
     record: dict = {}
     for scene in scenes:
         for black, folder, sets in VARIANTS:
-            summary = run_variant(scene, folder, "default", sets)["summary"]
+            summary = common.run_variant(scene, folder, "default", sets)["summary"]
             record.setdefault(scene, {})[black] = {
                 out: {m: float(summary[key][m]) for m in ("psnr", "delta_e")}
                 for out, key in OUTPUTS}
@@ -50,20 +41,20 @@ def measure(scenes: list[str]) -> dict:
 
 
 def _cell(m: dict) -> str:
-    return f"{fmt(m['psnr'])} / {fmt(m['delta_e'])}"
+    return f"{common.fmt(m['psnr'])} / {common.fmt(m['delta_e'])}"
 
 
 def _row(label: str, per: dict) -> list[str]:
     f, d = per["file"], per["dark"]
     return [label, _cell(f["ours"]), _cell(f["global_gw"]), _cell(d["ours"]),
-            _cell(d["global_gw"]), fmt(d["ours"]["psnr"] - f["ours"]["psnr"]),
-            fmt(d["ours"]["psnr"] - d["global_gw"]["psnr"])]
+            _cell(d["global_gw"]), common.fmt(d["ours"]["psnr"] - f["ours"]["psnr"]),
+            common.fmt(d["ours"]["psnr"] - d["global_gw"]["psnr"])]
 
 
 def group_means(record: dict) -> dict:
     """{group label: (n, the mean of every figure of `record`'s scenes in that group)}."""
     out = {}
-    for label, members in REPORT_GROUPS:
+    for label, members in common.REPORT_GROUPS:
         got = [record[s] for s in members if s in record]
         if got:
             out[label] = (len(got), {
@@ -81,7 +72,7 @@ def readme_table(record: dict, command: str) -> str:
     """The group means alone, for the README (between its black_level markers)."""
     rows = [_row(f"{label} ({n})", mean) for label, (n, mean) in group_means(record).items()]
     return (f"Measured by `{command}` (reports/black_level.md), PSNR / CIEDE2000 on the test "
-            "views:\n\n" + markdown_table(["scenes", *HEADER[1:]], rows))
+            "views:\n\n" + common.markdown_table(["scenes", *HEADER[1:]], rows))
 
 
 def table(record: dict, command: str) -> str:
@@ -95,17 +86,17 @@ def table(record: dict, command: str) -> str:
             "the black level measured from the scene's two lens-cap frames "
             "(`data.black_offset=dark`). `dark - file`: what the exact black level adds to "
             "ours; `dark: ours - gw`: the field over one grey-world gain, both with it.\n\n"
-            + markdown_table(HEADER, rows) + "\n")
+            + common.markdown_table(HEADER, rows) + "\n")
 
 
 def main() -> None:
-    ap = study_parser(__doc__, "reports/black_level")
+    ap = common.study_parser(__doc__, "reports/black_level")
     args = ap.parse_args()
-    scenes = scene_names(args.scenes, ("nine", "dev", "heldout", "mixed", "heldmixed"))
+    scenes = common.scene_names(args.scenes, ("nine", "dev", "heldout", "mixed", "heldmixed"))
     record = measure(scenes)
     command = "python experiments/black_level.py" + (
         f" --scenes {args.scenes}" if args.scenes != "all" else "")
-    write_report(args.out, table(record, command), record)
+    common.write_report(args.out, table(record, command), record)
     if args.scenes == "all":
         common.update_readme("black_level", readme_table(record, command))
     print(table(record, command))

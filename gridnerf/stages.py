@@ -38,6 +38,8 @@ def resolve_resolution(res, bbox_min, bbox_max, image_hw: tuple[int, int],
     return rx, max(2, int(round((rx - 1) * ratio)) + 1), rz
 
 
+# margin on the longest training ray when fitting the candidate count (a batch ray's pixel
+# may sit a fraction of a pixel off the fitted ones)
 CANDIDATE_MARGIN = 1.05
 
 

@@ -214,8 +214,6 @@ def stage_config(cfg: Config, stage: int) -> Config:
     return dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, opacity=0.0))
 
 
-# margin on the longest training ray when fitting the candidate count (a batch ray's pixel
-# may sit a fraction of a pixel off the fitted ones)
 def data_statistics(data: dataset.RayData, key, n_patches: int = 256
                     ) -> tuple[float, np.ndarray, np.ndarray]:
     """Mean target level, grey-world log gains (3,) and mean colour (3,) of the training
