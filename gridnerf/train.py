@@ -461,6 +461,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         "train_seconds": elapsed,
         "rays_per_second": rate,
         "voxels": int(structure.n_rows),
+        # the training data's mean level (grid colour scale; loss.data_eps_mode=level's unit)
+        "data_level": float(structure.color_scale),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
     if cfg.data.black_offset == "dark" and (offset := darkframes.load(run)) is not None:

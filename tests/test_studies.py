@@ -160,6 +160,19 @@ def test_ablation_scene_groups_and_colour_study():
     assert "mean, nine" not in text
 
 
+def test_eps_study_levels_table_reads_the_level_runs(tmp_path):
+    """The eps study's level column comes from the level run's summary.json (data_level),
+    with the absolute eps's ratio to it; a scene whose run is only cached shows "-"."""
+    run = tmp_path / "bucket" / "eps_level0.5"
+    run.mkdir(parents=True)
+    (run / "summary.json").write_text(json.dumps({"data_level": 0.0025}))
+    table = ablate.levels_table(["bucket", "deer"], tmp_path)
+    assert "| bucket | 0.00250 | 0.40 |" in table
+    assert "| deer | - | - |" in table
+    level = dict(ablate.EPS_VARIANTS[1][4][i].split("=") for i in range(2))
+    assert level == {"loss.data_eps_mode": "level", "loss.data_eps": "0.5"}
+
+
 def test_every_study_variant_is_a_valid_config_and_shared_folders_agree():
     """A run folder shared by studies (e.g. `default`) must mean one config everywhere,
     else run_variant refuses it in the second study; every override must validate."""

@@ -272,6 +272,7 @@ def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch
     monkeypatch.setattr(trainmod, "make_step", real_make_step)
     summary = trainmod.train(small_scene, run, cfg)
     assert summary["resolution"] == list(structure.resolution)
+    assert summary["data_level"] == structure.color_scale > 0  # loss.data_eps_mode=level's unit
 
 
 def test_ray_mass_carving_and_depth_only_refit(small_scene, tmp_path):
