@@ -306,7 +306,7 @@ def build_quick(runs: Path, folder: Path) -> None:
         for variant, preset in RUN_PRESETS.items():
             run_variant(scene, variant, preset, [], runs, quick=True)
     ablate.build(QUICK_SCENES, runs, folder / "ablation", quick=True)
-    sweep.build(QUICK_SCENES[:1], list(sweep.METHODS), [0.3, 1.0], runs, folder / "sweep",
+    sweep.build(QUICK_SCENES[:1], list(sweep.SWEPT), [0.3, 1.0], runs, folder / "sweep",
                 quick=True)
     speed.build(QUICK_SCENES[:1], ["fast", "default"], 200, runs, folder / "speed",
                 quick=True)

@@ -10,6 +10,9 @@ extreme EXTREME) every method in METHODS is trained and scored on the test views
 and scene).
 
     python experiments/sweep.py [--scenes bucket] [--methods default,llnerf] [--quick]
+
+`eps_level0.5` (the default with loss.data_eps_mode=level, data_eps 0.5) is a method too:
+the data term's eps follows the raw's scale, so its curve should be flat in gamma.
 """
 
 from __future__ import annotations
@@ -31,8 +34,12 @@ from common import (
 
 GAMMAS = (0.3, 0.4, 0.6, 0.8, 1.0, 1.2, 1.5, 1.8)  # the paper's sweep
 EXTREME = 0.1
-# method -> (preset, eval summary key of its shown output)
-METHODS = {"default": ("default", "gridnerf"), "llnerf": ("llnerf", "llnerf")}
+# method -> (preset, eval summary key of its shown output, overrides); the method's name is
+# its gamma-1 run folder, so `eps_level0.5` shares ablate.py's eps study run
+METHODS = {"default": ("default", "gridnerf", []), "llnerf": ("llnerf", "llnerf", []),
+           "eps_level0.5": ("default", "gridnerf",
+                            ["loss.data_eps_mode=level", "loss.data_eps=0.5"])}
+SWEPT = ("default", "llnerf")  # the report's sweep (--methods' default)
 
 
 def variant(method: str, gamma: float) -> str:
@@ -45,10 +52,10 @@ def sweep(scenes: list[str], methods: list[str], gammas: list[float], runs: Path
     """{method: {scene: {gamma: metrics}}} of the test views, training what is missing."""
     record: dict = {}
     for method in methods:
-        preset, key = METHODS[method]
+        preset, key, method_sets = METHODS[method]
         for scene in scenes:
             for g in gammas:
-                sets = [] if g == 1.0 else [f"data.exposure_ratio={g:g}"]
+                sets = method_sets + ([] if g == 1.0 else [f"data.exposure_ratio={g:g}"])
                 m = run_variant(scene, variant(method, g), preset, sets, runs, quick)
                 record.setdefault(method, {}).setdefault(scene, {})[f"{g:g}"] = {
                     k: float(m["summary"][key][k]) for k in ("psnr", "ssim", "delta_e")}
@@ -90,7 +97,8 @@ def plot(record: dict, gammas: list[float], path: Path) -> None:
 
 def main() -> None:
     ap = study_parser(__doc__, "reports/sweep", scenes="bucket", runs=True, quick=True)
-    ap.add_argument("--methods", default="default,llnerf")
+    ap.add_argument("--methods", default=",".join(SWEPT),
+                    help="comma-separated, of: " + ", ".join(METHODS))
     ap.add_argument("--gammas", default=",".join(f"{g:g}" for g in (EXTREME, *GAMMAS)))
     args = ap.parse_args()
     methods = [m for m in args.methods.split(",") if m]

@@ -62,6 +62,10 @@ def test_sweep_table_and_plot(tmp_path):
     sweep.plot(record, [0.1, 0.3, 1.0], tmp_path / "sweep.png")
     assert (tmp_path / "sweep.png").stat().st_size > 1000
     assert sweep.variant("default", 1.0) == "default"
+    # the level-eps method's gamma-1 run is the eps study's (same folder, same config)
+    preset, _, sets = sweep.METHODS["eps_level0.5"]
+    study = {folder: (p, s) for _, _, folder, p, s in ablate.EPS_VARIANTS}
+    assert study[sweep.variant("eps_level0.5", 1.0)] == (preset, sets)
     assert sweep.variant("llnerf", 0.3) == "llnerf_gamma0.3"
 
 
