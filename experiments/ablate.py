@@ -170,7 +170,7 @@ def levels_table(scenes: list[str], runs: Path, absolute: float = 1e-3) -> str:
     run is only cached) and what the absolute eps is relative to it."""
     rows = []
     for scene in scenes:
-        summary = Path(runs) / scene / "eps_level0.5" / "summary.json"
+        summary = Path(runs) / scene / EPS_VARIANTS[1][2] / "summary.json"  # the level run
         level = json.loads(summary.read_text()).get("data_level") if summary.is_file() else None
         rows.append([scene, "-" if level is None else f"{level:.5f}",
                      "-" if level is None else fmt(absolute / level)])
