@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from common import (
+    LEVEL_EPS,
     REPORT_GROUPS,
     fmt,
     markdown_table,
@@ -83,8 +84,7 @@ SMOOTHNESS_VARIANTS = [
 # put it at 0.54-0.72 of the level). Chosen on the nine, tuning and mixed-light scenes
 EPS_VARIANTS = [
     ("eps_absolute", "data eps 1e-3, absolute (default)", "default", "default", []),
-    ("eps_level0.5", "data eps 0.5 x the mean level", "eps_level0.5", "default",
-     ["loss.data_eps_mode=level", "loss.data_eps=0.5"]),
+    ("eps_level0.5", "data eps 0.5 x the mean level", "eps_level0.5", "default", LEVEL_EPS),
 ]
 STUDIES = {"parts": VARIANTS, "colour": COLOUR_VARIANTS, "smoothness": SMOOTHNESS_VARIANTS,
            "eps": EPS_VARIANTS}

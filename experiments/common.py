@@ -128,6 +128,9 @@ def simulated_folders(spec: str):
 # its config of today reuses them instead of training again. Keyed by config only: a change
 # of the simulator or of the metrics calls for deleting the entries it touches.
 RESULTS = Path("reports/results.json")
+# the data term's eps at 0.5 x the training data's mean level instead of RawNeRF's absolute
+# 1e-3 (ablate.py --study eps, sweep.py's eps_level0.5 method: one run folder, one config)
+LEVEL_EPS = ["loss.data_eps_mode=level", "loss.data_eps=0.5"]
 
 
 def load_results(path: Path = RESULTS) -> dict:

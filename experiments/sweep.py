@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from common import (
+    LEVEL_EPS,
     fmt,
     markdown_table,
     pyplot,
@@ -37,8 +38,7 @@ EXTREME = 0.1
 # method -> (preset, eval summary key of its shown output, overrides); the method's name is
 # its gamma-1 run folder, so `eps_level0.5` shares ablate.py's eps study run
 METHODS = {"default": ("default", "gridnerf", []), "llnerf": ("llnerf", "llnerf", []),
-           "eps_level0.5": ("default", "gridnerf",
-                            ["loss.data_eps_mode=level", "loss.data_eps=0.5"])}
+           "eps_level0.5": ("default", "gridnerf", LEVEL_EPS)}
 SWEPT = ("default", "llnerf")  # the report's sweep (--methods' default)
 
 
