@@ -20,6 +20,7 @@ under jit): samples_per_voxel, max_samples (K), chunk, skip_empty, n_candidates 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -291,6 +292,30 @@ def _render_pixels(structure, params, origins, directions, near_t, far_t, cfg):
 
 _render_jit = jax.jit(_render_pixels, static_argnames=("cfg",))
 
+# an image render's fitted candidate count is rounded up to a multiple of this, so a path of
+# views compiles a handful of shapes rather than one per view
+CANDIDATE_QUANTUM = 32
+
+
+def image_config(structure: GridStructure, cfg: RenderConfig, origins, directions, near_t,
+                 far_t) -> RenderConfig:
+    """cfg with n_candidates fitted to these rays where it is 0 (auto); otherwise cfg.
+
+    origins, directions: (n, 3); near_t, far_t: scalars or (n,). The auto count crosses the
+    box diagonal (bucket's 192x113x64 grid: 346 candidates), but a forward-facing view's
+    longest ray crosses far fewer voxels (bucket's test view: 114). Every ray keeps its full
+    1 / samples_per_voxel spacing with either count, so the samples, and the image, are the
+    same; only the candidate test shrinks (bucket, 480x270: march 0.95 -> 0.36 s of a
+    1.7 s render on a loaded machine). Fitted counts are rounded up to CANDIDATE_QUANTUM
+    and never exceed the auto count.
+    """
+    if cfg.n_candidates:
+        return cfg
+    auto = n_candidates(structure, cfg)
+    n = fit_n_candidates(structure, origins, directions, near_t, far_t, cfg.samples_per_voxel)
+    n = -(-n // CANDIDATE_QUANTUM) * CANDIDATE_QUANTUM
+    return dataclasses.replace(cfg, n_candidates=min(n, auto))
+
 
 def render_image(structure: GridStructure, params, origins, directions, near_t, far_t, cfg,
                  chunk: int | None = None) -> dict:
@@ -299,6 +324,7 @@ def render_image(structure: GridStructure, params, origins, directions, near_t, 
     per-sample ones (PER_SAMPLE), which never leave the device.
 
     near_t, far_t: scalars or (H, W). One jit per chunk shape: the last chunk is padded.
+    With cfg.n_candidates 0 the candidate count is fitted to the image's rays (image_config).
     Each chunk is split over all local devices (gridnerf.devices).
     """
     shape = origins.shape[:-1]
@@ -308,6 +334,7 @@ def render_image(structure: GridStructure, params, origins, directions, near_t, 
     near = np.broadcast_to(np.asarray(near_t, np.float32), shape).reshape(-1)
     far = np.broadcast_to(np.asarray(far_t, np.float32), shape).reshape(-1)
     n = o.shape[0]
+    cfg = image_config(structure, cfg, o, d, near, far)
     n_dev = devices.device_count()
     chunk = -(-max(1, min(chunk, n)) // n_dev) * n_dev  # chunks split evenly over devices
     outs: dict[str, list] = {}

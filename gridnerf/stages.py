@@ -53,7 +53,7 @@ def with_fitted_candidates(cfg: Config, structure, data: dataset.RayData, near_t
     forward-facing NDC ray crosses little more than the z voxels: every training ray keeps
     its full 1 / samples_per_voxel spacing either way, so the samples are the same and
     only the candidate test (occupancy lookups, running count, search) shrinks.
-    Renders of other cameras (eval) keep the auto count.
+    Image renders (eval, exposure, paths) fit the count to their own rays (render.image_config).
     """
     if cfg.render.n_candidates:
         return cfg

@@ -234,6 +234,25 @@ def test_render_image_matches_render_rays_with_padding():
         np.testing.assert_allclose(img[k].reshape(whole[k].shape), whole[k], atol=1e-6)
 
 
+def test_render_image_fits_the_candidate_count_and_renders_the_same():
+    """render_image fits N to its rays (image_config): fewer candidates than the box
+    diagonal for rays along z, a multiple of CANDIDATE_QUANTUM, and the image of the auto
+    count exactly."""
+    structure, params = random_scene(0, res=(40, 36, 12), seed=3)
+    o, d = random_rays(n=60, seed=5)
+    cfg = RenderConfig(samples_per_voxel=2.0, max_samples=40)
+    fitted = render.image_config(structure, cfg, o, d, 0.2, 3.0)
+    assert 0 < fitted.n_candidates < render.n_candidates(structure, cfg)
+    assert fitted.n_candidates % render.CANDIDATE_QUANTUM == 0
+    assert render.image_config(structure, fitted, o, d, 0.2, 3.0) is fitted  # set: kept
+    whole = render_np(structure, params, o, d, 0.2, 3.0, cfg)
+    assert whole["acc"].max() > 0.5
+    img = render.render_image(structure, params, o.reshape(6, 10, 3), d.reshape(6, 10, 3),
+                              0.2, 3.0, cfg)
+    for k in KEYS + ("n_occupied",):
+        np.testing.assert_array_equal(img[k].reshape(whole[k].shape), whole[k], err_msg=k)
+
+
 def test_vertex_visibility_sees_the_first_surface_only():
     """An opaque slab at z ~ 0: vertices in front (empty) and behind (hidden) get ~0."""
     res = (6, 6, 11)
