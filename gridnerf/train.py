@@ -297,6 +297,23 @@ def train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool = Fals
         return _train(scene_dir, run, cfg, overwrite_config, session)
 
 
+def data_eps_note(cfg: Config, level: float) -> str | None:
+    """A note where loss.data_eps is absolute and above the training data's mean level
+    (normalised raw), else None.
+
+    There the data term weighs dark and bright pixels alike and the fit depends on the raw's
+    scale: bucket (mean level 0.0022) scaled by gamma 0.4 / 0.3 / 0.1 (eps 1.1 / 1.5 / 4.5 x
+    the level) lost 0.2 / 0.5 / 5.4 dB against gamma 1, and the level eps gave 21.48 dB at
+    gamma 0.1 as at gamma 1 (docs/report.md, darkness sweep)."""
+    lc = cfg.loss
+    if lc.data_eps_mode != "absolute" or lc.data_eps <= level:
+        return None
+    return (f"note: the data eps {lc.data_eps:g} is {lc.data_eps / level:.1f}x the training "
+            f"data's mean level {level:.2g} (a very dark or low-gain capture): the fit "
+            "depends on the raw's scale here; --set loss.data_eps_mode=level loss.data_eps=0.5 "
+            "scales it with the data (docs/report.md, darkness sweep)")
+
+
 def initial_grid(data: dataset.RayData, scene, cfg: Config, key, scene_ill=None):
     """(structure, params) a run starts from: the dense first-stage grid on the scene's box,
     colour at the data's mean level, gains at the L_ca target (scene_ill (3,), else the
@@ -363,6 +380,9 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     else:
         structure, params = initial_grid(data, scene, cfg, key, scene_ill)
         stage, start, elapsed, opt_leaves = 0, 0, 0.0, []
+        note = data_eps_note(cfg, float(structure.color_scale))
+        if note:
+            print(note)
 
     # Training really starts: save the config, drop metrics logged after the checkpoint.
     cfgmod.save(cfg, run / runfolder.CONFIG)

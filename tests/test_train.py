@@ -561,3 +561,16 @@ def test_fitted_candidates_render_the_training_rays_unchanged(tiny_run):
     for name in ("rgb_low", "acc", "depth"):
         np.testing.assert_allclose(np.asarray(outs[0][name]), np.asarray(outs[1][name]),
                                    rtol=1e-5, atol=1e-7)
+
+
+def test_data_eps_note_only_where_the_absolute_eps_exceeds_the_level():
+    """train.data_eps_note: silent at the simulator's levels (absolute eps 0.2-0.6 of the
+    mean level) and with the level eps; above the level it names the ratio and the fix."""
+    from gridnerf import train
+
+    cfg = cfgmod.Config()
+    assert train.data_eps_note(cfg, 0.0022) is None  # bucket at gamma 1
+    note = train.data_eps_note(cfg, 0.00022)  # bucket at gamma 0.1
+    assert note is not None and "4.5x" in note and "loss.data_eps_mode=level" in note
+    level = cfgmod.override(cfg, ["loss.data_eps_mode=level", "loss.data_eps=0.5"])
+    assert train.data_eps_note(level, 0.00022) is None
