@@ -220,7 +220,10 @@ class RenderConfig(_Section):
     max_samples: int = 64
     chunk: int = 8192  # rays per chunk when rendering whole images
     skip_empty: bool = True  # False: every candidate sample is shaded, K = N (tests, benchmarks)
-    n_candidates: int = 0  # static candidate count N per ray; 0: enough to cross the box diagonal
+    # static candidate count N per ray; 0: fitted to the rays (training: each stage's
+    # training rays, stages.with_fitted_candidates; images: render.image_config), at most the
+    # count that crosses the box diagonal
+    n_candidates: int = 0
 
     def _check(self) -> None:
         self._range("samples_per_voxel", 0.0, lo_open=True)

@@ -15,7 +15,8 @@ forward-facing scenes, or world rays with near/far). Marching happens in index s
 
 Rays with more than K occupied candidates are truncated after the K-th (`n_occupied` in
 the output says how many there were). Options are gridnerf.config.RenderConfig (static
-under jit): samples_per_voxel, max_samples (K), chunk, skip_empty, n_candidates (N, 0 = auto).
+under jit): samples_per_voxel, max_samples (K), chunk, skip_empty, n_candidates (N; 0 = the
+box diagonal's count, which render_image and training first fit to their own rays).
 """
 
 from __future__ import annotations
