@@ -40,6 +40,7 @@ EXTREME = 0.1
 METHODS = {"default": ("default", "gridnerf", []), "llnerf": ("llnerf", "llnerf", []),
            "eps_level0.5": ("default", "gridnerf", LEVEL_EPS)}
 SWEPT = ("default", "llnerf")  # the report's sweep (--methods' default)
+DEFAULT_OUT = "reports/sweep"
 
 
 def variant(method: str, gamma: float) -> str:
@@ -96,7 +97,7 @@ def plot(record: dict, gammas: list[float], path: Path) -> None:
 
 
 def main() -> None:
-    ap = study_parser(__doc__, "reports/sweep", scenes="bucket", runs=True, quick=True)
+    ap = study_parser(__doc__, DEFAULT_OUT, scenes="bucket", runs=True, quick=True)
     ap.add_argument("--methods", default=",".join(SWEPT),
                     help="comma-separated, of: " + ", ".join(METHODS))
     ap.add_argument("--gammas", default=",".join(f"{g:g}" for g in (EXTREME, *GAMMAS)))
@@ -118,7 +119,8 @@ def build(scenes: list[str], methods: list[str], gammas: list[float], runs: Path
     record = sweep(scenes, methods, gammas, runs, quick)
     command = (f"python experiments/sweep.py --scenes {','.join(scenes)} --methods "
                f"{','.join(methods)} --gammas {','.join(f'{g:g}' for g in gammas)}"
-               + (" --quick" if quick else ""))
+               + (" --quick" if quick else "")
+               + ("" if Path(out) == Path(DEFAULT_OUT) else f" --out {out}"))
     text = markdown(record, gammas, command)
     write_report(out, text, {"gammas": gammas, "quick": quick, "results": record})
     plot(record, gammas, Path(out).with_suffix(".png"))
