@@ -243,7 +243,8 @@ class LossConfig(_Section):
     # "level" with data_eps 0.5 scored 21.48 at both (docs/report.md, darkness sweep). At the
     # simulator's levels the two are equal within the seed spread (ablate.py --study eps,
     # sessions 24-25, held-out scenes included), so "absolute" stays the default and
-    # train.data_eps_note names the fix where the absolute eps exceeds the mean level
+    # train.data_eps_note names the fix where the absolute eps exceeds 2.5 noise sigmas
+    # of the frames (session 26: the mean level did not say where the loss starts)
     data_eps: float = 1e-3
     data_eps_mode: Literal["absolute", "level"] = "absolute"
     w_ca: float = 0.1  # lambda_2, chromatic adaptation loss (eq. 14)

@@ -107,6 +107,32 @@ def sim_truth(sim: dict | str | Path) -> dict:
             "scale": float(sim["white_level"] - sim["black_level"])}
 
 
+def neighbour_sigma(target, mask=None) -> float:
+    """Noise sigma of training targets from differences of horizontal neighbours.
+
+    target, mask: (..., h, w, 3) (e.g. train.data_statistics' ray patches; mask 0/1, None
+    = all valid). For each channel, the pairs of horizontally adjacent pixels that are both
+    valid in it (binned data: every neighbour; a mosaic's one-hot targets: the same-colour
+    pixel two columns on, taken where the adjacent one gives no pair), and the robust sigma
+    1.4826 x median |a - b| / sqrt 2 (the median absolute deviation of a difference of two
+    independent noisy values, scaled to a Gaussian sigma; smooth shading cancels in the
+    difference, edges and texture are outvoted by the median). Returns the mean over the
+    channels that have pairs, or nan where none has. Scales with the targets (a raw scaled
+    by gamma gives gamma x sigma).
+    """
+    y = np.asarray(target, np.float64)
+    m = np.ones_like(y) if mask is None else np.asarray(mask, np.float64)
+    sigmas = []
+    for c in range(y.shape[-1]):
+        for d in (1, 2):
+            ok = (m[..., :, d:, c] > 0) & (m[..., :, :-d, c] > 0)
+            if ok.any():
+                diff = (y[..., :, d:, c] - y[..., :, :-d, c])[ok]
+                sigmas.append(1.4826 * float(np.median(np.abs(diff))) / math.sqrt(2.0))
+                break
+    return float(np.mean(sigmas)) if sigmas else float("nan")
+
+
 def cfa_position(shape: tuple[int, ...]) -> np.ndarray:
     """(..., H, W) -> int (H, W) CFA position 2 (row % 2) + (col % 2)."""
     h, w = shape[-2:]

@@ -104,3 +104,19 @@ def test_fit_on_a_simulated_scene_folder(small_scene):
     assert got["K_dn_per_electron"] == pytest.approx(truth["K_dn_per_electron"], rel=0.1)
     assert got["read_var_dn2"] == pytest.approx(truth["read_var_dn2"], rel=0.15)
     np.testing.assert_allclose(got["black_offset_dn"], truth["black_offset_dn"], atol=0.5)
+
+
+def test_neighbour_sigma_on_binned_and_mosaic_targets():
+    """neighbour_sigma: Gaussian noise of known sigma on a flat level, within 5 % for
+    binned targets (every channel at every pixel) and for a mosaic's one-hot targets
+    (same-colour pixels two columns apart); no valid pair gives nan."""
+    rng = np.random.default_rng(1)
+    sigma = 5e-4
+    y = 0.002 + sigma * rng.standard_normal((400, 8, 8, 3))
+    assert abs(noisefit.neighbour_sigma(y) / sigma - 1.0) < 0.05
+    cfa = np.array([[0, 1], [1, 2]])  # RGGB
+    v, u = np.meshgrid(np.arange(8), np.arange(8), indexing="ij")
+    onehot = np.eye(3)[cfa[v % 2, u % 2]]  # (8, 8, 3)
+    mask = np.broadcast_to(onehot, y.shape)
+    assert abs(noisefit.neighbour_sigma(y * mask, mask) / sigma - 1.0) < 0.05
+    assert math.isnan(noisefit.neighbour_sigma(y, np.zeros_like(y)))

@@ -563,14 +563,51 @@ def test_fitted_candidates_render_the_training_rays_unchanged(tiny_run):
                                    rtol=1e-5, atol=1e-7)
 
 
-def test_data_eps_note_only_where_the_absolute_eps_exceeds_the_level():
-    """train.data_eps_note: silent at the simulator's levels (absolute eps 0.2-0.6 of the
-    mean level) and with the level eps; above the level it names the ratio and the fix."""
+def test_data_eps_note_only_where_the_absolute_eps_exceeds_the_noise():
+    """train.data_eps_note: silent at the simulator's noise (absolute eps 0.9-1.4 sigma at
+    gamma 1) and with the level eps; past 2.5 sigma it names the ratio and the fix."""
     from gridnerf import train
 
     cfg = cfgmod.Config()
-    assert train.data_eps_note(cfg, 0.0022) is None  # bucket at gamma 1
-    note = train.data_eps_note(cfg, 0.00022)  # bucket at gamma 0.1
-    assert note is not None and "4.5x" in note and "loss.data_eps_mode=level" in note
+    assert train.data_eps_note(cfg, 0.00074) is None  # bucket at gamma 1: 1.35 sigma
+    assert train.data_eps_note(cfg, 0.6 * 0.00074) is None  # gamma 0.6: 2.25 sigma
+    note = train.data_eps_note(cfg, 0.4 * 0.00074)  # gamma 0.4: 3.4 sigma
+    assert note is not None and "3.4x" in note and "loss.data_eps_mode=level" in note
+    assert train.data_eps_note(cfg, float("nan")) is None  # no neighbours to measure
     level = cfgmod.override(cfg, ["loss.data_eps_mode=level", "loss.data_eps=0.5"])
-    assert train.data_eps_note(level, 0.00022) is None
+    assert train.data_eps_note(level, 0.1 * 0.00074) is None
+
+
+def test_data_noise_measures_the_frames_noise_and_scales_with_them(small_scene):
+    """train.data_noise on ray data whose frames are smooth shading plus Gaussian noise of
+    known sigma: within 5 %; the frames scaled by gamma (data.exposure_ratio's protocol)
+    give gamma x sigma; a saturated (masked) half changes nothing."""
+    import jax
+    from conftest import sim_near_far
+
+    from gridnerf import dataset, train
+    from gridnerf.scene import load_scene
+
+    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
+    data = dataset.build(scene, scene.train_idx[:3], binning=True)
+    n, h, w, _ = data.pixels.shape
+    yy, xx = np.meshgrid(np.linspace(0, 1, h), np.linspace(0, 1, w), indexing="ij")
+    shading = 0.003 * (1.0 + 0.5 * np.sin(3 * xx + 2 * yy))[None, :, :, None]
+    sigma = 8e-4
+    noisy = shading + sigma * np.random.default_rng(0).standard_normal((n, h, w, 3))
+
+    def with_frames(frames, valid=None):
+        return replace(data, pixels=jax.numpy.asarray(frames, np.float32),
+                       valid=jax.numpy.ones((n, h, w, 3), bool) if valid is None else valid,
+                       inv_exposure=jax.numpy.ones((n,), np.float32))
+
+    key = jax.random.PRNGKey(0)
+    got = train.data_noise(with_frames(noisy), key)
+    assert abs(got / sigma - 1.0) < 0.05
+    np.testing.assert_allclose(train.data_noise(with_frames(0.1 * noisy), key), 0.1 * got,
+                               rtol=1e-4)
+    clipped = noisy.copy()
+    clipped[:, :, : w // 2] = 1.0  # saturated: masked out, and no noise to measure there
+    valid = np.ones((n, h, w, 3), bool)
+    valid[:, :, : w // 2] = False
+    assert abs(train.data_noise(with_frames(clipped, valid), key) / sigma - 1.0) < 0.05
