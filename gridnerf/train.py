@@ -316,7 +316,7 @@ def data_noise(data: dataset.RayData, key, n_patches: int = 256) -> float:
 
 def data_eps_note(cfg: Config, sigma: float) -> str | None:
     """A note where loss.data_eps is absolute and above EPS_NOTE_SIGMAS x the training
-    frames' noise sigma (data_noise), else None.
+    frames' noise sigma (data_noise), else None (also where sigma is 0 or nan).
 
     There the data term stops weighing pixels by their own noise and the fit depends on the
     raw's scale. The darkness sweeps (docs/report.md) lose, at the same absolute eps, alike
@@ -327,7 +327,8 @@ def data_eps_note(cfg: Config, sigma: float) -> str | None:
     A mean-level threshold (session 25) stayed silent on held_mixed_toys at gamma 0.3-0.4.
     """
     lc = cfg.loss
-    if lc.data_eps_mode != "absolute" or not lc.data_eps > EPS_NOTE_SIGMAS * sigma:
+    if (lc.data_eps_mode != "absolute" or not sigma > 0  # noiseless or unmeasured: no note
+            or not lc.data_eps > EPS_NOTE_SIGMAS * sigma):
         return None
     return (f"note: the data eps {lc.data_eps:g} is {lc.data_eps / sigma:.1f}x the noise sigma "
             f"{sigma:.2g} of the training frames (a very dark or low-gain capture): the fit "

@@ -574,6 +574,7 @@ def test_data_eps_note_only_where_the_absolute_eps_exceeds_the_noise():
     note = train.data_eps_note(cfg, 0.4 * 0.00074)  # gamma 0.4: 3.4 sigma
     assert note is not None and "3.4x" in note and "loss.data_eps_mode=level" in note
     assert train.data_eps_note(cfg, float("nan")) is None  # no neighbours to measure
+    assert train.data_eps_note(cfg, 0.0) is None  # noiseless frames: nothing to compare
     level = cfgmod.override(cfg, ["loss.data_eps_mode=level", "loss.data_eps=0.5"])
     assert train.data_eps_note(level, 0.1 * 0.00074) is None
 
