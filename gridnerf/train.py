@@ -17,7 +17,6 @@ import dataclasses
 import json
 import resource
 import time
-from functools import partial
 from pathlib import Path
 
 import jax
@@ -215,9 +214,13 @@ def stage_config(cfg: Config, stage: int) -> Config:
     return dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, opacity=0.0))
 
 
+_batch_jit = jax.jit(dataset.batch, static_argnames=("n_patches", "patch"))
+
+
 def _sample_targets(data: dataset.RayData, key, n_patches: int) -> tuple[np.ndarray, np.ndarray]:
-    """Targets and masks (n_patches, 8, 8, 3) of random 8x8 training patches (float64)."""
-    sample = jax.jit(partial(dataset.batch, n_patches=n_patches, patch=8))(data, key)
+    """Targets and masks (n_patches, 8, 8, 3) of random 8x8 training patches (float64); one
+    compile serves data_statistics and data_noise."""
+    sample = _batch_jit(data, key, n_patches=n_patches, patch=8)
     return np.asarray(sample["target"], np.float64), np.asarray(sample["mask"], np.float64)
 
 
