@@ -317,26 +317,51 @@ def data_noise(data: dataset.RayData, key, n_patches: int = 256) -> float:
     return noisefit.neighbour_sigma(*_sample_targets(data, key, n_patches))
 
 
+def _eps_follows_noise(cfg: Config) -> bool:
+    """Whether the data term's eps is absolute and weighs raw frames (the runs whose fit
+    depends on the raw's scale: loss.data_eps_sigmas caps it, data_eps_note speaks)."""
+    return (cfg.loss.method == "brightnerf" and cfg.loss.data_eps_mode == "absolute"
+            and cfg.data.target == "raw")
+
+
+def with_data_eps_cap(cfg: Config, sigma: float) -> Config:
+    """The config the steps train with: loss.data_eps lowered to loss.data_eps_sigmas x
+    sigma (the training frames' noise, data_noise) where it is above that, the eps is
+    absolute and the targets are raw; else cfg itself (also where sigma is 0 or nan, or
+    data_eps_sigmas is 0).
+
+    The data term (C - y)^2 / (sg(C) + eps)^2 depends on eps / sigma alone: a raw scaled by
+    gamma (data.exposure_ratio) scales C, y and sigma alike, so at a fixed ratio it is the
+    same fit. RawNeRF's 1e-3 is 0.86-1.44 sigma on every simulated scene at gamma 1; at
+    gamma 0.1 it is 13 sigma on bucket (-5.4 dB), where the cap trains it as at 2 sigma.
+    """
+    lc = cfg.loss
+    cap = lc.data_eps_sigmas * sigma
+    if not (_eps_follows_noise(cfg) and cap > 0 and lc.data_eps > cap):  # nan: False
+        return cfg
+    return dataclasses.replace(cfg, loss=dataclasses.replace(lc, data_eps=float(cap)))
+
+
 def data_eps_note(cfg: Config, sigma: float) -> str | None:
-    """A note where loss.data_eps is absolute and above EPS_NOTE_SIGMAS x the training
-    frames' noise sigma (data_noise), else None (also where sigma is 0 or nan).
+    """A note where the absolute loss.data_eps the steps use is above EPS_NOTE_SIGMAS x the
+    training frames' noise sigma (data_noise), else None (also where sigma is 0 or nan).
+    cfg: the steps' config (with_data_eps_cap's), so with the default cap (2 sigmas) it
+    is silent; it speaks where loss.data_eps_sigmas is 0 or above EPS_NOTE_SIGMAS.
 
     There the data term stops weighing pixels by their own noise and the fit depends on the
     raw's scale. The darkness sweeps (docs/report.md) lose, at the same absolute eps, alike
     on scenes whose mean levels differ 2.3x but whose noise is alike: gamma 0.4 (eps 2.7-3.2
     sigma) -0.18 / -0.47 / -0.39 dB on bucket / held_deep_hall / held_mixed_toys, gamma 0.1
-    4.0-5.4 dB; at gamma 1 the absolute eps is 0.9-1.4 sigma on all 21 simulated scenes. The
-    level eps held bucket and both held-out scenes at gamma 0.1 to their gamma-1 numbers.
-    A mean-level threshold (session 25) stayed silent on held_mixed_toys at gamma 0.3-0.4.
+    4.0-5.4 dB.
     """
     lc = cfg.loss
-    if (lc.data_eps_mode != "absolute" or not sigma > 0  # noiseless or unmeasured: no note
+    if (not _eps_follows_noise(cfg) or not sigma > 0  # noiseless or unmeasured: no note
             or not lc.data_eps > EPS_NOTE_SIGMAS * sigma):
         return None
     return (f"note: the data eps {lc.data_eps:g} is {lc.data_eps / sigma:.1f}x the noise sigma "
             f"{sigma:.2g} of the training frames (a very dark or low-gain capture): the fit "
-            "depends on the raw's scale here; --set loss.data_eps_mode=level loss.data_eps=0.5 "
-            "scales it with the data (docs/report.md, darkness sweep)")
+            "depends on the raw's scale here; --set loss.data_eps_sigmas=2 (the default) caps "
+            "it at 2 sigmas (docs/report.md, darkness sweep)")
 
 
 def initial_grid(data: dataset.RayData, scene, cfg: Config, key, scene_ill=None):
@@ -405,9 +430,16 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     else:
         structure, params = initial_grid(data, scene, cfg, key, scene_ill)
         stage, start, elapsed, opt_leaves = 0, 0, 0.0, []
-        note = data_eps_note(cfg, data_noise(data, jax.random.fold_in(key, 7)))
-        if note:
-            print(note)
+    # the frames' noise, measured alike on a fresh start and on a resume (the seed's key)
+    sigma = data_noise(data, jax.random.fold_in(jax.random.PRNGKey(cfg.train.seed), 7))
+    step_cfg = with_data_eps_cap(cfg, sigma)
+    if step_cfg is not cfg:
+        print(f"data eps: {cfg.loss.data_eps:g} is {cfg.loss.data_eps / sigma:.1f}x the noise "
+              f"sigma {sigma:.2g} of the training frames, capped at "
+              f"{cfg.loss.data_eps_sigmas:g} sigma: {step_cfg.loss.data_eps:.3g} "
+              "(loss.data_eps_sigmas)")
+    if note := data_eps_note(step_cfg, sigma):
+        print(note)
 
     # Training really starts: save the config, drop metrics logged after the checkpoint.
     cfgmod.save(cfg, run / runfolder.CONFIG)
@@ -441,8 +473,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         if opt_leaves:
             opt_state = checkpoint.unflatten_like(opt_state, opt_leaves)
             opt_leaves = []
-        stage_cfg = stages.with_fitted_candidates(stage_config(cfg, stage), structure, data,
-                                           near_t, far_t)
+        stage_cfg = stages.with_fitted_candidates(stage_config(step_cfg, stage), structure,
+                                                  data, near_t, far_t)
         step_fn = make_step(stage_cfg, tx, near_t, far_t, **colour)
         structure = grid.update_occupancy(structure, params, cfg.grid.occupancy_threshold)
         t_stage = time.perf_counter()
@@ -508,6 +540,10 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         "voxels": int(structure.n_rows),
         # the training data's mean level (grid colour scale; loss.data_eps_mode=level's unit)
         "data_level": float(structure.color_scale),
+        # the training frames' noise sigma (data_noise) and the absolute eps the data term used
+        "data_noise": sigma if np.isfinite(sigma) else None,
+        "data_eps": step_cfg.loss.data_eps * (structure.color_scale
+                                              if cfg.loss.data_eps_mode == "level" else 1.0),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
     if cfg.data.black_offset == "dark" and (offset := darkframes.load(run)) is not None:

@@ -273,6 +273,9 @@ def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch
     summary = trainmod.train(small_scene, run, cfg)
     assert summary["resolution"] == list(structure.resolution)
     assert summary["data_level"] == structure.color_scale > 0  # loss.data_eps_mode=level's unit
+    assert summary["data_noise"] > 0  # measured on the resume as on a fresh start
+    assert summary["data_eps"] == min(cfg.loss.data_eps,
+                                      cfg.loss.data_eps_sigmas * summary["data_noise"])
 
 
 def test_ray_mass_carving_and_depth_only_refit(small_scene, tmp_path):
@@ -364,6 +367,23 @@ def test_effective_config_ignores_gain_fields_without_gains():
         replace(d, loss=replace(d.loss, ca_locus=not d.loss.ca_locus)))
     tweaked = replace(o, loss=replace(o.loss, tv_density=0.5))  # not a gain field
     assert cfgmod.effective(o) != cfgmod.effective(tweaked)
+
+
+def test_data_eps_cap_is_inert_where_it_cannot_act_and_old_configs_load_with_it():
+    """loss.data_eps_sigmas matters only for an absolute eps on raw frames; a saved config
+    without the field loads with the cap (config.LEGACY); a negative cap is refused."""
+    d = cfgmod.preset("default")
+    assert cfgmod.effective(cfgmod.override(d, ["loss.data_eps_sigmas=3"])) != (
+        cfgmod.effective(d))
+    for base in (cfgmod.override(d, ["loss.data_eps_mode=level"]), cfgmod.preset("oracle"),
+                 cfgmod.preset("llnerf")):
+        assert cfgmod.effective(cfgmod.override(base, ["loss.data_eps_sigmas=3"])) == (
+            cfgmod.effective(base))
+    saved = cfgmod.to_dict(d)
+    del saved["loss"]["data_eps_sigmas"]
+    assert cfgmod.from_dict(saved).loss.data_eps_sigmas == 2.0
+    with pytest.raises(cfgmod.ConfigError, match="data_eps_sigmas"):
+        cfgmod.override(d, ["loss.data_eps_sigmas=-1"])
 
 
 def test_effective_config_ignores_map_fields_without_the_map_target():
@@ -564,19 +584,71 @@ def test_fitted_candidates_render_the_training_rays_unchanged(tiny_run):
 
 
 def test_data_eps_note_only_where_the_absolute_eps_exceeds_the_noise():
-    """train.data_eps_note: silent at the simulator's noise (absolute eps 0.9-1.4 sigma at
-    gamma 1) and with the level eps; past 2.5 sigma it names the ratio and the fix."""
+    """train.data_eps_note on the steps' config: silent at the simulator's noise (absolute
+    eps 0.86-1.44 sigma at gamma 1), with the level eps and under the default cap; past 2.5
+    sigma (the cap off) it names the ratio and the fix."""
     from gridnerf import train
 
-    cfg = cfgmod.Config()
+    cfg = cfgmod.override(cfgmod.Config(), ["loss.data_eps_sigmas=0"])
     assert train.data_eps_note(cfg, 0.00074) is None  # bucket at gamma 1: 1.35 sigma
     assert train.data_eps_note(cfg, 0.6 * 0.00074) is None  # gamma 0.6: 2.25 sigma
     note = train.data_eps_note(cfg, 0.4 * 0.00074)  # gamma 0.4: 3.4 sigma
-    assert note is not None and "3.4x" in note and "loss.data_eps_mode=level" in note
+    assert note is not None and "3.4x" in note and "loss.data_eps_sigmas=2" in note
     assert train.data_eps_note(cfg, float("nan")) is None  # no neighbours to measure
     assert train.data_eps_note(cfg, 0.0) is None  # noiseless frames: nothing to compare
     level = cfgmod.override(cfg, ["loss.data_eps_mode=level", "loss.data_eps=0.5"])
     assert train.data_eps_note(level, 0.1 * 0.00074) is None
+    default = cfgmod.Config()  # the cap: the steps' eps is 2 sigma, below the note's 2.5
+    assert train.data_eps_note(train.with_data_eps_cap(default, 0.1 * 0.00074),
+                               0.1 * 0.00074) is None
+
+
+def test_data_eps_cap_binds_only_on_darker_raw_frames():
+    """train.with_data_eps_cap: RawNeRF's 1e-3 is kept where it is under 2 noise sigmas (the
+    simulated scenes at gamma 1: the config itself comes back); below, the eps is 2 sigma;
+    the level eps, non-raw targets, the llnerf method, a cap of 0 and an unmeasured or
+    zero sigma are left alone."""
+    from gridnerf import train
+
+    cfg = cfgmod.Config()
+    assert train.with_data_eps_cap(cfg, 0.00074) is cfg  # 1.35 sigma
+    capped = train.with_data_eps_cap(cfg, 0.1 * 0.00074)  # 13.5 sigma
+    assert capped.loss.data_eps == pytest.approx(2 * 0.1 * 0.00074)
+    assert cfgmod.diff(cfg, capped) == ["loss.data_eps"]
+    three = cfgmod.override(cfg, ["loss.data_eps_sigmas=3"])
+    assert train.with_data_eps_cap(three, 1e-4).loss.data_eps == pytest.approx(3e-4)
+    for sets in (["loss.data_eps_mode=level", "loss.data_eps=0.5"], ["data.target=processed"],
+                 ["loss.data_eps_sigmas=0"]):
+        other = cfgmod.override(cfg, sets)
+        assert train.with_data_eps_cap(other, 1e-5) is other, sets
+    llnerf = cfgmod.preset("llnerf")
+    assert train.with_data_eps_cap(llnerf, 1e-5) is llnerf
+    for sigma in (0.0, float("nan")):
+        assert train.with_data_eps_cap(cfg, sigma) is cfg
+
+
+def test_capped_data_term_is_the_same_at_every_gamma():
+    """The data term with the capped eps depends on eps / sigma alone: frames, render and
+    noise scaled by gamma (data.exposure_ratio's protocol) give the same loss wherever the
+    cap binds, and the uncapped absolute eps does not."""
+    import jax.numpy as jnp
+
+    from gridnerf import losses, train
+
+    rng = np.random.default_rng(1)
+    render = jnp.asarray(0.002 + 0.002 * rng.random((256, 3)), jnp.float32)
+    sigma = 8e-4
+    target = render + sigma * jnp.asarray(rng.standard_normal((256, 3)), jnp.float32)
+    mask = jnp.ones((256, 3), jnp.float32)
+    cfg = cfgmod.Config()
+
+    def loss(gamma, c):
+        eps = train.with_data_eps_cap(c, gamma * sigma).loss.data_eps
+        return float(losses.data_loss(gamma * render, gamma * target, mask, eps))
+
+    assert loss(0.1, cfg) == pytest.approx(loss(0.3, cfg), rel=1e-4)  # both capped
+    off = cfgmod.override(cfg, ["loss.data_eps_sigmas=0"])
+    assert abs(loss(0.1, off) / loss(0.3, off) - 1.0) > 0.1
 
 
 def test_data_noise_measures_the_frames_noise_and_scales_with_them(small_scene):
