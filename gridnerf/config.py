@@ -635,6 +635,14 @@ INERT_REFERENCE = LossConfig(ca_target="scene", ca_map_anchor="capture",
                              ca_illuminant="consensus", data_eps_sigmas=2.0)
 
 
+def eps_follows_noise(cfg: Config) -> bool:
+    """Whether the data term's eps is absolute and weighs raw frames: the runs whose fit
+    depends on the raw's scale, where loss.data_eps_sigmas caps it (train.with_data_eps_cap)
+    and is otherwise inert."""
+    return (cfg.loss.method == "brightnerf" and cfg.loss.data_eps_mode == "absolute"
+            and cfg.data.target == "raw")
+
+
 def effective(cfg: Config) -> Config:
     """cfg with the fields that cannot change its training reset to INERT_REFERENCE's
     values: the GAIN_FIELDS of a run without gains, so that two configs that train alike
@@ -651,8 +659,8 @@ def effective(cfg: Config) -> Config:
     inert = gain_inert + (() if llnerf else LLNERF_FIELDS)
     if not gain_inert and cfg.loss.ca_target != "map":
         inert += MAP_FIELDS
-    if llnerf or cfg.loss.data_eps_mode != "absolute" or cfg.data.target != "raw":
-        inert += ("data_eps_sigmas",)  # the cap acts on an absolute eps of raw frames only
+    if not eps_follows_noise(cfg):
+        inert += ("data_eps_sigmas",)
     if not inert:
         return cfg
     return replace(cfg, loss=replace(cfg.loss, **{k: getattr(base, k) for k in inert}))

@@ -91,8 +91,8 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
     if lc.method == "llnerf":
         terms = llnerf_terms(structure, params, flat, out, shape, k1, cfg)
     else:
-        eps = lc.data_eps * (structure.color_scale if lc.data_eps_mode == "level" else 1.0)
-        terms = {"data": losses.data_loss(out["rgb_low"], flat["target"], flat["mask"], eps)}
+        terms = {"data": losses.data_loss(out["rgb_low"], flat["target"], flat["mask"],
+                                          data_eps(cfg, structure.color_scale))}
     if lc.use_gains and lc.method == "brightnerf":
         gain = out["gain"]
         if lc.gain_map == "normalized":
@@ -317,11 +317,11 @@ def data_noise(data: dataset.RayData, key, n_patches: int = 256) -> float:
     return noisefit.neighbour_sigma(*_sample_targets(data, key, n_patches))
 
 
-def _eps_follows_noise(cfg: Config) -> bool:
-    """Whether the data term's eps is absolute and weighs raw frames (the runs whose fit
-    depends on the raw's scale: loss.data_eps_sigmas caps it, data_eps_note speaks)."""
-    return (cfg.loss.method == "brightnerf" and cfg.loss.data_eps_mode == "absolute"
-            and cfg.data.target == "raw")
+def data_eps(cfg: Config, color_scale: float) -> float:
+    """The data term's eps in normalised raw: loss.data_eps, times the training data's mean
+    level (color_scale) with loss.data_eps_mode = "level"."""
+    lc = cfg.loss
+    return lc.data_eps * (color_scale if lc.data_eps_mode == "level" else 1.0)
 
 
 def with_data_eps_cap(cfg: Config, sigma: float) -> Config:
@@ -337,7 +337,7 @@ def with_data_eps_cap(cfg: Config, sigma: float) -> Config:
     """
     lc = cfg.loss
     cap = lc.data_eps_sigmas * sigma
-    if not (_eps_follows_noise(cfg) and cap > 0 and lc.data_eps > cap):  # nan: False
+    if not (cfgmod.eps_follows_noise(cfg) and cap > 0 and lc.data_eps > cap):  # nan: False
         return cfg
     return dataclasses.replace(cfg, loss=dataclasses.replace(lc, data_eps=float(cap)))
 
@@ -355,7 +355,7 @@ def data_eps_note(cfg: Config, sigma: float) -> str | None:
     4.0-5.4 dB.
     """
     lc = cfg.loss
-    if (not _eps_follows_noise(cfg) or not sigma > 0  # noiseless or unmeasured: no note
+    if (not cfgmod.eps_follows_noise(cfg) or not sigma > 0  # noiseless or unmeasured: no note
             or not lc.data_eps > EPS_NOTE_SIGMAS * sigma):
         return None
     return (f"note: the data eps {lc.data_eps:g} is {lc.data_eps / sigma:.1f}x the noise sigma "
@@ -542,8 +542,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         "data_level": float(structure.color_scale),
         # the training frames' noise sigma (data_noise) and the absolute eps the data term used
         "data_noise": sigma if np.isfinite(sigma) else None,
-        "data_eps": step_cfg.loss.data_eps * (structure.color_scale
-                                              if cfg.loss.data_eps_mode == "level" else 1.0),
+        "data_eps": data_eps(step_cfg, structure.color_scale),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
     if cfg.data.black_offset == "dark" and (offset := darkframes.load(run)) is not None:
