@@ -10,7 +10,16 @@ from pathlib import Path
 from gridnerf import atomic
 from gridnerf import config as cfgmod
 from gridnerf.eval_run import evaluate_run
-from gridnerf.sim import ALL_SCENES, DEV, HELDOUT, HELDOUT_MIXED, MIXED, SCENES, simulate_scene
+from gridnerf.sim import (
+    ALL_SCENES,
+    DEV,
+    HELDOUT,
+    HELDOUT_MIXED,
+    MIXED,
+    SCENES,
+    folder_name,
+    simulate_scene,
+)
 from gridnerf.train import train
 
 # Quick mode (`make report QUICK=1`): every study on 160x90, 12-frame versions of its
@@ -20,13 +29,13 @@ from gridnerf.train import train
 QUICK_SIZE = {"width": 160, "height": 90, "n_frames": 12}
 
 
-def scene_dir(scene: str, quick: bool = False) -> Path:
+def scene_dir(scene: str, quick: bool = False, light: float = 1.0) -> Path:
     """A built-in, held-out, tuning or mixed-light scene name (simulated on first use; the small
-    version under data/quick with `quick`) or a folder."""
+    version under data/quick with `quick`; at `light` times its photon budget in its own
+    folder, sim.folder_name) or a folder."""
     if scene in ALL_SCENES:
-        if quick:
-            return simulate_scene(scene, Path("data/quick") / scene, **QUICK_SIZE)
-        return simulate_scene(scene, Path("data/sim") / scene)
+        root, size = (Path("data/quick"), QUICK_SIZE) if quick else (Path("data/sim"), {})
+        return simulate_scene(scene, root / folder_name(scene, light), light=light, **size)
     return Path(scene)
 
 

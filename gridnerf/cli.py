@@ -15,7 +15,16 @@ from gridnerf.errors import GridNerfError
 
 
 def _simulate(args) -> None:
-    from gridnerf.sim import ALL_SCENES, DEV, HELDOUT, HELDOUT_MIXED, MIXED, SCENES, simulate_scene
+    from gridnerf.sim import (
+        ALL_SCENES,
+        DEV,
+        HELDOUT,
+        HELDOUT_MIXED,
+        MIXED,
+        SCENES,
+        folder_name,
+        simulate_scene,
+    )
 
     groups = {"all": SCENES, "heldout": HELDOUT, "dev": DEV, "mixed": MIXED,
               "heldmixed": HELDOUT_MIXED}
@@ -25,7 +34,8 @@ def _simulate(args) -> None:
             fix = (f"choose one of {', '.join(ALL_SCENES)}, 'all', "
                    "'heldout', 'dev', 'mixed' or 'heldmixed'")
             raise GridNerfError(None, f"unknown scene {name!r}", fix)
-        out = Path(args.out) if args.out and len(names) == 1 else Path("data/sim") / name
+        out = (Path(args.out) if args.out and len(names) == 1
+               else Path("data/sim") / folder_name(name, args.light))
         path = simulate_scene(
             name,
             out,
@@ -34,6 +44,7 @@ def _simulate(args) -> None:
             n_frames=args.frames,
             seed=args.seed,
             overwrite=args.overwrite,
+            light=args.light,
         )
         print(f"scene {name}: {path}")
 
@@ -104,6 +115,16 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (value > 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"{value} is not a positive finite number")
+    return value
+
+
 _TRAIN_EPILOG = """\
 Resuming: a run folder that holds a checkpoint is resumed with the config saved in its
 config.json; --preset and --set must give the same config (repeat the original command).
@@ -131,6 +152,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--full-hd", action="store_true", help="1920x1080 frames")
     s.add_argument("--overwrite", action="store_true", help="replace an existing scene folder")
+    s.add_argument("--light", type=_positive_float, default=1.0,
+                   help="photon budget as a fraction of the scene's own, camera settings "
+                        "unchanged (a physically darker capture; default folder "
+                        "data/sim/<name>_light<f>)")
     s.set_defaults(func=_simulate)
 
     s = sub.add_parser("poses", help="estimate camera poses with COLMAP (pycolmap)")

@@ -451,6 +451,53 @@ def test_older_format_is_rebuilt(tmp_path):
         simulate_scene("box", out, width=64, height=36, n_frames=1)
 
 
+def test_darker_capture_has_fewer_photons_and_the_same_sensor(tmp_path):
+    """light f: the expected signal scales by f, the read noise and black level do not;
+    the manifest says so, and a folder of one light level is not taken for another's."""
+    kw = {"width": 64, "height": 36, "n_frames": 2}
+    full = simulate_scene("box", tmp_path / "full", **kw)
+    dim = simulate_scene("box", tmp_path / "dim", light=0.25, **kw)
+    m_full, m_dim = _manifest(full), _manifest(dim)
+    assert m_dim["light"] == 0.25 and m_full["light"] == 1.0
+    assert m_dim["electrons_mean_green"] == pytest.approx(0.25 * m_full["electrons_mean_green"])
+    assert m_dim["lux"] == pytest.approx(0.25 * m_full["lux"])
+    assert m_dim["noise"] == m_full["noise"] and m_dim["iso"] == m_full["iso"]
+    signal = [np.mean([_read_raw(d / "raw" / f"frame_00{i}.dng")[0].astype(float) - 512
+                       for i in range(2)]) for d in (full, dim)]
+    assert signal[1] / signal[0] == pytest.approx(0.25, rel=0.05)
+    # the lens-cap frames hold no photons: the same at every light level
+    assert np.array_equal(_read_raw(full / "dark" / "dark_000.dng")[0],
+                          _read_raw(dim / "dark" / "dark_000.dng")[0])
+    assert simulate_scene("box", dim, light=0.25, **kw) == dim  # reused
+    with pytest.raises(SceneError, match="light 0.5"):
+        simulate_scene("box", dim, light=0.5, **kw)
+    with pytest.raises(SceneError, match="overwrite"):
+        simulate_scene("box", dim, **kw)  # light 1 is another scene too
+    with pytest.raises(SceneError, match="photon budget"):
+        simulate_scene("box", tmp_path / "none", light=0.0, **kw)
+
+
+def test_manifest_without_light_was_written_at_light_one(tmp_path):
+    out = simulate_scene("box", tmp_path / "box", width=64, height=36, n_frames=1)
+    manifest = _manifest(out)
+    del manifest["light"]  # a folder written before the option existed
+    (out / "sim.json").write_text(json.dumps(manifest))
+    assert simulate_scene("box", out, width=64, height=36, n_frames=1) == out
+    assert "light" not in _manifest(out)  # reused as it is, not rebuilt
+
+
+def test_cli_simulates_a_darker_capture_in_its_own_folder(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    args = ["--width", "64", "--height", "36", "--frames", "1"]
+    assert cli.main(["simulate", "box", "--light", "0.5", *args]) == 0
+    assert _manifest(tmp_path / "data" / "sim" / "box_light0.5")["light"] == 0.5
+    assert not (tmp_path / "data" / "sim" / "box").exists()
+    capsys.readouterr()
+    assert cli.main(["simulate", "box", "--light", "0", *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--light" in err and len(err.splitlines()) == 1
+
+
 def test_cli_simulates_heldout_group(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     args = ["--width", "64", "--height", "36", "--frames", "1"]

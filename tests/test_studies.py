@@ -28,6 +28,7 @@ import common  # noqa: E402
 import consistency  # noqa: E402
 import illuminant_maps  # noqa: E402
 import matrix_offsets  # noqa: E402
+import photons  # noqa: E402
 import retinex_edges  # noqa: E402
 import speed  # noqa: E402
 import sweep  # noqa: E402
@@ -67,6 +68,27 @@ def test_sweep_table_and_plot(tmp_path):
     study = {folder: (p, s) for _, _, folder, p, s in ablate.EPS_VARIANTS}
     assert study[sweep.variant("eps_level0.5", 1.0)] == (preset, sets)
     assert sweep.variant("llnerf", 0.3) == "llnerf_gamma0.3"
+
+
+def test_photon_sweep_table_differences_and_plot(tmp_path):
+    def cell(electrons, ours, noise):
+        outs = {"ours": ours, "global_gw": 20.0, "denoised_2d": 19.0, "binned": 15.0}
+        run = {k: {"psnr": v, "ssim": 0.5, "delta_e": 10.0} for k, v in outs.items()}
+        return {"electrons": electrons, "default": run | {"data_noise": noise,
+                                                          "data_eps": noise and min(1e-3, 2 * noise)}}
+
+    record = {"bucket": {"0.1": cell(1.0, 18.5, 4e-4), "1": cell(10.0, 21.5, 8e-4)},
+              "held_deep_hall": {"1": cell(7.0, 19.0, None)}}
+    md = photons.markdown(record, [0.1, 1.0], ["default"], "cmd")
+    assert "| bucket (tuned on) | mean green electrons | 1.0 | 10.0 |" in md
+    assert "| held_deep_hall (held out) | mean green electrons | - | 7.0 |" in md
+    assert "|  | default: ours | 18.50 / 10.00 | 21.50 / 10.00 |" in md
+    # ours - 2D / ours - one grey-world gain; the eps in sigmas where the noise is known
+    assert "| bucket | default | -0.50 / -1.50; eps 0.0008 = 2.0 sigma | " \
+        "+2.50 / +1.50; eps 0.001 = 1.2 sigma |" in md
+    assert "| held_deep_hall | default | - | +0.00 / -1.00 |" in md
+    photons.plot(record, [0.1, 1.0], ["default"], tmp_path / "photons.png")
+    assert (tmp_path / "photons.png").stat().st_size > 1000
 
 
 def test_consistency_table_marks_missing_runs_and_partial_means():

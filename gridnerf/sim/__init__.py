@@ -9,7 +9,7 @@ mixed-light scenes (a warm lamp and daylight lighting different parts of the sce
 """
 
 from gridnerf.sim.scenes import ALL_SCENES, DEV, HELDOUT, HELDOUT_MIXED, MIXED, SCENES
-from gridnerf.sim.writer import simulate_scene
+from gridnerf.sim.writer import folder_name, simulate_scene
 
 __all__ = ["ALL_SCENES", "DEV", "HELDOUT", "HELDOUT_MIXED", "MIXED", "SCENES",
-           "simulate_scene"]
+           "folder_name", "simulate_scene"]

@@ -69,6 +69,12 @@ EXPOSURE_CONVENTION = (
 )
 
 
+def folder_name(name: str, light: float = 1.0) -> str:
+    """The default folder name of scene `name` simulated at `light` (simulate_scene):
+    the name itself at the scene's own photon budget, `<name>_light<f>` below or above it."""
+    return name if light == 1.0 else f"{name}_light{light:g}"
+
+
 def frame_names(n_frames: int) -> list[str]:
     """Frame stems: frame_000, frame_001, ..."""
     return [f"frame_{i:03d}" for i in range(n_frames)]
@@ -79,9 +85,16 @@ def dark_names() -> list[str]:
     return [f"dark_{j:03d}" for j in range(N_DARK)]
 
 
-def _key(name: str, width: int, height: int, n_frames: int, seed: int) -> dict:
+def _key(name: str, width: int, height: int, n_frames: int, seed: int,
+         light: float = 1.0) -> dict:
     return {"version": SIM_VERSION, "scene": name, "seed": int(seed), "width": int(width),
-            "height": int(height), "n_frames": int(n_frames)}
+            "height": int(height), "n_frames": int(n_frames), "light": float(light)}
+
+
+def _manifest_key(manifest: dict, key: dict) -> dict:
+    """The manifest's values of `key`'s fields; a manifest written before `light` existed
+    was written at light 1."""
+    return {k: manifest.get(k, 1.0 if k == "light" else None) for k in key}
 
 
 def _read_manifest(out: Path) -> dict | None:
@@ -98,13 +111,14 @@ def _is_stale(out: Path, key: dict) -> bool:
     manifest = _read_manifest(out)
     if manifest is None or manifest.get("version") == key["version"]:
         return False
-    return all(manifest.get(k) == v for k, v in key.items() if k != "version")
+    found = _manifest_key(manifest, key)
+    return all(found[k] == v for k, v in key.items() if k != "version")
 
 
 def _is_complete(out: Path, key: dict) -> bool:
     """True when out/sim.json matches `key` and every listed file exists."""
     manifest = _read_manifest(out)
-    if manifest is None or {k: manifest.get(k) for k in key} != key:
+    if manifest is None or _manifest_key(manifest, key) != key:
         return False
     names = frame_names(key["n_frames"])
     files = ["transforms.json"] + [f"{d}/{n}.{e}" for n in names
@@ -170,8 +184,13 @@ def _mixed_light(spec, layers, irradiance):
     return rgb_cam, mean_green, share, entries, (mixed / mixed[1]).tolist()
 
 
-def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed: int) -> None:
+def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed: int,
+           light: float = 1.0) -> None:
     spec = build_scene(name)
+    if light != 1.0:  # fewer photons: the same camera settings, a darker scene
+        dimmer = replace(spec.sensor, electrons=spec.sensor.electrons * light,
+                         lux=spec.sensor.lux * light)
+        spec = replace(spec, sensor=dimmer)
     params = spec.sensor
     salt = zlib.crc32(name.encode())
     intr = intrinsics(width, height)
@@ -246,7 +265,7 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
         }
         main = max(lights, key=lambda e: e["share_of_green_signal"])
     _write_json(folder / "sim.json", {
-        **_key(name, width, height, n_frames, seed),
+        **_key(name, width, height, n_frames, seed, light),
         "held_out": name in HELDOUT + HELDOUT_MIXED, "rig": spec.rig,
         **({"mixed_light": True} if spec.layered else {}),
         "frames": names, "test_frames": [names[i] for i in test],
@@ -274,8 +293,16 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
 
 
 def simulate_scene(name: str, out_dir, width: int = 480, height: int = 270,
-                   n_frames: int = 24, seed: int = 0, overwrite: bool = False) -> Path:
+                   n_frames: int = 24, seed: int = 0, overwrite: bool = False,
+                   light: float = 1.0) -> Path:
     """Write scene `name` (one of SCENES, HELDOUT, DEV or MIXED) into out_dir; returns out_dir.
+
+    light: the photon budget as a fraction of the scene's own (its mean green electrons
+    and nominal lux times `light`), camera settings (ISO, exposure time, read noise, black
+    level offsets) unchanged: a physically darker capture, where shot noise shrinks as
+    sqrt(light) against a fixed read noise, unlike a raw scaled after capture
+    (`data.exposure_ratio`), where signal and every noise shrink alike. Same seed, same
+    random draws: the frames of two light levels differ by the photon count alone.
 
     If out_dir already holds a complete scene written with the same parameters
     (checked against the `sim.json` manifest, written last), it is reused and
@@ -292,7 +319,10 @@ def simulate_scene(name: str, out_dir, width: int = 480, height: int = 270,
         raise SceneError(out, f"cannot simulate {width}x{height} with {n_frames} frames",
                          f"use width and height of at least {MIN_SIZE} pixels (LibRaw's "
                          "minimum) and at least 1 frame")
-    key = _key(name, width, height, n_frames, seed)
+    if not (np.isfinite(light) and 0.0 < light <= 1e3):
+        raise SceneError(out, f"cannot simulate at light {light!r}",
+                         "use a photon budget fraction in (0, 1000], e.g. 0.25")
+    key = _key(name, width, height, n_frames, seed, light)
     if out.exists():
         if not out.is_dir():
             raise SceneError(out, "exists and is not a folder", "choose another output folder")
@@ -300,14 +330,15 @@ def simulate_scene(name: str, out_dir, width: int = 480, height: int = 270,
             return out
         if not overwrite and not _is_stale(out, key) and any(out.iterdir()):
             raise SceneError(out, "already holds files that are not this simulated scene "
-                             f"({name}, {width}x{height}, {n_frames} frames, seed {seed})",
+                             f"({name}, {width}x{height}, {n_frames} frames, seed {seed}"
+                             + (f", light {light:g}" if light != 1.0 else "") + ")",
                              "choose another output folder, delete this one, or pass "
                              "overwrite=True to replace it")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f"{out.name}.tmp-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        _build(tmp, name, width, height, n_frames, seed)
+        _build(tmp, name, width, height, n_frames, seed, light)
         # If another process finished the same scene meanwhile, keep its copy (tmp is removed).
         finished_elsewhere = out.exists() and not overwrite and _is_complete(out, key)
         if finished_elsewhere:
