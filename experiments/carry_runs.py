@@ -36,7 +36,7 @@ from gridnerf.errors import ConfigError
 
 def same_inputs(run: Path, scene_dir: Path, cfg: cfgmod.Config, other: str) -> bool:
     """Whether the run's L_ca inputs under `other` are bit-identical to its own."""
-    scene = runfolder.open_scene(scene_dir, run, dark=cfg.data.black_offset == "dark")
+    scene = runfolder.open_scene(scene_dir, run, dark=runfolder.lens_cap_black(cfg, run))
     data = dataset.training_data(scene, cfg.data)
     with contextlib.redirect_stdout(io.StringIO()):  # the estimators' choice lines
         d1, k1 = colour_inputs(data, scene, cfg)

@@ -125,11 +125,18 @@ class DataConfig(_Section):
     # stage. Experimental: against a render the fit takes model error for shot noise
     # (bucket: offsets 3-4 DN off, 17.95 dB against 19.68 with "file"; docs/colour.md)
     black_offset: Literal["file", "fit", "dark"] = "file"
+    # "file" only: where a black offset of darkframes.OFFSET_DN (4 DN, the ELD model's
+    # largest) would be more than this share of the weakest colour's mean signal
+    # (darkframes.offset_share), the frames take the lens-cap black level as under "dark"
+    # when the scene has lens-cap frames, and training warns when it has none; 0: never.
+    # At their own light the 21 simulated scenes sit at 0.08-0.35: it binds on none
+    lens_cap_share: float = 0.5
     # the paper's darkness sweep: raw targets times this ratio after black-level removal
     exposure_ratio: float = 1.0
 
     def _check(self) -> None:
         self._range("exposure_ratio", 0.0, lo_open=True)
+        self._range("lens_cap_share", 0.0)
         self._require("downscale", self.downscale >= 1, "a whole number >= 1")
         self._require("eval_downscale", self.eval_downscale >= 1, "a whole number >= 1")
 
@@ -650,8 +657,9 @@ def effective(cfg: Config) -> Config:
     defaults), the LLNERF_FIELDS of a run that is not loss.method = "llnerf" (a
     loss.method = "llnerf" run reads only gain_map of the GAIN_FIELDS: train.llnerf_terms
     replace L_ca and the smoothness), and the MAP_FIELDS of a run whose L_ca target is not
-    the illuminant map, and loss.data_eps_sigmas where the eps is not absolute or the
-    targets are not raw frames."""
+    the illuminant map, loss.data_eps_sigmas where the eps is not absolute or the
+    targets are not raw frames, and data.lens_cap_share where the black level is not
+    data.black_offset = "file"."""
     base = INERT_REFERENCE
     llnerf = cfg.loss.method == "llnerf"
     gain_inert = (GAIN_FIELDS if not cfg.loss.use_gains
@@ -661,6 +669,9 @@ def effective(cfg: Config) -> Config:
         inert += MAP_FIELDS
     if not eps_follows_noise(cfg):
         inert += ("data_eps_sigmas",)
+    share = LEGACY[("data", "lens_cap_share")]
+    if cfg.data.black_offset != "file" and cfg.data.lens_cap_share != share:
+        cfg = replace(cfg, data=replace(cfg.data, lens_cap_share=share))  # read by "file" only
     if not inert:
         return cfg
     return replace(cfg, loss=replace(cfg.loss, **{k: getattr(base, k) for k in inert}))
@@ -679,7 +690,11 @@ LEGACY = {("grid", "background"): "black", ("loss", "opacity_stages"): 0,
           # trained uncapped, but the cap binds on none of the runs kept when it came (the
           # frames' noise puts 1e-3 at 0.86-1.44 sigma on all 21 simulated scenes, file and
           # lens-cap black level); the darkness-sweep runs where it binds were trained again
-          ("loss", "data_eps_sigmas"): 2.0}
+          ("loss", "data_eps_sigmas"): 2.0,
+          # trained before the gate, which binds on none of those runs (offset shares
+          # 0.08-0.35 on all 21 simulated scenes at their own light); a run where it bound
+          # keeps the lens-cap offsets in its black_level.json
+          ("data", "lens_cap_share"): 0.5}
 # (section, field) -> the one value of a removed field whose behaviour the code still has:
 # a saved config with another value was trained by code that no longer exists, so it must
 # not load as today's config (unknown keys are otherwise ignored)

@@ -36,6 +36,9 @@ BLACK_LEVEL = "black_level.json"  # in the run folder
 # a lens-cap frame's mean may sit this far above the file's black level (fraction of
 # white - black, ~160 DN at 14 bits): the offsets are a few DN, a light leak is more
 NOT_DARK = 0.01
+# How far off its file's black level a sensor's dark signal may sit per CFA position: -2 to
+# +4 DN on the sensors the ELD noise model calibrated (Wei et al., CVPR 2020)
+OFFSET_DN = 4.0
 _FIX = ("shoot 1-4 frames with the lens cap on at the capture's ISO and exposure time into "
         "<scene>/dark/, or use data.black_offset=file")
 
@@ -81,18 +84,44 @@ def measure(scene_dir) -> dict:
     for path in files:
         frame = raw.read_raw(path)
         _check(frame, first, path)
-        h, w = frame.raw_bayer.shape
-        blocks = frame.raw_bayer[: h // 2 * 2, : w // 2 * 2].astype(np.float64).reshape(
-            h // 2, 2, w // 2, 2) - frame.black_level.astype(np.float64)[None, :, None, :]
-        mean = blocks.mean(axis=(0, 2))  # (2, 2) per CFA position
+        blocks = _by_position(frame.raw_bayer, frame.black_level)
+        mean = blocks.mean(axis=1).reshape(2, 2)  # per CFA position
         if np.any(mean > NOT_DARK * (frame.white_level - frame.black_level.max())):
             raise SceneError(path, f"is not dark: {float(mean.max()):.0f} DN above the black "
                              "level (a lens-cap frame sees no light)", _FIX)
-        values.append(blocks.transpose(1, 3, 0, 2).reshape(4, -1))
+        values.append(blocks)
         names.append(path.name)
     offset, sigma = _robust_mean(np.concatenate(values, axis=1))
     return {"offset_dn": offset.reshape(2, 2).tolist(), "files": names,
             "read_sigma_dn": float(sigma.mean())}
+
+
+def _by_position(raw_bayer: np.ndarray, black_level) -> np.ndarray:
+    """(H, W) mosaic and (2, 2) black level -> (4, n) DN above it, one row per CFA position
+    (row-major: [0, 0], [0, 1], [1, 0], [1, 1]); an odd last row or column is cropped."""
+    h, w = raw_bayer.shape
+    blocks = raw_bayer[: h // 2 * 2, : w // 2 * 2].astype(np.float64).reshape(
+        h // 2, 2, w // 2, 2) - np.asarray(black_level, np.float64)[None, :, None, :]
+    return blocks.transpose(1, 3, 0, 2).reshape(4, -1)
+
+
+def signal_dn(scene) -> np.ndarray:
+    """(3,) mean signal of the scene's training frames per colour (R, G, B), in DN above the
+    black level the scene carries (the file's, or with measured offsets applied)."""
+    colour = np.asarray(scene.cfa).ravel()
+    sums, counts = np.zeros(3), np.zeros(3)
+    for i in scene.train_idx:
+        blocks = _by_position(scene.raw_bayer[i], scene.black_level[i])
+        np.add.at(sums, colour, blocks.sum(axis=1))
+        np.add.at(counts, colour, blocks.shape[1])
+    return sums / np.maximum(counts, 1)
+
+
+def offset_share(scene) -> float:
+    """OFFSET_DN over the weakest colour's mean signal (signal_dn): how large a share of
+    that colour an unknown black offset may be (inf where a colour's mean is <= 0)."""
+    weakest = float(np.min(signal_dn(scene)))
+    return OFFSET_DN / weakest if weakest > 0 else float("inf")
 
 
 def _robust_mean(values: np.ndarray, cut: float = 10.0) -> tuple[np.ndarray, np.ndarray]:

@@ -45,7 +45,7 @@ from gridnerf import (
 )
 from gridnerf import config as cfgmod
 from gridnerf.errors import SceneError
-from gridnerf.runfolder import CHECKPOINT, load_state, open_scene
+from gridnerf.runfolder import CHECKPOINT, lens_cap_black, load_state, open_scene
 
 
 def load_run(run: Path):
@@ -57,7 +57,7 @@ def load_run(run: Path):
     cfg = cfgmod.load(run / "config.json")
     summary = json.loads((run / "summary.json").read_text())
     scene = open_scene(Path(summary["scene"]), run, estimate=False,
-                       dark=cfg.data.black_offset == "dark")
+                       dark=lens_cap_black(cfg, run))
     structure, params, _, _ = load_state(run)
     return cfg, scene, structure, params, summary
 

@@ -180,13 +180,21 @@ def trim_metrics(run: Path, stage: int, step: int) -> None:
     atomic.write_text(path, "".join(f"{line}\n" for line in kept))
 
 
+def lens_cap_black(cfg: cfgmod.Config, run: Path) -> bool:
+    """Whether the run's frames take the black level of the scene's lens-cap frames:
+    data.black_offset = "dark", or "file" where training found the signal too weak for the
+    file's black level (data.lens_cap_share) and kept the offsets in black_level.json."""
+    return cfg.data.black_offset == "dark" or (
+        cfg.data.black_offset == "file" and (Path(run) / darkframes.BLACK_LEVEL).is_file())
+
+
 def open_scene(scene_dir, run: Path, estimate: bool = True, dark: bool = False) -> Scene:
     """Load the run's scene with the bounds and the black level the run uses.
 
     The run's bounds.json wins; otherwise the scene's own bounds; otherwise (estimate=True)
     gridnerf.bounds estimates them from the given poses and they are saved in bounds.json.
-    dark (the run's config says data.black_offset = "dark"): the black level the run
-    measured from lens-cap frames (black_level.json, gridnerf.darkframes) is added to the
+    dark (lens_cap_black of the run's config): the black level the run measured from
+    lens-cap frames (black_level.json, gridnerf.darkframes) is added to the
     file's.
     """
     scene = _open_scene(scene_dir, run, estimate)

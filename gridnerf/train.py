@@ -311,6 +311,47 @@ def train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool = Fals
 EPS_NOTE_SIGMAS = 2.5
 
 
+def with_weak_signal_black_level(scene, scene_dir, run: Path, cfg: Config):
+    """The scene with the black level training uses under data.black_offset = "file".
+
+    The file's black level, except where an unknown black offset of darkframes.OFFSET_DN
+    (4 DN) would be more than data.lens_cap_share of the weakest colour's mean signal
+    (darkframes.offset_share): there the colour follows the offset (the capture's
+    illuminant estimate on held_deep_hall at a tenth of its light came out red > green, no
+    light's colour) and, where the scene has lens-cap frames, their offsets are measured,
+    kept in <run>/black_level.json (as under "dark": resume and eval read them,
+    runfolder.lens_cap_black) and applied; without lens-cap frames training warns. One line
+    either way; a note naming data.black_offset=dark where the gate does not bind but the
+    scene has lens-cap frames. Decided on a fresh start only: a run that keeps its offsets,
+    or has a checkpoint without them, is returned as loaded.
+    """
+    if (cfg.data.black_offset != "file" or darkframes.load(run) is not None
+            or (run / CHECKPOINT).exists()):
+        return scene
+    share = darkframes.offset_share(scene) if cfg.data.lens_cap_share > 0 else 0.0
+    has_dark = darkframes.has_dark_frames(scene_dir)
+    if not share > cfg.data.lens_cap_share:
+        if has_dark:
+            print(f"note: {Path(scene_dir) / darkframes.DARK_DIR} has lens-cap frames; "
+                  "--set data.black_offset=dark uses them for the black level (docs/colour.md)")
+        return scene
+    weakest = float(np.min(darkframes.signal_dn(scene)))
+    what = (f"the weakest colour's mean signal is {weakest:.1f} DN above the file's black "
+            f"level: an unknown black offset of {darkframes.OFFSET_DN:g} DN would be "
+            f"{share:.0%} of it (data.lens_cap_share {cfg.data.lens_cap_share:g})")
+    if not has_dark:
+        print(f"warning: {what}, and the colour would follow it; shoot 1-4 frames with the "
+              f"lens cap on at the capture's ISO and exposure time into "
+              f"{Path(scene_dir) / darkframes.DARK_DIR} (used automatically), or try "
+              "--set data.black_offset=fit")
+        return scene
+    measured = darkframes.measure(scene_dir)
+    darkframes.save(run, measured)
+    print(f"black level from the lens-cap frames, since {what}: offsets (DN, CFA order) "
+          f"{np.round(np.ravel(measured['offset_dn']), 2).tolist()}")
+    return darkframes.apply(scene, measured["offset_dn"])
+
+
 def data_noise(data: dataset.RayData, key, n_patches: int = 256) -> float:
     """Noise sigma of the training targets (noisefit.neighbour_sigma of n_patches random
     8x8 patches), nan where no two neighbours share a valid channel."""
@@ -399,10 +440,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         darkframes.save(run, measured)  # open_scene adds it to the file's black level
         print("black level from the dark frames: offsets (DN, CFA order) "
               f"{np.round(np.ravel(measured['offset_dn']), 2).tolist()}")
-    elif cfg.data.black_offset == "file" and darkframes.has_dark_frames(scene_dir):
-        print(f"note: {Path(scene_dir) / darkframes.DARK_DIR} has lens-cap frames; "
-              "--set data.black_offset=dark uses them for the black level (docs/colour.md)")
-    scene = runfolder.open_scene(scene_dir, run, dark=cfg.data.black_offset == "dark")
+    scene = runfolder.open_scene(scene_dir, run, dark=runfolder.lens_cap_black(cfg, run))
+    scene = with_weak_signal_black_level(scene, scene_dir, run, cfg)
     data = dataset.training_data(scene, cfg.data)
     near_t, far_t = dataset.grid_box(scene)[2:]
     data, colour = colour_target.colour_inputs(data, scene, cfg)
@@ -545,7 +584,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         "data_eps": data_eps(step_cfg, structure.color_scale),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
-    if cfg.data.black_offset == "dark" and (offset := darkframes.load(run)) is not None:
+    if runfolder.lens_cap_black(cfg, run) and (offset := darkframes.load(run)) is not None:
         summary["black_offset_dn"] = offset.tolist()
     if (run / sensorfit.SENSOR_FIT).exists():
         summary["sensor_fit_dn"] = json.loads((run / sensorfit.SENSOR_FIT).read_text())["dn"]

@@ -115,3 +115,78 @@ def test_training_without_dark_frames_stops_with_one_line(scene_copy, tmp_path, 
     assert code == 2 and err.startswith("error: ") and err.count("\n") == 1, err
     assert "dark" in err and "lens cap" in err
     assert not run.exists()  # nothing half-written
+
+
+# ---------------------------------------------------------------- the weak-signal gate
+
+
+def test_signal_per_colour_and_the_offsets_share_of_it():
+    cfa = np.array([[0, 1], [1, 2]])  # RGGB
+    black = np.full((2, 2), 512.0)
+    frame = np.tile(np.array([[512 + 40, 512 + 20], [512 + 22, 512 + 8]], np.uint16), (4, 6))
+    scene = type("S", (), {"cfa": cfa, "train_idx": np.array([0, 1]),
+                           "raw_bayer": np.stack([frame, frame]),
+                           "black_level": np.stack([black, black])})()
+    np.testing.assert_allclose(darkframes.signal_dn(scene), [40.0, 21.0, 8.0])
+    assert darkframes.offset_share(scene) == pytest.approx(darkframes.OFFSET_DN / 8.0)
+    scene.black_level = scene.black_level + np.array([[0.0, 0.0], [0.0, 8.0]])
+    assert darkframes.offset_share(scene) == float("inf")  # blue at the black level
+
+
+def _gate(folder, run, capsys, **data):
+    from gridnerf import config as cfgmod
+    from gridnerf import train
+
+    cfg = cfgmod.override(cfgmod.preset("default"),
+                          [f"data.{k}={v}" for k, v in data.items()])
+    scene = train.with_weak_signal_black_level(_loaded(folder), folder, run, cfg)
+    return scene, capsys.readouterr().out
+
+
+def test_a_weak_signal_takes_the_lens_cap_black_level(tmp_path, capsys):
+    from gridnerf.sim import simulate_scene
+
+    folder = simulate_scene("bucket", tmp_path / "dim", width=128, height=72, n_frames=3,
+                            light=0.05)
+    truth = np.array(json.loads((folder / "sim.json").read_text())
+                     ["noise"]["black_bias_dn_per_cfa_position"])
+    assert darkframes.offset_share(_loaded(folder)) > 0.5
+    run = tmp_path / "run"
+    run.mkdir()
+    scene, out = _gate(folder, run, capsys)
+    assert "black level from the lens-cap frames" in out and len(out.splitlines()) == 1
+    offset = darkframes.load(run)  # kept for resume and eval
+    np.testing.assert_allclose(scene.black_level - _loaded(folder).black_level,
+                               np.broadcast_to(offset, scene.black_level.shape), atol=1e-3)
+    np.testing.assert_allclose(offset, truth, atol=1.0)
+    from gridnerf import config as cfgmod
+    assert runfolder.lens_cap_black(cfgmod.preset("default"), run)
+    # decided once: a second start keeps what the run holds and says nothing
+    assert _gate(folder, run, capsys)[1] == ""
+    # the gate off, another black-level mode, or a run that started without it: unchanged
+    for data, where in (({"lens_cap_share": 0}, "off"), ({"black_offset": "fit"}, "fit")):
+        other = tmp_path / where
+        other.mkdir()
+        scene, _ = _gate(folder, other, capsys, **data)
+        assert np.array_equal(scene.black_level, _loaded(folder).black_level)
+        assert darkframes.load(other) is None
+    resumed = tmp_path / "resumed"
+    resumed.mkdir()
+    (resumed / runfolder.CHECKPOINT).write_bytes(b"")
+    assert np.array_equal(_gate(folder, resumed, capsys)[0].black_level,
+                          _loaded(folder).black_level)
+    # no lens-cap frames: one warning naming the folder to shoot them into
+    shutil.rmtree(folder / "dark")
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    scene, out = _gate(folder, bare, capsys)
+    assert out.startswith("warning:") and str(folder / "dark") in out
+    assert darkframes.load(bare) is None
+
+
+def test_the_gate_does_not_bind_at_a_scenes_own_light(small_scene, tmp_path, capsys):
+    assert darkframes.offset_share(_loaded(small_scene)) < 0.5
+    scene, out = _gate(small_scene, tmp_path, capsys)
+    assert out.startswith("note:") and "data.black_offset=dark" in out
+    assert np.array_equal(scene.black_level, _loaded(small_scene).black_level)
+    assert darkframes.load(tmp_path) is None

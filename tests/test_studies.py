@@ -74,8 +74,8 @@ def test_photon_sweep_table_differences_and_plot(tmp_path):
     def cell(electrons, ours, noise):
         outs = {"ours": ours, "global_gw": 20.0, "denoised_2d": 19.0, "binned": 15.0}
         run = {k: {"psnr": v, "ssim": 0.5, "delta_e": 10.0} for k, v in outs.items()}
-        return {"electrons": electrons, "default": run | {"data_noise": noise,
-                                                          "data_eps": noise and min(1e-3, 2 * noise)}}
+        eps = noise and min(1e-3, 2 * noise)
+        return {"electrons": electrons, "default": run | {"data_noise": noise, "data_eps": eps}}
 
     record = {"bucket": {"0.1": cell(1.0, 18.5, 4e-4), "1": cell(10.0, 21.5, 8e-4)},
               "held_deep_hall": {"1": cell(7.0, 19.0, None)}}

@@ -386,6 +386,24 @@ def test_data_eps_cap_is_inert_where_it_cannot_act_and_old_configs_load_with_it(
         cfgmod.override(d, ["loss.data_eps_sigmas=-1"])
 
 
+def test_lens_cap_gate_is_inert_off_the_file_black_level_and_old_configs_load_with_it():
+    """data.lens_cap_share is read under data.black_offset = "file" only; a saved config
+    without it loads with the gate (config.LEGACY: it binds on no kept run), so the kept
+    results keep their fingerprints; a negative share is refused."""
+    d = cfgmod.preset("default")
+    assert cfgmod.effective(cfgmod.override(d, ["data.lens_cap_share=0"])) != (
+        cfgmod.effective(d))
+    for mode in ("dark", "fit"):
+        base = cfgmod.override(d, [f"data.black_offset={mode}"])
+        assert cfgmod.effective(cfgmod.override(base, ["data.lens_cap_share=0"])) == (
+            cfgmod.effective(base))
+    saved = cfgmod.to_dict(d)
+    del saved["data"]["lens_cap_share"]
+    assert cfgmod.from_dict(saved) == d
+    with pytest.raises(cfgmod.ConfigError, match="lens_cap_share"):
+        cfgmod.override(d, ["data.lens_cap_share=-1"])
+
+
 def test_effective_config_ignores_map_fields_without_the_map_target():
     """The illuminant map's block, threshold and anchor matter only with ca_target = map,
     and the values inert fields compare at are fixed, not today's defaults."""
