@@ -25,7 +25,7 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from gridnerf import dataset, illum_map, illuminant
+from gridnerf import dataset, illum_map, illuminant, noisefit, raw
 from gridnerf.config import Config
 
 
@@ -42,7 +42,41 @@ def estimate_frames(data: dataset.RayData, scene) -> tuple[list, list]:
             list(np.asarray(data.valid)))
 
 
-def scene_illuminant(data: dataset.RayData, scene, cfg: Config, frames=None) -> np.ndarray:
+def estimate_downscale(frames, ratio: float, largest: int = 16) -> int:
+    """The box downscale the capture's illuminant estimates run at: the smallest power of 2
+    (at most `largest`) at which the frames' noise sigma, falling as 1 / d under a d x d box
+    (noisefit.neighbour_sigma of the frames at full size), is at most `ratio` x their mean
+    level. frames: (images, masks) of estimate_frames. 1 where ratio is 0, the level is not
+    positive, the noise is not measurable or already under `ratio` x the level."""
+    images, masks = frames
+    if ratio <= 0:
+        return 1
+    stack = np.stack([np.asarray(im, np.float64) for im in images])
+    valid = np.stack([np.broadcast_to(np.asarray(m, bool)[..., None] if np.ndim(m) == 2
+                                      else np.asarray(m, bool), np.shape(im))
+                      for im, m in zip(images, masks, strict=True)])
+    level = float(stack[valid].mean()) if valid.any() else 0.0
+    sigma = noisefit.neighbour_sigma(stack, valid)
+    if not (level > 0 and np.isfinite(sigma)):
+        return 1
+    d = 1
+    while d < largest and sigma / d > ratio * level:
+        d *= 2
+    return d
+
+
+def downscaled(frames, d: int) -> tuple[list, list]:
+    """(images, masks) box-downscaled by d (raw.downscale; a block is valid where every
+    pixel of it is); the frames themselves at d = 1."""
+    images, masks = frames
+    if d == 1:
+        return images, masks
+    return ([raw.downscale(np.asarray(im), d) for im in images],
+            [raw.downscale(np.asarray(m, np.float32), d) >= 1.0 for m in masks])
+
+
+def scene_illuminant(data: dataset.RayData, scene, cfg: Config, frames=None,
+                     downscale: int = 1) -> np.ndarray:
     """The capture's illuminant (3,) unit camera RGB, estimated once from all training frames.
 
     loss.ca_illuminant on the 2x2-binned frames divided by their exposure, saturated blocks
@@ -51,17 +85,19 @@ def scene_illuminant(data: dataset.RayData, scene, cfg: Config, frames=None) -> 
     median of illuminant.CONSENSUS's estimates (illuminant.consensus). The mosaic mode bins
     the frames for this estimate only. frames: (images, masks) of estimate_frames when the
     caller has them already. loss.ca_illuminant = "consistent" is resolved on these frames
-    (resolve_estimator).
+    (resolve_estimator). downscale: the estimate runs on the frames box-downscaled by it
+    (downscaled; estimate_downscale chooses it for the capture).
     """
-    images, masks = estimate_frames(data, scene) if frames is None else frames
-    lc = resolve_estimator(scene, cfg, (images, masks)).loss
+    frames = estimate_frames(data, scene) if frames is None else frames
+    lc = resolve_estimator(scene, cfg, frames, downscale).loss
     locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
+    images, masks = downscaled(frames, downscale)
     return illuminant.capture_estimate(lc.ca_illuminant, images, masks, locus,
                                        lc.ca_illuminant_p)
 
 
 def with_illuminant_map(data: dataset.RayData, scene, cfg: Config,
-                        anchor: np.ndarray | None = None, frames=None
+                        anchor: np.ndarray | None = None, frames=None, downscale: int = 1
                         ) -> tuple[dataset.RayData, np.ndarray]:
     """(data with its per-frame L_ca illuminant map, the maps' anchor (3,)) for
     loss.ca_target = "map": each training frame's Retinex map (gridnerf.illum_map, blocks
@@ -69,35 +105,40 @@ def with_illuminant_map(data: dataset.RayData, scene, cfg: Config,
     the lights of the maps' warm and cool halves (illum_map.regional_anchor, each by
     loss.ca_illuminant; `anchor` is not used) or, with "capture", to `anchor` (3,) (default:
     scene_illuminant); on the locus when loss.ca_locus; frames as in scene_illuminant (the
-    whole capture's: "consistent" is resolved on them, resolve_estimator)."""
+    whole capture's: "consistent" is resolved on them, resolve_estimator). The maps use the
+    frames at full size (their blocks average the noise); the estimates, the frames
+    downscaled by `downscale` (scene_illuminant)."""
     images, masks = estimate_frames(data, scene) if frames is None else frames
-    cfg = resolve_estimator(scene, cfg, (images, masks))
+    cfg = resolve_estimator(scene, cfg, (images, masks), downscale)
     lc = cfg.loss
     locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
     rel, weight = illum_map.relative_maps(images, masks, lc.ca_map_block, lc.ca_map_tau)
     if lc.ca_map_anchor == "regions":
         anchor = illum_map.regional_anchor(
             images, masks, rel, weight,
-            lambda ims, mks: scene_illuminant(data, scene, cfg, (ims, mks)), locus,
+            lambda ims, mks: scene_illuminant(data, scene, cfg, (ims, mks), downscale), locus,
             lc.ca_map_block)
     elif anchor is None:
-        anchor = scene_illuminant(data, scene, cfg, (images, masks))
+        anchor = scene_illuminant(data, scene, cfg, (images, masks), downscale)
     maps = illum_map.frame_maps(images, masks, anchor, locus, lc.ca_map_block, lc.ca_map_tau,
                                 rel=rel)
     return dataclasses.replace(data, illuminant_map=jnp.asarray(maps, jnp.float32)), anchor
 
 
-def consistent_estimator(scene, cfg: Config, frames) -> str:
+def consistent_estimator(scene, cfg: Config, frames, downscale: int = 1) -> str:
     """The estimator loss.ca_illuminant = "consistent" stands for on this capture: under one
     light (its illuminant maps, anchored to the consensus, stray less than
     loss.ca_one_light_deg from it: illum_map.map_spread_deg) the one of the consensus's
     three whose quadrant estimates agree best (illuminant.quadrant_spreads), else
     "consensus" (under two lights the quadrants see different lights, and the spread
-    would measure them). frames: (images, masks) of estimate_frames. Prints the choice."""
+    would measure them). frames: (images, masks) of estimate_frames; the estimates run on
+    them downscaled by `downscale` (scene_illuminant), the maps at full size. Prints the
+    choice."""
     images, masks = frames
+    small, small_masks = downscaled(frames, downscale)
     lc = cfg.loss
     locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
-    wholes = {n: illuminant.capture_estimate(n, images, masks, locus, lc.ca_illuminant_p)
+    wholes = {n: illuminant.capture_estimate(n, small, small_masks, locus, lc.ca_illuminant_p)
               for n in illuminant.CONSENSUS}
     cons = illuminant.consensus(list(wholes.values()), locus)
     maps = illum_map.frame_maps(images, masks, cons, locus, lc.ca_map_block, lc.ca_map_tau)
@@ -105,20 +146,21 @@ def consistent_estimator(scene, cfg: Config, frames) -> str:
     if spread >= lc.ca_one_light_deg:
         print(f"L_ca estimator: consensus (the maps stray {spread:.2f} deg: lights mix)")
         return "consensus"
-    spreads = illuminant.quadrant_spreads(images, masks, locus, lc.ca_illuminant_p, wholes)
+    spreads = illuminant.quadrant_spreads(small, small_masks, locus, lc.ca_illuminant_p,
+                                          wholes)
     name = illuminant.least_spread(spreads)
     print(f"L_ca estimator: {name} (one light: the maps stray {spread:.2f} deg; quadrant "
           "spreads " + ", ".join(f"{n} {s:.2f}" for n, (_, s) in spreads.items()) + " deg)")
     return name
 
 
-def resolve_estimator(scene, cfg: Config, frames) -> Config:
+def resolve_estimator(scene, cfg: Config, frames, downscale: int = 1) -> Config:
     """cfg with loss.ca_illuminant = "consistent" replaced by the estimator it stands for on
     this capture (consistent_estimator; frames: the whole capture's (images, masks) of
-    estimate_frames), any other cfg as it is."""
+    estimate_frames, downscale as there), any other cfg as it is."""
     if cfg.loss.ca_illuminant != "consistent":
         return cfg
-    name = consistent_estimator(scene, cfg, frames)
+    name = consistent_estimator(scene, cfg, frames, downscale)
     return dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, ca_illuminant=name))
 
 
@@ -142,11 +184,15 @@ def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> tuple[dataset.Ra
         return data, {}
     if estimates_from_frames(cfg):
         frames = estimate_frames(data, scene)  # binned once for every estimate
-        cfg = resolve_estimator(scene, cfg, frames)  # "consistent" picked once
+        d = estimate_downscale(frames, cfg.loss.ca_noise_ratio)
+        if d > 1:
+            print(f"L_ca estimates on the frames downscaled {d}x: their noise is above "
+                  f"{cfg.loss.ca_noise_ratio:g} x their level (loss.ca_noise_ratio)")
+        cfg = resolve_estimator(scene, cfg, frames, d)  # "consistent" picked once
         if cfg.loss.ca_target == "map":  # its own anchor: of the whole capture or by region
-            data, anchor = with_illuminant_map(data, scene, cfg, frames=frames)
+            data, anchor = with_illuminant_map(data, scene, cfg, frames=frames, downscale=d)
         else:
-            anchor = scene_illuminant(data, scene, cfg, frames)
+            anchor = scene_illuminant(data, scene, cfg, frames, d)
         return data, {"scene_ill": jnp.asarray(anchor, jnp.float32)}
     if cfg.loss.ca_locus:
         return data, {"locus": jnp.asarray(illuminant.planckian_locus(scene.xyz_to_cam),

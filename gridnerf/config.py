@@ -313,6 +313,14 @@ class LossConfig(_Section):
     # held-out scenes' were looked at for this use
     ca_one_light_deg: float = 3.0
     ca_illuminant_p: float = 6.0  # Minkowski p of shades_of_grey (grey_edge uses p = 1)
+    # the capture's illuminant estimates (and the "consistent" pick) run on the binned
+    # frames box-downscaled by the smallest power of 2 that brings their noise sigma under
+    # this share of their mean level (colour_target.estimate_downscale): shades of grey's
+    # p-norm and grey edge's gradients measure the noise where it rivals the signal (at a
+    # tenth of the light the pick took the noise's own colour, 13-14 deg off). 0.6 sits
+    # above every kept run's ratio (at most 0.52, scoreboard's lens-cap frames), so the
+    # simulated scenes at their own light keep the full frames; 0: never
+    ca_noise_ratio: float = 0.6
     # project the L_ca illuminant estimate onto the Planckian locus of the camera (from the
     # raw file's ColorMatrix): removes the green-magenta part of the estimator's error
     # (fluorescent/LED light lies up to |Duv| ~0.01 off the locus: set false for such light)
@@ -362,6 +370,7 @@ class LossConfig(_Section):
         self._range("tv_fraction", 0.0, 1.0, lo_open=True)
         self._range("data_eps", 0.0, lo_open=True)
         self._range("data_eps_sigmas", 0.0)
+        self._range("ca_noise_ratio", 0.0)
         self._require("opacity_stages", self.opacity_stages >= 0,
                       "a whole number >= 0 (0: the opacity prior in every stage)")
         self._range("ca_illuminant_p", 1.0)
@@ -626,7 +635,7 @@ def diff(a: Config, b: Config) -> list[str]:
 # loss fields that only act through the gains: inert when loss.use_gains is false
 GAIN_FIELDS = ("w_ca", "w_smooth", "smooth_mode", "ca_stop_grad", "gain_map", "ca_illuminant",
                "ca_illuminant_p", "ca_locus", "ca_target", "ca_map_block", "ca_map_tau",
-               "ca_map_anchor", "ca_one_light_deg")
+               "ca_map_anchor", "ca_one_light_deg", "ca_noise_ratio")
 # loss fields of loss.method = "llnerf" alone: inert in the other runs
 LLNERF_FIELDS = ("w_exposure", "exposure_level", "exposure_pool", "w_color_constancy",
                  "w_enhance_tv", "llnerf_data")
@@ -639,7 +648,8 @@ MAP_FIELDS = ("ca_map_block", "ca_map_tau", "ca_map_anchor")
 # default does not change what a run that never reads the field compares equal to (the
 # cached results of experiments are keyed by it).
 INERT_REFERENCE = LossConfig(ca_target="scene", ca_map_anchor="capture",
-                             ca_illuminant="consensus", data_eps_sigmas=2.0)
+                             ca_illuminant="consensus", data_eps_sigmas=2.0,
+                             ca_noise_ratio=0.6)
 
 
 def eps_follows_noise(cfg: Config) -> bool:
@@ -694,7 +704,9 @@ LEGACY = {("grid", "background"): "black", ("loss", "opacity_stages"): 0,
           # trained before the gate, which binds on none of those runs (offset shares
           # 0.08-0.35 on all 21 simulated scenes at their own light); a run where it bound
           # keeps the lens-cap offsets in its black_level.json
-          ("data", "lens_cap_share"): 0.5}
+          ("data", "lens_cap_share"): 0.5,
+          # likewise: the frames' noise is under 0.6 of their level on every kept run
+          ("loss", "ca_noise_ratio"): 0.6}
 # (section, field) -> the one value of a removed field whose behaviour the code still has:
 # a saved config with another value was trained by code that no longer exists, so it must
 # not load as today's config (unknown keys are otherwise ignored)
