@@ -42,25 +42,30 @@ def estimate_frames(data: dataset.RayData, scene) -> tuple[list, list]:
             list(np.asarray(data.valid)))
 
 
-def estimate_downscale(frames, ratio: float, largest: int = 16) -> int:
-    """The box downscale the capture's illuminant estimates run at: the smallest power of 2
-    (at most `largest`) at which the frames' noise sigma, falling as 1 / d under a d x d box
-    (noisefit.neighbour_sigma of the frames at full size), is at most `ratio` x their mean
-    level. frames: (images, masks) of estimate_frames. 1 where ratio is 0, the level is not
-    positive, the noise is not measurable or already under `ratio` x the level."""
+def noise_ratio(frames) -> float:
+    """The frames' noise sigma over their mean level: noisefit.neighbour_sigma of the valid
+    pixels over their mean. frames: (images, masks) of estimate_frames. nan where the level
+    is not positive or the noise is not measurable."""
     images, masks = frames
-    if ratio <= 0:
-        return 1
     stack = np.stack([np.asarray(im, np.float64) for im in images])
     valid = np.stack([np.broadcast_to(np.asarray(m, bool)[..., None] if np.ndim(m) == 2
                                       else np.asarray(m, bool), np.shape(im))
                       for im, m in zip(images, masks, strict=True)])
     level = float(stack[valid].mean()) if valid.any() else 0.0
     sigma = noisefit.neighbour_sigma(stack, valid)
-    if not (level > 0 and np.isfinite(sigma)):
+    return sigma / level if level > 0 and np.isfinite(sigma) else float("nan")
+
+
+def estimate_downscale(frames, ratio: float, largest: int = 16) -> int:
+    """The box downscale the capture's illuminant estimates run at: the smallest power of 2
+    (at most `largest`) at which the frames' noise_ratio, falling as 1 / d under a d x d box,
+    is at most `ratio`. frames: (images, masks) of estimate_frames. 1 where ratio is 0 or
+    the noise ratio is nan or already under `ratio`."""
+    if ratio <= 0:
         return 1
+    r = noise_ratio(frames)
     d = 1
-    while d < largest and sigma / d > ratio * level:
+    while d < largest and r / d > ratio:  # nan: False
         d *= 2
     return d
 

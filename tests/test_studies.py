@@ -26,6 +26,7 @@ import carry_runs  # noqa: E402
 import colour_ceiling  # noqa: E402
 import common  # noqa: E402
 import consistency  # noqa: E402
+import dark_gates  # noqa: E402
 import illuminant_maps  # noqa: E402
 import matrix_offsets  # noqa: E402
 import photons  # noqa: E402
@@ -89,6 +90,22 @@ def test_photon_sweep_table_differences_and_plot(tmp_path):
     assert "| held_deep_hall | default | - | +0.00 / -1.00 |" in md
     photons.plot(record, [0.1, 1.0], ["default"], tmp_path / "photons.png")
     assert (tmp_path / "photons.png").stat().st_size > 1000
+
+
+def test_dark_gates_table_and_the_own_light_summary():
+    def row(light, share, ratios, d):
+        return {"light": light, "electrons": 10.0 * light, "weakest_dn": 4.0 / share,
+                "offset_share": share, "lens_cap": share > 0.5,
+                "noise_ratio": dict(zip(("file", "dark"), ratios, strict=True)),
+                "downscale": d}
+
+    record = {"bucket": row(1.0, 0.15, (0.33, 0.35), 1),
+              "scoreboard": row(1.0, 0.35, (0.45, 0.52), 1),
+              "bucket_light0.1": row(0.1, 1.64, (1.41, 2.04), 4)}
+    md = dark_gates.markdown(record, "cmd")
+    assert "At their own light (2 scenes): offset share at most 0.35 (gate 0.5), noise " \
+        "ratio at most 0.52 with either black level (gate 0.6)." in md
+    assert "| bucket_light0.1 | 0.1 | 1.0 | 2.4 | 1.64 | yes | 1.41 | 2.04 | 4 |" in md
 
 
 def test_consistency_table_marks_missing_runs_and_partial_means():
