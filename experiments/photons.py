@@ -130,6 +130,8 @@ def plot(record: dict, lights: list[float], variants: list[str], path: Path) -> 
         ax.plot(x, [c[variants[0]]["global_gw"]["psnr"] for _, c in got], marker="^",
                 linestyle=":", label="one grey-world gain")
         ax.set_xscale("log")
+        ax.minorticks_off()
+        ax.set_xticks(x, [f"{e:g}" for e in x])
         ax.set_title(scene, fontsize=9)
         ax.set_xlabel("mean green electrons per pixel")
         ax.grid(alpha=0.3)
