@@ -78,6 +78,7 @@ RUN_PRESETS = {"default": "default", "nogain": "nogain", "processed": "processed
 # the studies appended to the report, in order: (file stem, title, experiments/ script);
 # the colour studies are issue 8's tables (illuminant error, sensor fit), over every scene
 STUDIES = [("ablation", "Ablation", "ablate"), ("sweep", "Darkness sweep", "sweep"),
+           ("photons", "Physical darkness sweep (fewer photons)", "photons"),
            ("speed", "Speed against error", "speed"),
            ("consistency", "Multi-view consistency", "consistency"),
            ("recon", "Reconstruction against the per-frame pipeline and the oracle", "recon"),
@@ -86,7 +87,8 @@ STUDIES = [("ablation", "Ablation", "ablate"), ("sweep", "Darkness sweep", "swee
            ("retinex_edges", "Retinex edge rules for the maps (not adopted)", "retinex_edges"),
            ("colour_ceiling", "Colour ceiling (the true white)", "colour_ceiling"),
            ("noise", "Sensor fit (fitted against true)", "noise_table"),
-           ("black_level", "The black level from lens-cap frames", "black_level")]
+           ("black_level", "The black level from lens-cap frames", "black_level"),
+           ("dark_gates", "Low-light gates (where they bind)", "dark_gates")]
 QUICK_SCENES = ["bucket", "held_arc_brick"]
 METRICS = ("psnr", "ssim", "delta_e", "psnr_aligned", "ssim_aligned", "delta_e_aligned")
 
