@@ -44,7 +44,7 @@ from gridnerf import (
 )
 from gridnerf import config as cfgmod
 from gridnerf.config import Config
-from gridnerf.errors import CheckpointError, NumericsError
+from gridnerf.errors import CheckpointError, GridNerfError, NumericsError
 from gridnerf.runfolder import load_state, save_state
 
 CHECKPOINT = runfolder.CHECKPOINT
@@ -320,10 +320,11 @@ def with_weak_signal_black_level(scene, scene_dir, run: Path, cfg: Config):
     illuminant estimate on held_deep_hall at a tenth of its light came out red > green, no
     light's colour) and, where the scene has lens-cap frames, their offsets are measured,
     kept in <run>/black_level.json (as under "dark": resume and eval read them,
-    runfolder.lens_cap_black) and applied; without lens-cap frames training warns. One line
-    either way; a note naming data.black_offset=dark where the gate does not bind but the
-    scene has lens-cap frames. Decided on a fresh start only: a run that keeps its offsets,
-    or has a checkpoint without them, is returned as loaded.
+    runfolder.lens_cap_black) and applied; without lens-cap frames, or with frames that
+    cannot serve (darkframes.measure's SceneError), training warns and keeps the file's
+    black level. One line either way; a note naming data.black_offset=dark where the gate
+    does not bind but the scene has lens-cap frames. Decided on a fresh start only: a run
+    that keeps its offsets, or has a checkpoint without them, is returned as loaded.
     """
     if (cfg.data.black_offset != "file" or darkframes.load(run) is not None
             or (run / CHECKPOINT).exists()):
@@ -345,7 +346,12 @@ def with_weak_signal_black_level(scene, scene_dir, run: Path, cfg: Config):
               f"{Path(scene_dir) / darkframes.DARK_DIR} (used automatically), or try "
               "--set data.black_offset=fit")
         return scene
-    measured = darkframes.measure(scene_dir)
+    try:
+        measured = darkframes.measure(scene_dir)
+    except GridNerfError as err:  # e.g. a frame in dark/ of another size or lit
+        print(f"warning: {what}, but the lens-cap frames cannot serve ({err}); training "
+              "with the file's black level")
+        return scene
     darkframes.save(run, measured)
     print(f"black level from the lens-cap frames, since {what}: offsets (DN, CFA order) "
           f"{np.round(np.ravel(measured['offset_dn']), 2).tolist()}")

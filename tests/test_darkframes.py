@@ -175,6 +175,15 @@ def test_a_weak_signal_takes_the_lens_cap_black_level(tmp_path, capsys):
     (resumed / runfolder.CHECKPOINT).write_bytes(b"")
     assert np.array_equal(_gate(folder, resumed, capsys)[0].black_level,
                           _loaded(folder).black_level)
+    # lens-cap frames that cannot serve: one warning naming the frame, the file's level
+    like = next((folder / "raw").iterdir())
+    _write_dark(folder, "dark_000.dng", np.full((36, 64), 512, np.uint16), like)
+    odd = tmp_path / "odd"
+    odd.mkdir()
+    scene, out = _gate(folder, odd, capsys)
+    assert out.startswith("warning:") and "dark_000.dng" in out and "cannot serve" in out
+    assert len(out.splitlines()) == 1 and darkframes.load(odd) is None
+    assert np.array_equal(scene.black_level, _loaded(folder).black_level)
     # no lens-cap frames: one warning naming the folder to shoot them into
     shutil.rmtree(folder / "dark")
     bare = tmp_path / "bare"
