@@ -11,7 +11,8 @@ black-level offsets stay as they are in DN, so they grow against the signal (at 
 Each scene is simulated at every `light` (`gridnerf simulate <scene> --light f`, folder
 data/sim/<scene>_light<f>; light 1 is the scene itself) and trained by the default preset
 with the file's black level (`default`) and, where asked, with the lens-cap black level
-(`dark_black`, `data.black_offset=dark`); every run estimates its own bounds. Scored as
+(`dark_black`, `data.black_offset=dark`), and where asked without the two low-light
+gates (`no_gates`: the default before them); every run estimates its own bounds. Scored as
 `gridnerf eval` scores a run, on the test views: ours, one grey-world gain on the same
 field, the paper's 2D row (one frame, non-local means) and the generous per-frame
 pipeline (2x2 binning, exposure matched to the reference). The training summary's noise
@@ -35,7 +36,10 @@ import common
 from gridnerf.sim import HELDOUT, HELDOUT_MIXED
 
 LIGHTS = (0.1, 0.25, 0.5, 1.0)
-VARIANTS = {"default": [], "dark_black": ["data.black_offset=dark"]}
+# `no_gates`: the default without the two low-light gates (data.lens_cap_share,
+# loss.ca_noise_ratio): what the default trained before them
+VARIANTS = {"default": [], "dark_black": ["data.black_offset=dark"],
+            "no_gates": ["data.lens_cap_share=0", "loss.ca_noise_ratio=0"]}
 # (label, eval summary key) of the outputs compared at each light level
 OUTPUTS = (("ours", "gridnerf"), ("global_gw", "global_grey_world"),
            ("denoised_2d", "baseline_denoised"), ("binned", "baseline_binned_matched"))

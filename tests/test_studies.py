@@ -224,8 +224,13 @@ def test_every_study_variant_is_a_valid_config_and_shared_folders_agree():
         for _key, _label, folder, preset, sets in variants:
             cfg = cfgmod.override(cfgmod.preset(preset), sets)
             assert seen.setdefault(folder, cfg) == cfg, folder
+    for folder, sets in photons.VARIANTS.items():  # the photon sweep's, on the default
+        cfg = cfgmod.override(cfgmod.preset("default"), sets)
+        assert seen.setdefault(folder, cfg) == cfg, folder
     assert seen["ws0.01"].loss.w_smooth == 0.01
     assert seen["default"] == cfgmod.preset("default")
+    gates_off = seen["no_gates"]
+    assert (gates_off.data.lens_cap_share, gates_off.loss.ca_noise_ratio) == (0.0, 0.0)
 
 
 def test_colour_ceiling_rows_share_luminance_and_undo_the_true_white():
