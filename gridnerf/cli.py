@@ -15,28 +15,19 @@ from gridnerf.errors import GridNerfError
 
 
 def _simulate(args) -> None:
-    from gridnerf.sim import (
-        ALL_SCENES,
-        DEV,
-        HELDOUT,
-        HELDOUT_MIXED,
-        MIXED,
-        SCENES,
-        folder_name,
-        simulate_scene,
-    )
+    from gridnerf import sim
 
-    groups = {"all": SCENES, "heldout": HELDOUT, "dev": DEV, "mixed": MIXED,
-              "heldmixed": HELDOUT_MIXED}
+    groups = {"all": sim.SCENES, "heldout": sim.HELDOUT, "dev": sim.DEV, "mixed": sim.MIXED,
+              "heldmixed": sim.HELDOUT_MIXED}
     names = groups.get(args.name, (args.name,))
     for name in names:
-        if name not in ALL_SCENES:
-            fix = (f"choose one of {', '.join(ALL_SCENES)}, 'all', "
+        if name not in sim.ALL_SCENES:
+            fix = (f"choose one of {', '.join(sim.ALL_SCENES)}, 'all', "
                    "'heldout', 'dev', 'mixed' or 'heldmixed'")
             raise GridNerfError(None, f"unknown scene {name!r}", fix)
         out = (Path(args.out) if args.out and len(names) == 1
-               else Path("data/sim") / folder_name(name, args.light))
-        path = simulate_scene(
+               else Path("data/sim") / sim.folder_name(name, args.light))
+        path = sim.simulate_scene(
             name,
             out,
             width=args.width,
