@@ -46,8 +46,9 @@ def measure(folders) -> dict:
         sim = json.loads((folder / "sim.json").read_text())
         file_scene = load_scene(folder, near_far=tuple(sim["near_far"]))
         dark_scene = darkframes.apply(file_scene, darkframes.measure(folder)["offset_dn"])
-        share = darkframes.offset_share(file_scene)
-        gated = share > cfg.data.lens_cap_share
+        signal = darkframes.signal_dn(file_scene)
+        share = darkframes.offset_share(signal)
+        gated = darkframes.too_weak(signal, cfg.data.lens_cap_share)
         frames = {"file": training_frames(file_scene, cfg),
                   "dark": training_frames(dark_scene, cfg)}
         ratios = {k: colour_target.noise_ratio(f) for k, f in frames.items()}
@@ -55,7 +56,7 @@ def measure(folders) -> dict:
                                              cfg.loss.ca_noise_ratio)
         record[name] = {"light": float(sim.get("light", 1.0)),
                         "electrons": float(sim["electrons_mean_green"]),
-                        "weakest_dn": float(np.min(darkframes.signal_dn(file_scene))),
+                        "weakest_dn": float(np.min(signal)),
                         "offset_share": share, "lens_cap": bool(gated),
                         "noise_ratio": ratios, "downscale": d}
         print(name, record[name], flush=True)

@@ -117,11 +117,18 @@ def signal_dn(scene) -> np.ndarray:
     return sums / np.maximum(counts, 1)
 
 
-def offset_share(scene) -> float:
-    """OFFSET_DN over the weakest colour's mean signal (signal_dn): how large a share of
-    that colour an unknown black offset may be (inf where a colour's mean is <= 0)."""
-    weakest = float(np.min(signal_dn(scene)))
+def offset_share(signal) -> float:
+    """OFFSET_DN over the weakest colour's mean signal (signal: (3,) of signal_dn): how large
+    a share of that colour an unknown black offset may be (inf where a colour's mean is
+    <= 0)."""
+    weakest = float(np.min(signal))
     return OFFSET_DN / weakest if weakest > 0 else float("inf")
+
+
+def too_weak(signal, share_max: float) -> bool:
+    """Whether the file's black level cannot be trusted for this signal ((3,) of
+    signal_dn): its offset_share is above share_max (data.lens_cap_share; 0: never)."""
+    return share_max > 0 and offset_share(signal) > share_max
 
 
 def _robust_mean(values: np.ndarray, cut: float = 10.0) -> tuple[np.ndarray, np.ndarray]:

@@ -329,17 +329,17 @@ def with_weak_signal_black_level(scene, scene_dir, run: Path, cfg: Config):
     if (cfg.data.black_offset != "file" or darkframes.load(run) is not None
             or (run / CHECKPOINT).exists()):
         return scene
-    share = darkframes.offset_share(scene) if cfg.data.lens_cap_share > 0 else 0.0
+    signal = darkframes.signal_dn(scene)
     has_dark = darkframes.has_dark_frames(scene_dir)
-    if not share > cfg.data.lens_cap_share:
+    if not darkframes.too_weak(signal, cfg.data.lens_cap_share):
         if has_dark:
             print(f"note: {Path(scene_dir) / darkframes.DARK_DIR} has lens-cap frames; "
                   "--set data.black_offset=dark uses them for the black level (docs/colour.md)")
         return scene
-    weakest = float(np.min(darkframes.signal_dn(scene)))
-    what = (f"the weakest colour's mean signal is {weakest:.1f} DN above the file's black "
-            f"level: an unknown black offset of {darkframes.OFFSET_DN:g} DN would be "
-            f"{share:.0%} of it (data.lens_cap_share {cfg.data.lens_cap_share:g})")
+    what = (f"the weakest colour's mean signal is {float(np.min(signal)):.1f} DN above the "
+            f"file's black level: an unknown black offset of {darkframes.OFFSET_DN:g} DN "
+            f"would be {darkframes.offset_share(signal):.0%} of it (data.lens_cap_share "
+            f"{cfg.data.lens_cap_share:g})")
     if not has_dark:
         print(f"warning: {what}, and the colour would follow it; shoot 1-4 frames with the "
               f"lens cap on at the capture's ISO and exposure time into "

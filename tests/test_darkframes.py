@@ -128,9 +128,11 @@ def test_signal_per_colour_and_the_offsets_share_of_it():
                            "raw_bayer": np.stack([frame, frame]),
                            "black_level": np.stack([black, black])})()
     np.testing.assert_allclose(darkframes.signal_dn(scene), [40.0, 21.0, 8.0])
-    assert darkframes.offset_share(scene) == pytest.approx(darkframes.OFFSET_DN / 8.0)
+    share = darkframes.offset_share(darkframes.signal_dn(scene))
+    assert share == pytest.approx(darkframes.OFFSET_DN / 8.0)
     scene.black_level = scene.black_level + np.array([[0.0, 0.0], [0.0, 8.0]])
-    assert darkframes.offset_share(scene) == float("inf")  # blue at the black level
+    share = darkframes.offset_share(darkframes.signal_dn(scene))
+    assert share == float("inf")  # blue at the black level
 
 
 def _gate(folder, run, capsys, **data):
@@ -150,7 +152,7 @@ def test_a_weak_signal_takes_the_lens_cap_black_level(tmp_path, capsys):
                             light=0.05)
     truth = np.array(json.loads((folder / "sim.json").read_text())
                      ["noise"]["black_bias_dn_per_cfa_position"])
-    assert darkframes.offset_share(_loaded(folder)) > 0.5
+    assert darkframes.offset_share(darkframes.signal_dn(_loaded(folder))) > 0.5
     run = tmp_path / "run"
     run.mkdir()
     scene, out = _gate(folder, run, capsys)
@@ -194,7 +196,7 @@ def test_a_weak_signal_takes_the_lens_cap_black_level(tmp_path, capsys):
 
 
 def test_the_gate_does_not_bind_at_a_scenes_own_light(small_scene, tmp_path, capsys):
-    assert darkframes.offset_share(_loaded(small_scene)) < 0.5
+    assert darkframes.offset_share(darkframes.signal_dn(_loaded(small_scene))) < 0.5
     scene, out = _gate(small_scene, tmp_path, capsys)
     assert out.startswith("note:") and "data.black_offset=dark" in out
     assert np.array_equal(scene.black_level, _loaded(small_scene).black_level)
