@@ -86,8 +86,17 @@ EPS_VARIANTS = [
     ("eps_absolute", "data eps 1e-3, absolute (default)", "default", "default", []),
     ("eps_level0.5", "data eps 0.5 x the mean level", "eps_level0.5", "default", LEVEL_EPS),
 ]
+# --study gain_model: what carries the colour. The field (default) against
+# loss.gain_model=auto: one gain for the capture (the L_ca target's anchor) where its
+# illuminant maps show one light, the field where lights mix; with one gain the steps
+# train no gains (session 29)
+GAIN_MODEL_VARIANTS = [
+    ("field", "gain field (default)", "default", "default", []),
+    ("auto", "one gain where one light, the field where lights mix", "gain_auto", "default",
+     ["loss.gain_model=auto"]),
+]
 STUDIES = {"parts": VARIANTS, "colour": COLOUR_VARIANTS, "smoothness": SMOOTHNESS_VARIANTS,
-           "eps": EPS_VARIANTS}
+           "eps": EPS_VARIANTS, "gain_model": GAIN_MODEL_VARIANTS}
 # (column, eval summary key) shown for every variant; the no-gain run adds its global gain
 OUTPUTS = [("matrix", "gridnerf"), ("matrix_free", "gridnerf_matrix_free"),
            ("global_gain", "global_grey_world")]
@@ -183,7 +192,8 @@ def main() -> None:
     ap = study_parser(__doc__, None, runs=True, quick=True)
     ap.add_argument("--study", default="parts", choices=list(STUDIES),
                     help="parts: Bright-NeRF's parts; colour: white balance and estimators; "
-                    "smoothness: the gains' TV weight; eps: the data term's epsilon")
+                    "smoothness: the gains' TV weight; eps: the data term's epsilon; "
+                    "gain_model: one gain where one light against the field")
     args = ap.parse_args()
     out = args.out or ("reports/ablation" if args.study == "parts"
                        else f"reports/ablation_{args.study}")

@@ -21,12 +21,16 @@ benchmarks, carry_runs) call; it runs once per training, on the host (NumPy).
 from __future__ import annotations
 
 import dataclasses
+import json
+from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
 
-from gridnerf import dataset, illum_map, illuminant, noisefit, raw
+from gridnerf import atomic, dataset, illum_map, illuminant, noisefit, raw
 from gridnerf.config import Config
+
+ONE_GAIN = "one_gain.json"  # in a run folder: the capture's one gain (loss.gain_model)
 
 
 def estimate_frames(data: dataset.RayData, scene) -> tuple[list, list]:
@@ -130,15 +134,12 @@ def with_illuminant_map(data: dataset.RayData, scene, cfg: Config,
     return dataclasses.replace(data, illuminant_map=jnp.asarray(maps, jnp.float32)), anchor
 
 
-def consistent_estimator(scene, cfg: Config, frames, downscale: int = 1) -> str:
-    """The estimator loss.ca_illuminant = "consistent" stands for on this capture: under one
-    light (its illuminant maps, anchored to the consensus, stray less than
-    loss.ca_one_light_deg from it: illum_map.map_spread_deg) the one of the consensus's
-    three whose quadrant estimates agree best (illuminant.quadrant_spreads), else
-    "consensus" (under two lights the quadrants see different lights, and the spread
-    would measure them). frames: (images, masks) of estimate_frames; the estimates run on
-    them downscaled by `downscale` (scene_illuminant), the maps at full size. Prints the
-    choice."""
+def light_spread(scene, cfg: Config, frames, downscale: int = 1) -> tuple[float, dict]:
+    """(spread, estimates): how far the capture's illuminant maps, anchored to the
+    consensus, stray from it (illum_map.map_spread_deg, deg; under one light less than
+    loss.ca_one_light_deg), and the consensus's three estimates {name: (3,)} of the whole
+    capture. frames: (images, masks) of estimate_frames; the estimates run on them
+    downscaled by `downscale` (scene_illuminant), the maps at full size."""
     images, masks = frames
     small, small_masks = downscaled(frames, downscale)
     lc = cfg.loss
@@ -147,7 +148,22 @@ def consistent_estimator(scene, cfg: Config, frames, downscale: int = 1) -> str:
               for n in illuminant.CONSENSUS}
     cons = illuminant.consensus(list(wholes.values()), locus)
     maps = illum_map.frame_maps(images, masks, cons, locus, lc.ca_map_block, lc.ca_map_tau)
-    spread = illum_map.map_spread_deg(maps, cons)
+    return illum_map.map_spread_deg(maps, cons), wholes
+
+
+def consistent_estimator(scene, cfg: Config, frames, downscale: int = 1,
+                         spread: tuple[float, dict] | None = None) -> str:
+    """The estimator loss.ca_illuminant = "consistent" stands for on this capture: under one
+    light (light_spread below loss.ca_one_light_deg) the one of the consensus's three
+    whose quadrant estimates agree best (illuminant.quadrant_spreads), else "consensus"
+    (under two lights the quadrants see different lights, and the spread would measure
+    them). frames: (images, masks) of estimate_frames; the estimates run on them
+    downscaled by `downscale` (scene_illuminant), the maps at full size; spread:
+    light_spread's result when the caller has it. Prints the choice."""
+    small, small_masks = downscaled(frames, downscale)
+    lc = cfg.loss
+    locus = illuminant.planckian_locus(scene.xyz_to_cam) if lc.ca_locus else None
+    spread, wholes = light_spread(scene, cfg, frames, downscale) if spread is None else spread
     if spread >= lc.ca_one_light_deg:
         print(f"L_ca estimator: consensus (the maps stray {spread:.2f} deg: lights mix)")
         return "consensus"
@@ -159,13 +175,14 @@ def consistent_estimator(scene, cfg: Config, frames, downscale: int = 1) -> str:
     return name
 
 
-def resolve_estimator(scene, cfg: Config, frames, downscale: int = 1) -> Config:
+def resolve_estimator(scene, cfg: Config, frames, downscale: int = 1,
+                      spread: tuple[float, dict] | None = None) -> Config:
     """cfg with loss.ca_illuminant = "consistent" replaced by the estimator it stands for on
     this capture (consistent_estimator; frames: the whole capture's (images, masks) of
-    estimate_frames, downscale as there), any other cfg as it is."""
+    estimate_frames, downscale and spread as there), any other cfg as it is."""
     if cfg.loss.ca_illuminant != "consistent":
         return cfg
-    name = consistent_estimator(scene, cfg, frames, downscale)
+    name = consistent_estimator(scene, cfg, frames, downscale, spread)
     return dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, ca_illuminant=name))
 
 
@@ -177,13 +194,24 @@ def estimates_from_frames(cfg: Config) -> bool:
     return lc.use_gains and lc.method != "llnerf" and lc.ca_target in ("scene", "map")
 
 
+def one_gain(cfg: Config, spread: float | None) -> bool:
+    """Whether the colour is one gain for the capture rather than the gain field:
+    loss.gain_model "global", or "auto" with the capture lit by one light (light_spread's
+    spread below loss.ca_one_light_deg)."""
+    model = cfg.loss.gain_model
+    return model == "global" or (model == "auto" and spread is not None
+                                 and spread < cfg.loss.ca_one_light_deg)
+
+
 def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> tuple[dataset.RayData, dict]:
     """The L_ca inputs, as the config chooses them: (data, make_step keyword arguments).
 
     data gains its illuminant map for loss.ca_target = "map" (with_illuminant_map);
     kwargs: {"scene_ill": (3,)} for the "scene" and "map" targets (the map's anchor, and
-    where the gains start), {"locus": (n, 3)} for the batch target with loss.ca_locus, {}
-    otherwise (no gains, loss.method = "llnerf", or the batch's own estimate).
+    where the gains start), with "one_gain": True where the colour is that one gain
+    (one_gain: loss.gain_model), {"locus": (n, 3)} for the batch target with
+    loss.ca_locus, {} otherwise (no gains, loss.method = "llnerf", or the batch's own
+    estimate).
     """
     if not cfg.loss.use_gains or cfg.loss.method == "llnerf":
         return data, {}
@@ -193,13 +221,50 @@ def colour_inputs(data: dataset.RayData, scene, cfg: Config) -> tuple[dataset.Ra
         if d > 1:
             print(f"L_ca estimates on the frames downscaled {d}x: their noise is above "
                   f"{cfg.loss.ca_noise_ratio:g} x their level (loss.ca_noise_ratio)")
-        cfg = resolve_estimator(scene, cfg, frames, d)  # "consistent" picked once
+        spread = None
+        if cfg.loss.ca_illuminant == "consistent" or cfg.loss.gain_model == "auto":
+            spread = light_spread(scene, cfg, frames, d)
+        cfg = resolve_estimator(scene, cfg, frames, d, spread)  # "consistent" picked once
         if cfg.loss.ca_target == "map":  # its own anchor: of the whole capture or by region
             data, anchor = with_illuminant_map(data, scene, cfg, frames=frames, downscale=d)
         else:
             anchor = scene_illuminant(data, scene, cfg, frames, d)
-        return data, {"scene_ill": jnp.asarray(anchor, jnp.float32)}
+        kwargs = {"scene_ill": jnp.asarray(anchor, jnp.float32)}
+        if one_gain(cfg, None if spread is None else spread[0]):
+            kwargs["one_gain"] = True
+            why = ("loss.gain_model=global" if cfg.loss.gain_model == "global" else
+                   f"one light: the maps stray {spread[0]:.2f} deg, under "
+                   f"loss.ca_one_light_deg {cfg.loss.ca_one_light_deg:g}")
+            print(f"colour: one gain for the capture, the L_ca target's ({why}); no gain "
+                  "field is trained")
+        elif cfg.loss.gain_model == "auto":
+            print(f"colour: the gain field (lights mix: the maps stray {spread[0]:.2f} deg)")
+        return data, kwargs
     if cfg.loss.ca_locus:
         return data, {"locus": jnp.asarray(illuminant.planckian_locus(scene.xyz_to_cam),
                                            jnp.float32)}
     return data, {}
+
+
+def save_one_gain(run: Path, scene_ill) -> None:
+    """<run>/one_gain.json: the capture's one gain, the von Kries gains of the L_ca
+    target's anchor scene_ill (3,) (illuminant.gains_from_illuminant), with that
+    illuminant (unit camera RGB)."""
+    ill = np.asarray(illuminant.unit(np.asarray(scene_ill, np.float64)))
+    record = {"illuminant": ill.tolist(),
+              "gains": np.asarray(illuminant.gains_from_illuminant(ill), np.float64).tolist()}
+    atomic.write_text(Path(run) / ONE_GAIN, json.dumps(record, indent=2) + "\n")
+
+
+def load_one_gain(run: Path, cfg: Config) -> np.ndarray | None:
+    """(3,) the run's one gain (save_one_gain) where its colour is one gain, None where it
+    is the gain field (loss.gain_model "field", or "auto" that found lights mixing: no
+    file) or a file that is not three positive finite numbers."""
+    path = Path(run) / ONE_GAIN
+    if cfg.loss.gain_model == "field" or not path.exists():
+        return None
+    try:
+        gains = np.asarray(json.loads(path.read_text())["gains"], np.float64)
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return gains if gains.shape == (3,) and np.all(np.isfinite(gains) & (gains > 0)) else None

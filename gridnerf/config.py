@@ -312,6 +312,16 @@ class LossConfig(_Section):
     # at most 2.42, head; mixed light at least 4.05, mixed_desk_daylight), before the
     # held-out scenes' were looked at for this use
     ca_one_light_deg: float = 3.0
+    # what carries the colour restoration: "field" (the paper: per-voxel von Kries gains,
+    # trained by L_ca and the smoothness), "global" (one gain for the capture: the gains of
+    # the L_ca target's anchor, the capture's illuminant; no gain terms in the steps), or
+    # "auto": one gain where the capture is lit by one light (its illuminant maps stray
+    # less than ca_one_light_deg from the consensus, the "consistent" pick's own test) and
+    # the field where lights mix. With one gain the steps train density and colour alone
+    # (the data term gives the gains no gradient, and L_ca on the normalised gain map
+    # none to the density or the colour), so the field is the same and the step cheaper;
+    # the gain is kept in <run>/one_gain.json (colour_target.save_one_gain)
+    gain_model: Literal["field", "auto", "global"] = "field"
     ca_illuminant_p: float = 6.0  # Minkowski p of shades_of_grey (grey_edge uses p = 1)
     # the capture's illuminant estimates (and the "consistent" pick) run on the binned
     # frames box-downscaled by the smallest power of 2 that brings their noise sigma under
@@ -379,6 +389,10 @@ class LossConfig(_Section):
                       "'grey_edge', 'weighted_grey' with loss.ca_target=batch ('consensus' "
                       "and 'consistent' need loss.ca_target=scene or map)")
         self._range("ca_one_light_deg", 0.0)
+        self._require("gain_model", self.gain_model == "field" or (
+            self.ca_target != "batch" and self.method == "brightnerf"),
+            "'field' with loss.ca_target=batch or loss.method=llnerf (one gain is the "
+            "capture's L_ca target: loss.ca_target=scene or map)")
         self._require("ca_map_block", self.ca_map_block >= 2, "a whole number >= 2")
         self._range("ca_map_tau", 0.0, lo_open=True)
         self._range("exposure_level", 0.0, 1.0, lo_open=True, hi_open=True)
@@ -635,7 +649,7 @@ def diff(a: Config, b: Config) -> list[str]:
 # loss fields that only act through the gains: inert when loss.use_gains is false
 GAIN_FIELDS = ("w_ca", "w_smooth", "smooth_mode", "ca_stop_grad", "gain_map", "ca_illuminant",
                "ca_illuminant_p", "ca_locus", "ca_target", "ca_map_block", "ca_map_tau",
-               "ca_map_anchor", "ca_one_light_deg", "ca_noise_ratio")
+               "ca_map_anchor", "ca_one_light_deg", "ca_noise_ratio", "gain_model")
 # loss fields of loss.method = "llnerf" alone: inert in the other runs
 LLNERF_FIELDS = ("w_exposure", "exposure_level", "exposure_pool", "w_color_constancy",
                  "w_enhance_tv", "llnerf_data")
@@ -706,7 +720,9 @@ LEGACY = {("grid", "background"): "black", ("loss", "opacity_stages"): 0,
           # keeps the lens-cap offsets in its black_level.json
           ("data", "lens_cap_share"): 0.5,
           # likewise: the frames' noise is under 0.6 of their level on every kept run
-          ("loss", "ca_noise_ratio"): 0.6}
+          ("loss", "ca_noise_ratio"): 0.6,
+          # every run before it trained the field
+          ("loss", "gain_model"): "field"}
 # (section, field) -> the one value of a removed field whose behaviour the code still has:
 # a saved config with another value was trained by code that no longer exists, so it must
 # not load as today's config (unknown keys are otherwise ignored)

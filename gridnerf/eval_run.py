@@ -32,6 +32,7 @@ from gridnerf import (
     atomic,
     baseline,
     color,
+    colour_target,
     consistency,
     dataset,
     evaluate,
@@ -156,23 +157,27 @@ def main_output(cfg) -> str:
     return "llnerf" if cfg.loss.method == "llnerf" else "gridnerf"
 
 
-def outputs(structure, params, scene, cfg,
-            out: dict | None = None) -> dict[str, Output | EnhancedOutput]:
+def outputs(structure, params, scene, cfg, out: dict | None = None,
+            one_gain: np.ndarray | None = None) -> dict[str, Output | EnhancedOutput]:
     """The shown outputs of a run, each exposed on the training render (training_render,
     or `out`): "gridnerf" (the colour matrix, or matrix-free when output.use_color_matrix
     is off), "gridnerf_matrix_free", and "global_grey_world" (the field's low-light colour
     times one grey-world gain for the scene, global_gains). output.color_matrix =
     "adapted" takes the matrix for the white the gains balanced (field_neutral; the grey
-    world's for the global row), exposure.display_matrix. loss.method = "llnerf": only
+    world's for the global row), exposure.display_matrix. one_gain: (3,) the run's one
+    gain (colour_target.load_one_gain) where its colour is one gain: the first two show the
+    low-light colour times it instead of the field's gains. loss.method = "llnerf": only
     "llnerf" (EnhancedOutput), nothing exposed."""
     if cfg.loss.method == "llnerf":
         return {"llnerf": EnhancedOutput()}
     out = training_render(structure, params, scene, cfg) if out is None else out
     raw_target = cfg.data.target == "raw"
-    ones = np.ones(3)
-    source = "rgb_restored" if cfg.loss.use_gains else "rgb_low"
+    ones = np.ones(3) if one_gain is None else np.asarray(one_gain, np.float64)
+    source = "rgb_restored" if cfg.loss.use_gains and one_gain is None else "rgb_low"
     adapted = cfg.output.color_matrix == "adapted"
-    neutral = field_neutral(out) if cfg.loss.use_gains and adapted else None
+    neutral = None
+    if cfg.loss.use_gains and adapted:
+        neutral = field_neutral(out) if one_gain is None else illuminant.unit(1.0 / ones)
     grey = _grey_world(out) if adapted else None
     free = Output(source, ones, np.eye(3))
     shown = {
@@ -198,7 +203,8 @@ def evaluate_run(run: Path) -> dict:
                          "remove the split lists: every 8th frame is then a test frame)")
     out_dir = run / "eval"
     out_dir.mkdir(parents=True, exist_ok=True)
-    shown = outputs(structure, params, scene, cfg)
+    one_gain = colour_target.load_one_gain(run, cfg)
+    shown = outputs(structure, params, scene, cfg, one_gain=one_gain)
     main = main_output(cfg)
     adapted = cfg.output.color_matrix == "adapted"  # the baselines take the same matrix
     per_view: dict[str, dict[str, dict]] = {
@@ -252,6 +258,8 @@ def evaluate_run(run: Path) -> dict:
         "run": str(run),
         "test_views": [scene.names[i] for i in scene.test_idx],
         "alpha": {k: o.alpha for k, o in shown.items()},
+        # what carried the colour: the gain field, or one gain for the capture (its gains)
+        "colour": "field" if one_gain is None else {"one_gain": one_gain.tolist()},
         "train_seconds": summary["train_seconds"],
         "rays_per_second": summary["rays_per_second"],
         "train_peak_rss_mb": summary.get("peak_rss_mb"),
@@ -315,7 +323,8 @@ def camera_path(scene, kind: str, n_frames: int) -> np.ndarray:
 def render_run(run: Path, path: str = "spiral", n_frames: int = 60) -> Path:
     """Render test views (`path='test'`) or a camera path to run/render/: PNG, EXR, mp4."""
     cfg, scene, structure, params, _ = load_run(run)
-    main = outputs(structure, params, scene, cfg)[main_output(cfg)]
+    main = outputs(structure, params, scene, cfg,
+                   one_gain=colour_target.load_one_gain(run, cfg))[main_output(cfg)]
     cams = scene.cameras
     ds = cfg.data.eval_downscale
     h, w = cams.height // ds, cams.width // ds

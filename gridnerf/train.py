@@ -175,11 +175,14 @@ def llnerf_terms(structure, params, flat: dict, out: dict, shape, k1, cfg: Confi
     return terms
 
 
-def make_step(cfg: Config, tx, near_t: float, far_t: float, locus=None, scene_ill=None):
+def make_step(cfg: Config, tx, near_t: float, far_t: float, locus=None, scene_ill=None,
+              one_gain: bool = False):
     """Jitted step: (params, opt_state, structure, data, key) -> (params, opt_state, loss, aux).
 
     locus: the camera's Planckian locus (n, 3) for loss.ca_locus; scene_ill: the capture's
-    illuminant (3,) for loss.ca_target = "scene" (see loss_fn); else None.
+    illuminant (3,) for loss.ca_target = "scene" (see loss_fn); else None. one_gain: the
+    colour is one gain for the capture (colour_target.one_gain): the steps have no gain
+    terms (L_ca, smoothness), so the gains get no gradient and stay where they started.
 
     The batch's patches are split over all local devices (gridnerf.devices); parameters are
     replicated. train.batch_patches must be a multiple of the device count.
@@ -190,13 +193,16 @@ def make_step(cfg: Config, tx, near_t: float, far_t: float, locus=None, scene_il
         raise ValueError("loss.ca_target = 'scene' needs the capture's illuminant: pass "
                          "make_step(..., **colour_target.colour_inputs(data, scene, cfg)[1])")
 
+    loss_cfg = (dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, use_gains=False))
+                if one_gain else cfg)
+
     @jax.jit
     def step(params, opt_state, structure, data, key):
         kb, kl = jax.random.split(key)
         rays = devices.shard_rays(
             dataset.batch(data, kb, cfg.train.batch_patches, cfg.train.patch_size))
         (total, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-            params, structure, rays, kl, cfg, near_t, far_t, locus, scene_ill
+            params, structure, rays, kl, loss_cfg, near_t, far_t, locus, scene_ill
         )
         updates, opt_state = tx.update(grads, opt_state, params)
         params = optax.apply_updates(params, updates)
@@ -488,6 +494,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
 
     # Training really starts: save the config, drop metrics logged after the checkpoint.
     cfgmod.save(cfg, run / runfolder.CONFIG)
+    if colour.get("one_gain"):
+        colour_target.save_one_gain(run, scene_ill)
     runfolder.trim_metrics(run, stage, start)
     session.started()
     log = open(run / runfolder.METRICS, "a")  # noqa: SIM115
@@ -592,6 +600,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     }
     if runfolder.lens_cap_black(cfg, run) and (offset := darkframes.load(run)) is not None:
         summary["black_offset_dn"] = offset.tolist()
+    if colour.get("one_gain"):
+        summary["one_gain"] = json.loads((run / colour_target.ONE_GAIN).read_text())["gains"]
     if (run / sensorfit.SENSOR_FIT).exists():
         summary["sensor_fit_dn"] = json.loads((run / sensorfit.SENSOR_FIT).read_text())["dn"]
     atomic.write_text(run / "summary.json", json.dumps(summary, indent=2))
