@@ -89,11 +89,15 @@ EPS_VARIANTS = [
 # --study gain_model: what carries the colour. The field (default) against
 # loss.gain_model=auto: one gain for the capture (the L_ca target's anchor) where its
 # illuminant maps show one light, the field where lights mix; with one gain the steps
-# train no gains (session 29)
+# train no gains. Each with the file's black level and with the lens-cap one (session 29)
 GAIN_MODEL_VARIANTS = [
     ("field", "gain field (default)", "default", "default", []),
     ("auto", "one gain where one light, the field where lights mix", "gain_auto", "default",
      ["loss.gain_model=auto"]),
+    ("field_dark", "gain field, lens-cap black level", "dark_black", "default",
+     ["data.black_offset=dark"]),
+    ("auto_dark", "one gain where one light, lens-cap black level", "gain_auto_dark",
+     "default", ["loss.gain_model=auto", "data.black_offset=dark"]),
 ]
 STUDIES = {"parts": VARIANTS, "colour": COLOUR_VARIANTS, "smoothness": SMOOTHNESS_VARIANTS,
            "eps": EPS_VARIANTS, "gain_model": GAIN_MODEL_VARIANTS}
