@@ -320,7 +320,11 @@ class LossConfig(_Section):
     # the field where lights mix. With one gain the steps train density and colour alone
     # (the data term gives the gains no gradient, and L_ca on the normalised gain map
     # none to the density or the colour), so the field is the same and the step cheaper;
-    # the gain is kept in <run>/one_gain.json (colour_target.save_one_gain)
+    # the gain is kept in <run>/one_gain.json (colour_target.save_one_gain). Measured
+    # (session 29, docs/colour.md): bucket's training 110 -> 92 s; under one light "auto"
+    # is 0.2 dB below the field with the file's black level and level with it with the
+    # lens-cap one (nine -0.08, held out -0.05 dB, CIEDE2000 lower); the one-light test
+    # misreads two of four held-out mixed-light scenes (-0.6 to -0.7 dB): not the default
     gain_model: Literal["field", "auto", "global"] = "field"
     ca_illuminant_p: float = 6.0  # Minkowski p of shades_of_grey (grey_edge uses p = 1)
     # the capture's illuminant estimates (and the "consistent" pick) run on the binned
