@@ -304,7 +304,7 @@ def worker_psnr(a: dict) -> dict:
     scores = []
     for snap in a["snapshots"]:
         structure, params, _, header = runfolder.load_state(Path(snap))
-        main = eval_run.outputs(structure, params, scene, cfg)["gridnerf"]
+        main = eval_run.run_outputs(Path(a["run"]), structure, params, scene, cfg)["gridnerf"]
         psnr = []
         for i, gt in gts.items():
             intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]]) / ds

@@ -59,7 +59,7 @@ def test_views(run: Path, folder: Path):
     sim = json.loads((folder / "sim.json").read_text())
     cfg, scene, structure, params, _ = eval_run.load_run(run)
     train_out = eval_run.training_render(structure, params, scene, cfg)
-    shown = eval_run.outputs(structure, params, scene, cfg, train_out)
+    shown = eval_run.run_outputs(run, structure, params, scene, cfg, train_out)
     cams = scene.cameras
     hw = (cams.height, cams.width)
 

@@ -43,7 +43,7 @@ from common import (
     write_report,
 )
 from gridnerf import baseline, color, consistency, raw
-from gridnerf.eval_run import load_run, outputs, reference_linear, render_view
+from gridnerf.eval_run import load_run, reference_linear, render_view, run_outputs
 from gridnerf.sim import HELDOUT, SCENES
 
 # the report's other 3D rows: row -> (run folder, shown output of eval_run.outputs)
@@ -87,13 +87,13 @@ def scene_rows(scene_name: str, runs: Path = Path("runs"), quick: bool = False) 
     folder = Path(runs) / scene_dir(scene_name, quick).name
     cfg, scene, structure, params, _ = load_run(folder / "default")
     n = len(scene.names)
-    shown = outputs(structure, params, scene, cfg)["gridnerf"]  # exposed once per run
+    shown = run_outputs(folder / "default", structure, params, scene, cfg)["gridnerf"]
     others = {}
     for row, (run_folder, key) in RUN_ROWS.items():
         run = folder / run_folder
         if (run / "summary.json").is_file() and not stale_run(run, run_folder, quick):
             o_cfg, o_scene, o_structure, o_params, _ = load_run(run)
-            o_shown = outputs(o_structure, o_params, o_scene, o_cfg)[key]
+            o_shown = run_outputs(run, o_structure, o_params, o_scene, o_cfg)[key]
             others[row] = (o_cfg, o_structure, o_params, o_shown)
     per_row: dict[str, list] = {r: [] for r in ROWS}
     for i in scene.test_idx:

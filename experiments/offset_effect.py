@@ -43,8 +43,8 @@ def offset_rgb(scene) -> np.ndarray:
 
 def score(run: Path, fix) -> dict:
     cfg, scene, structure, params, _ = eval_run.load_run(run)
-    main = eval_run.outputs(structure, params, scene, cfg,
-                            fix(eval_run.training_render(structure, params, scene, cfg)))
+    main = eval_run.run_outputs(run, structure, params, scene, cfg,
+                                fix(eval_run.training_render(structure, params, scene, cfg)))
     main = main["gridnerf"]
     cams, views = scene.cameras, []
     for i in scene.test_idx:

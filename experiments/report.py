@@ -265,7 +265,8 @@ def figure(runs: Path, scenes: list[str], path: Path, quick: bool = False,
                     intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]])
                     out = eval_run.render_view(structure, params, sc, cfg, cams.c2w[i], intr,
                                                cams.height, cams.width)
-                    img = eval_run.outputs(structure, params, sc, cfg)[parts[2]].show(out)[1]
+                    img = eval_run.run_outputs(run, structure, params, sc,
+                                               cfg)[parts[2]].show(out)[1]
             else:
                 png = runs / scene / parts[0] / "eval" / f"{name}_{parts[1]}.png"
                 if png.is_file() and not stale(runs / scene / parts[0], parts[0], quick):

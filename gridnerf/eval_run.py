@@ -193,6 +193,14 @@ def outputs(structure, params, scene, cfg, out: dict | None = None,
             for k, o in shown.items()}
 
 
+def run_outputs(run: Path, structure, params, scene, cfg, out: dict | None = None
+                ) -> dict[str, Output | EnhancedOutput]:
+    """outputs() of the run in folder `run`: with its one gain where its colour is one
+    gain (colour_target.load_one_gain), else the field's."""
+    return outputs(structure, params, scene, cfg, out,
+                   one_gain=colour_target.load_one_gain(run, cfg))
+
+
 def evaluate_run(run: Path) -> dict:
     """Render the test views, compare with gt/, write eval/ images and eval/metrics.json."""
     t0 = time.perf_counter()
@@ -204,7 +212,7 @@ def evaluate_run(run: Path) -> dict:
     out_dir = run / "eval"
     out_dir.mkdir(parents=True, exist_ok=True)
     one_gain = colour_target.load_one_gain(run, cfg)
-    shown = outputs(structure, params, scene, cfg, one_gain=one_gain)
+    shown = run_outputs(run, structure, params, scene, cfg)
     main = main_output(cfg)
     adapted = cfg.output.color_matrix == "adapted"  # the baselines take the same matrix
     per_view: dict[str, dict[str, dict]] = {
@@ -323,8 +331,7 @@ def camera_path(scene, kind: str, n_frames: int) -> np.ndarray:
 def render_run(run: Path, path: str = "spiral", n_frames: int = 60) -> Path:
     """Render test views (`path='test'`) or a camera path to run/render/: PNG, EXR, mp4."""
     cfg, scene, structure, params, _ = load_run(run)
-    main = outputs(structure, params, scene, cfg,
-                   one_gain=colour_target.load_one_gain(run, cfg))[main_output(cfg)]
+    main = run_outputs(run, structure, params, scene, cfg)[main_output(cfg)]
     cams = scene.cameras
     ds = cfg.data.eval_downscale
     h, w = cams.height // ds, cams.width // ds

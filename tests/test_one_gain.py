@@ -125,8 +125,10 @@ def test_auto_trains_one_gain_on_one_light_and_eval_shows_it(small_scene, tmp_pa
     ill = np.asarray(record["illuminant"])
     assert gains == pytest.approx(colour_target.illuminant.gains_from_illuminant(ill))
     _, scene, structure, params, _ = eval_run.load_run(run)
-    shown = eval_run.outputs(structure, params, scene, cfg, one_gain=gains)["gridnerf"]
+    shown = eval_run.run_outputs(run, structure, params, scene, cfg)["gridnerf"]
     assert shown.source == "rgb_low" and np.allclose(shown.gains, gains)
+    field = eval_run.outputs(structure, params, scene, cfg)["gridnerf"]  # without the gain
+    assert field.source == "rgb_restored"
     metrics = eval_run.evaluate_run(run)
     assert metrics["colour"] == {"one_gain": pytest.approx(gains.tolist())}
     assert np.isfinite(metrics["summary"]["gridnerf"]["psnr"])
