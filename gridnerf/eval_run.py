@@ -211,8 +211,8 @@ def evaluate_run(run: Path) -> dict:
                          "remove the split lists: every 8th frame is then a test frame)")
     out_dir = run / "eval"
     out_dir.mkdir(parents=True, exist_ok=True)
-    one_gain = colour_target.load_one_gain(run, cfg)
-    shown = run_outputs(run, structure, params, scene, cfg)
+    one_gain = colour_target.load_one_gain(run, cfg)  # read once: shown and recorded
+    shown = outputs(structure, params, scene, cfg, one_gain=one_gain)
     main = main_output(cfg)
     adapted = cfg.output.color_matrix == "adapted"  # the baselines take the same matrix
     per_view: dict[str, dict[str, dict]] = {
