@@ -92,9 +92,15 @@ def view_rows(out: dict, shown: dict, matrix: np.ndarray, truth: np.ndarray,
         shows += [("field_true_level", low * gains(with_true_level(field, truth, rendered))),
                   ("true_shape", low * gains(with_true_level(truth, field, rendered)))]
     for name, rgb_cam in shows:
-        rgb = rgb_cam @ matrix.T
-        rows[name] = (exposure.alpha_for_luminance(rgb, target) * rgb).astype(np.float32)
+        rows[name] = shown_at(rgb_cam, matrix, target)
     return rows
+
+
+def shown_at(rgb_cam: np.ndarray, matrix: np.ndarray, target: float) -> np.ndarray:
+    """(H, W, 3) float32 linear sRGB: camera RGB through the display matrix, exposed to the
+    mean luminance `target` (the run's own output's on that view: only colour differs)."""
+    rgb = rgb_cam @ matrix.T
+    return (exposure.alpha_for_luminance(rgb, target) * rgb).astype(np.float32)
 
 
 def gains(white) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Does a partial white balance beat the true white? Only where the black level is off.
+"""Does a partial white balance beat the true white? Mostly where the black level is off.
 
 Under one light the gain field scores 0.1-0.4 dB above one gain at its own L_ca target
 (`python experiments/ablate.py --study gain_model`), although that target is nearer the
@@ -26,9 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from colour_ceiling import gains, test_views
+from colour_ceiling import gains, shown_at, test_views
 from common import fmt, markdown_table, scene_names, study_parser, write_report
-from gridnerf import color, colour_target, eval_run, evaluate, exposure
+from gridnerf import color, colour_target, eval_run, evaluate
 
 ALPHAS = (1.0, 0.9, 0.8)
 
@@ -49,8 +49,7 @@ def run_rows(run: Path, folder: Path) -> dict:
         whites = {"own": own, "true": gains(truth.reshape(-1, 3).mean(0))}
         for key, g in whites.items():
             for k, a in enumerate(ALPHAS):
-                rgb = (low * np.exp(a * np.log(g))) @ matrix.T
-                rgb = (exposure.alpha_for_luminance(rgb, target) * rgb).astype(np.float32)
+                rgb = shown_at(low * np.exp(a * np.log(g)), matrix, target)
                 scores[key][k].append(evaluate.image_metrics(rgb, gt_linear)["psnr"])
     return {key: [float(np.mean(v)) for v in per] for key, per in scores.items()}
 
@@ -92,8 +91,7 @@ def main() -> None:
             "for the run's own white and the true white of the view, at the run's own mean "
             "luminance per view. The first of each pair of run folders has the file's black "
             "level, the second the lens-cap one.\n\n" + markdown_table(head, rows) + "\n")
-    write_report(args.out, text, {"alphas": list(ALPHAS), "scenes": record,
-                                               "means": means})
+    write_report(args.out, text, {"alphas": list(ALPHAS), "scenes": record, "means": means})
     print(text)
 
 
