@@ -3,7 +3,7 @@
 Every figure is measured on the package's own code, in its own process, and cached:
 
 - training step throughput of a finished run of the preset at its final-stage grid
-  (train.make_step built as train.py builds it, lowered and compiled once, then the median
+  (optim.make_step built as train.py builds it, lowered and compiled once, then the median
   of several timed steps after warm-up): rays/s, and occupied samples shaded per second
   (min(n_occupied, max_samples) per ray from render.render_rays on the same batches);
 - the same step on a dense reference: every vertex of the same grid resolution and box kept
@@ -180,7 +180,7 @@ def _training_setup(run: str, scale: float, dense: bool, sets: list[str]):
     (grid.resample) to round(scale * resolution) vertices per axis; dense replaces it by a
     full grid of that resolution and box (grid.init_grid) and turns off empty skipping."""
 
-    from gridnerf import colour_target, dataset, eval_run, grid, stages, train
+    from gridnerf import colour_target, dataset, eval_run, grid, optim, stages
     from gridnerf import config as cfgmod
 
     cfg, scene, structure, params, _ = eval_run.load_run(Path(run))
@@ -198,10 +198,10 @@ def _training_setup(run: str, scale: float, dense: bool, sets: list[str]):
         structure, params = grid.resample(structure, params, res)
     structure = grid.update_occupancy(structure, params, cfg.grid.occupancy_threshold)
     stage = len(cfg.train.steps_per_stage) - 1
-    tx = train.make_optimizer(cfg, cfg.train.steps_per_stage[-1], stage)
-    cfg = stages.with_fitted_candidates(train.stage_config(cfg, stage), structure, data,
+    tx = optim.make_optimizer(cfg, cfg.train.steps_per_stage[-1], stage)
+    cfg = stages.with_fitted_candidates(optim.stage_config(cfg, stage), structure, data,
                                        near_t, far_t)  # the last stage's step config
-    step = train.make_step(cfg, tx, near_t, far_t, **extra)
+    step = optim.make_step(cfg, tx, near_t, far_t, **extra)
     return cfg, structure, params, tx.init(params), step, data, near_t, far_t
 
 
@@ -232,7 +232,7 @@ def worker_step(a: dict) -> dict:
             keys.append(k)
     if not np.isfinite(float(loss)):
         raise SystemExit(f"the step's loss is {float(loss)}")
-    # n_occupied of the step's own batches and sample offsets (train.make_step: kb, kl =
+    # n_occupied of the step's own batches and sample offsets (optim.make_step: kb, kl =
     # split(key); loss_fn renders with k0 = split(kl)[0]; render.render_rays marches with
     # it), on the last parameters' occupancy: render.march alone, as render_rays calls it
     march = jax.jit(render.march, static_argnames="cfg")
@@ -643,7 +643,7 @@ def markdown(record: dict) -> str:
         "",
         f"## Training step ({ws}x{hs} scene, final-stage grid of the finished run)",
         "",
-        "One jitted train.make_step (batch + loss + Adam), median of "
+        "One jitted optim.make_step (batch + loss + Adam), median of "
         f"{c['steps']} steps after {c['warmup']} warm-up; occupied samples = "
         "min(n_occupied, K) per ray on the same batches; slots = K shaded slots per ray "
         "(fixed shapes) or every candidate for the dense reference.",

@@ -6,7 +6,7 @@ preset's training would see it:
 - the weakest colour's mean signal in DN above the file's black level and the share of it
   that an unknown black offset of darkframes.OFFSET_DN (4 DN) would be
   (darkframes.offset_share); above data.lens_cap_share the training takes the lens-cap
-  black level (train.with_weak_signal_black_level);
+  black level (data_term.with_weak_signal_black_level);
 - the binned frames' noise sigma over their mean level (colour_target.estimate_downscale's
   ratio) with the file's and with the lens-cap black level, and the downscale the capture's
   illuminant estimates run at on the frames the training uses (loss.ca_noise_ratio).

@@ -16,7 +16,7 @@ gates (`no_gates`: the default before them); every run estimates its own bounds.
 `gridnerf eval` scores a run, on the test views: ours, one grey-world gain on the same
 field, the paper's 2D row (one frame, non-local means) and the generous per-frame
 pipeline (2x2 binning, exposure matched to the reference). The training summary's noise
-sigma and data eps (train.data_noise, train.data_eps: the 2-sigma cap) are shown where
+sigma and data eps (data_term.data_noise, data_term.data_eps: the 2-sigma cap) are shown where
 the run folder is here. Held-out scenes choose nothing; they are reported apart.
 
     python experiments/photons.py [--scenes bucket,held_deep_hall,held_mixed_toys]

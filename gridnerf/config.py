@@ -253,7 +253,7 @@ class LossConfig(_Section):
     data_eps: float = 1e-3
     data_eps_mode: Literal["absolute", "level"] = "absolute"
     # "absolute" on raw targets: the eps never exceeds this many noise sigmas of the
-    # training frames (train.data_noise), so a darker or lower-gain raw is weighed alike
+    # training frames (data_term.data_noise), so a darker or lower-gain raw is weighed alike
     # (0 = no cap). The loss depends on eps / sigma alone (a raw scaled by gamma is the same
     # fit at the same ratio); bucket's darkness sweep, the one scene chosen on, is best at
     # 1.6-2.2 sigma (gamma 0.8 / 0.6: 21.50 / 21.48 dB) and loses past it (3.2 sigma:
@@ -672,7 +672,7 @@ INERT_REFERENCE = LossConfig(ca_target="scene", ca_map_anchor="capture",
 
 def eps_follows_noise(cfg: Config) -> bool:
     """Whether the data term's eps is absolute and weighs raw frames: the runs whose fit
-    depends on the raw's scale, where loss.data_eps_sigmas caps it (train.with_data_eps_cap)
+    depends on the raw's scale, where loss.data_eps_sigmas caps it (data_term.with_data_eps_cap)
     and is otherwise inert."""
     return (cfg.loss.method == "brightnerf" and cfg.loss.data_eps_mode == "absolute"
             and cfg.data.target == "raw")
@@ -683,7 +683,7 @@ def effective(cfg: Config) -> Config:
     values: the GAIN_FIELDS of a run without gains, so that two configs that train alike
     compare equal (cached experiment runs, e.g. the oracle, survive a change of the colour
     defaults), the LLNERF_FIELDS of a run that is not loss.method = "llnerf" (a
-    loss.method = "llnerf" run reads only gain_map of the GAIN_FIELDS: train.llnerf_terms
+    loss.method = "llnerf" run reads only gain_map of the GAIN_FIELDS: llnerf.batch_terms
     replace L_ca and the smoothness), and the MAP_FIELDS of a run whose L_ca target is not
     the illuminant map, loss.data_eps_sigmas where the eps is not absolute or the
     targets are not raw frames, and data.lens_cap_share where the black level is not

@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gridnerf import baseline, color, exposure, losses
+from gridnerf import baseline, color, exposure, losses, render
 from gridnerf.grid import GridStructure
 
 EPS = 1e-6  # floor of the lighting v: r = c / max(v, EPS) and v^gamma stay finite at v = 0
@@ -104,7 +104,7 @@ def enhanced_render(rgb_srgb, gain, acc):
 
 def init_log_gain(mean_level: float, level: float) -> np.ndarray:
     """(3,) log_gain a run starts from: gamma = 1 and alpha = level / mean_level, so the
-    data's mean intensity (mean_level, e.g. train.data_statistics) starts at the exposure
+    data's mean intensity (mean_level, e.g. data_term.data_statistics) starts at the exposure
     level E (as the method's gains start at the L_ca target)."""
     return np.array([np.log(level / max(mean_level, 1e-6)), 0.0, 0.0])
 
@@ -159,3 +159,24 @@ def loss_terms(rgb_srgb, gain, acc, target, mask, patch_shape, level: float,
     return {"data": fit(rgb_srgb, target, mask),
             "exposure": exposure_loss(rgb_e, level, pool),
             "color_constancy": color_constancy_loss(rgb_e)}
+
+
+def batch_terms(structure, params, flat: dict, out: dict, shape, k1, cfg) -> dict:
+    """The LLNeRF-style terms of one batch (for gridnerf.optim.loss_fn; cfg its Config):
+    "data" (the dark render against the dark sRGB, loss.llnerf_data), "exposure" and
+    "color_constancy" (of the enhanced render), "enhance_tv" (grid TV of log alpha and log
+    gamma, rows sampled with k1).
+
+    flat: the batch's (n, 3) arrays; out: its render; shape: (P, p, p, 3). With
+    loss.gain_map = "normalized" the enhancement parameters are composited with
+    stop-gradient weights (render.frozen_density_gain, as for L_ca), so the enhancement
+    losses train the enhancement field alone.
+    """
+    gain, acc = out["gain"], out["acc"]
+    if cfg.loss.gain_map == "normalized":
+        gain, acc = render.frozen_density_gain(out)
+    terms = loss_terms(out["rgb_low"], gain, acc, flat["target"], flat["mask"], shape,
+                       cfg.loss.exposure_level, cfg.loss.exposure_pool, cfg.loss.llnerf_data)
+    terms["enhance_tv"] = enhancement_tv(structure, params["log_gain"], sample_key=k1,
+                                         fraction=cfg.loss.tv_fraction)
+    return terms

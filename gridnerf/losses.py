@@ -69,7 +69,7 @@ def normalized_gain(gain: jax.Array, acc: jax.Array, eps: float = 1e-3) -> jax.A
     transparent renders S ~ 0.5 s; dividing by its opacity gives back the gain of the
     surface, so L_ca no longer pushes the gains of dark, thin rays to target / acc. acc is
     a constant here, and S should come from weights that are constants too (render with
-    stop-gradient density, as train.loss_fn does): then the colour prior sends no gradient
+    stop-gradient density, as optim.loss_fn does): then the colour prior sends no gradient
     to density at all. Rays with acc < eps are divided by eps (they render ~0 anyway).
     """
     acc = jax.lax.stop_gradient(acc)

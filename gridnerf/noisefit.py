@@ -110,7 +110,7 @@ def sim_truth(sim: dict | str | Path) -> dict:
 def neighbour_sigma(target, mask=None) -> float:
     """Noise sigma of training targets from differences of horizontal neighbours.
 
-    target, mask: (..., h, w, 3) (e.g. train.data_noise's ray patches; mask 0/1, None
+    target, mask: (..., h, w, 3) (e.g. data_term.data_noise's ray patches; mask 0/1, None
     = all valid). For each channel, the pairs of horizontally adjacent pixels that are both
     valid in it (binned data: every neighbour; a mosaic's one-hot targets: the same-colour
     pixel two columns on, taken where the adjacent one gives no pair), and the robust sigma

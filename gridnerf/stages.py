@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gridnerf import dataset, grid, render
+from gridnerf import data_term, dataset, grid, illuminant, llnerf, render
 from gridnerf.config import Config
 from gridnerf.errors import NumericsError
 
@@ -162,3 +162,30 @@ def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fi
                  "occupied_fraction": structure.n_rows / float(np.prod(res)),
                  "resolution": res})
     return structure, params, info
+
+
+def initial_grid(data: dataset.RayData, scene, cfg: Config, key, scene_ill=None):
+    """(structure, params) a run starts from: the dense first-stage grid on the scene's box,
+    colour at the data's mean level, gains at the L_ca target (scene_ill (3,), else the
+    data's grey world; ones without gains; loss.method = "llnerf": llnerf.init_log_gain),
+    the backdrop of grid.background."""
+    bbox_min, bbox_max, near_t, _ = dataset.grid_box(scene)
+    if scene.forward_facing and cfg.grid.ndc_xy == "frustums":
+        bbox_min[:2], bbox_max[:2] = dataset.frustum_xy(scene, scene.train_idx, bbox_min,
+                                                        bbox_max, near_t)
+    color_scale, log_gain, mean_colour = data_term.data_statistics(data, jax.random.fold_in(key, 1))
+    if scene_ill is not None:  # start the gains at the target
+        log_gain = np.log(illuminant.gains_from_illuminant(scene_ill, floor=1e-6))
+    if cfg.loss.method == "llnerf":  # alpha brings the mean level to E, gamma 1
+        log_gain = llnerf.init_log_gain(color_scale, cfg.loss.exposure_level)
+    if not cfg.loss.use_gains:
+        log_gain = np.zeros(3)
+    background = grid.BLACK
+    if cfg.grid.background == "mean":  # the capture's mean colour, at the gains' start
+        background = np.stack([mean_colour, np.exp(log_gain)])
+    return grid.init_grid(
+        resolve_resolution(cfg.grid.resolutions[0], bbox_min, bbox_max, data.image_hw,
+                           scene.forward_facing),
+        bbox_min, bbox_max, sh_degree=cfg.grid.sh_degree, init_density=cfg.grid.init_density,
+        init_log_gain=log_gain, color_scale=color_scale, background=background,
+        key=jax.random.fold_in(key, 2))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from conftest import sim_near_far
 
-from gridnerf import darkframes, dng, raw, runfolder
+from gridnerf import darkframes, data_term, dng, raw, runfolder
 from gridnerf.errors import SceneError
 from gridnerf.scene import load_scene
 
@@ -137,11 +137,10 @@ def test_signal_per_colour_and_the_offsets_share_of_it():
 
 def _gate(folder, run, capsys, **data):
     from gridnerf import config as cfgmod
-    from gridnerf import train
 
     cfg = cfgmod.override(cfgmod.preset("default"),
                           [f"data.{k}={v}" for k, v in data.items()])
-    scene = train.with_weak_signal_black_level(_loaded(folder), folder, run, cfg)
+    scene = data_term.with_weak_signal_black_level(_loaded(folder), folder, run, cfg)
     return scene, capsys.readouterr().out
 
 

@@ -13,7 +13,7 @@ import pytest
 _SCRIPT = textwrap.dedent("""
     import json, sys
     import jax, numpy as np
-    from gridnerf import colour_target, dataset, devices, grid, render, train
+    from gridnerf import colour_target, data_term, dataset, devices, grid, optim, render
     from gridnerf import config as cfgmod
     from gridnerf.scene import load_scene
     scene_dir, near, far = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
@@ -21,13 +21,13 @@ _SCRIPT = textwrap.dedent("""
     scene = load_scene(scene_dir, near_far=(near, far))
     data = dataset.build(scene, scene.train_idx, True, 1, "raw")
     lo, hi, near_t, far_t = dataset.grid_box(scene)
-    color_scale, log_gain, _ = train.data_statistics(data, jax.random.PRNGKey(1))
+    color_scale, log_gain, _ = data_term.data_statistics(data, jax.random.PRNGKey(1))
     structure, params = grid.init_grid((16, 16, 8), lo, hi, init_log_gain=log_gain,
                                        color_scale=color_scale)
-    tx = train.make_optimizer(cfg, 5)
+    tx = optim.make_optimizer(cfg, 5)
     opt_state = tx.init(params)
     data, colour = colour_target.colour_inputs(data, scene, cfg)
-    step = train.make_step(cfg, tx, near_t, far_t, **colour)
+    step = optim.make_step(cfg, tx, near_t, far_t, **colour)
     losses = []
     for k in range(3):
         params, opt_state, total, _ = step(params, opt_state, structure, data,

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from gridnerf import grid, losses
+from gridnerf import grid, losses, optim
 
 # jitted once per shape: far cheaper than op-by-op dispatch for these tiny arrays
 data_loss = jax.jit(losses.data_loss)
@@ -250,7 +250,6 @@ def _colour_prior_grads(gain_map: str, smooth_mode: str, illuminant: str = "grey
     from dataclasses import replace
 
     from gridnerf import config as cfgmod
-    from gridnerf import train
 
     c = cfgmod.preset("tiny")
     c = replace(c, render=replace(c.render, max_samples=16),
@@ -260,7 +259,7 @@ def _colour_prior_grads(gain_map: str, smooth_mode: str, illuminant: str = "grey
                              gain_map=gain_map, ca_illuminant=illuminant,
                              ca_target="batch"))  # each batch's own estimate: no frames
     structure, params, rays = _foggy_scene()
-    loss = jax.jit(lambda p: train.loss_fn(p, structure, rays, jax.random.PRNGKey(0), c,
+    loss = jax.jit(lambda p: optim.loss_fn(p, structure, rays, jax.random.PRNGKey(0), c,
                                            -1.0, 1.0)[0])
     return jax.grad(loss)(params)
 
@@ -307,7 +306,6 @@ def test_ca_locus_puts_the_target_on_the_locus():
     from dataclasses import replace
 
     from gridnerf import config as cfgmod
-    from gridnerf import train
     from gridnerf.illuminant import gains_from_illuminant
 
     c = cfgmod.preset("tiny")
@@ -320,7 +318,7 @@ def test_ca_locus_puts_the_target_on_the_locus():
     params = {**params, "log_gain": jnp.broadcast_to(jnp.log(target), params["log_gain"].shape)}
 
     def ca(locus):
-        return float(train.loss_fn(params, structure, rays, jax.random.PRNGKey(0), c, -1.0,
+        return float(optim.loss_fn(params, structure, rays, jax.random.PRNGKey(0), c, -1.0,
                                    1.0, locus)[1]["ca"])
 
     assert ca(light) < 1e-6  # the gains already equal the locus target
@@ -333,7 +331,6 @@ def test_scene_target_replaces_the_batch_estimate():
     from dataclasses import replace
 
     from gridnerf import config as cfgmod
-    from gridnerf import train
     from gridnerf.illuminant import gains_from_illuminant
 
     c = cfgmod.preset("tiny")
@@ -345,7 +342,7 @@ def test_scene_target_replaces_the_batch_estimate():
                                                      params["log_gain"].shape)}
 
     def ca(scene_ill):
-        return float(train.loss_fn(params, structure, rays, jax.random.PRNGKey(0), c, -1.0,
+        return float(optim.loss_fn(params, structure, rays, jax.random.PRNGKey(0), c, -1.0,
                                    1.0, None, scene_ill)[1]["ca"])
 
     assert ca(light) < 1e-6 and ca(3.0 * light) < 1e-6  # the gains equal its target
@@ -360,7 +357,6 @@ def test_level_eps_makes_the_data_term_free_of_the_raw_scale(mode):
     from dataclasses import replace
 
     from gridnerf import config as cfgmod
-    from gridnerf import train
 
     c = cfgmod.override(cfgmod.preset("tiny"), ["render.max_samples=16",
                                                 f"loss.data_eps_mode={mode}",
@@ -371,7 +367,7 @@ def test_level_eps_makes_the_data_term_free_of_the_raw_scale(mode):
     def data_term(gamma):
         s = replace(structure, color_scale=structure.color_scale * gamma)
         r = {**rays, "target": rays["target"] * gamma}
-        return float(train.loss_fn(params, s, r, jax.random.PRNGKey(0), c, -1.0, 1.0)[1]["data"])
+        return float(optim.loss_fn(params, s, r, jax.random.PRNGKey(0), c, -1.0, 1.0)[1]["data"])
 
     ratio = data_term(0.1) / data_term(1.0)
     if mode == "level":

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from gridnerf import config as cfgmod
+from gridnerf import data_term, optim
 from gridnerf.errors import ConfigError
 
 
@@ -63,14 +64,14 @@ def step_setup(small_scene):
     import jax
     from conftest import sim_near_far
 
-    from gridnerf import colour_target, dataset, grid, train
+    from gridnerf import colour_target, dataset, grid
     from gridnerf.scene import load_scene
 
     cfg = _cfg("global")
     scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
     data = dataset.build(scene, scene.train_idx, True, 1, "raw")
     lo, hi, near_t, far_t = dataset.grid_box(scene)
-    color_scale, log_gain, _ = train.data_statistics(data, jax.random.PRNGKey(1))
+    color_scale, log_gain, _ = data_term.data_statistics(data, jax.random.PRNGKey(1))
     structure, params = grid.init_grid((16, 16, 8), lo, hi, init_log_gain=log_gain,
                                        color_scale=color_scale, key=jax.random.PRNGKey(3))
     data, colour = colour_target.colour_inputs(data, scene, cfg)
@@ -83,16 +84,15 @@ def test_one_gain_steps_leave_the_gains_and_train_the_same_field(step_setup):
     no gradient, and L_ca on the normalised map none to density or colour)."""
     import jax
 
-    from gridnerf import train
 
     cfg, structure, params, data, colour, near_t, far_t = step_setup
     assert colour.get("one_gain") is True  # "global"
     field = {k: v for k, v in colour.items() if k != "one_gain"}
     results = {}
     for name, kwargs in (("one", colour), ("field", field)):
-        tx = train.make_optimizer(cfg, 5)
+        tx = optim.make_optimizer(cfg, 5)
         p, s = params, tx.init(params)
-        step = train.make_step(cfg, tx, near_t, far_t, **kwargs)
+        step = optim.make_step(cfg, tx, near_t, far_t, **kwargs)
         for k in range(3):
             p, s, total, terms = step(p, s, structure, data, jax.random.PRNGKey(k))
         assert np.isfinite(float(total))

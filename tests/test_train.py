@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from gridnerf import checkpoint
+from gridnerf import checkpoint, data_term, optim, stages
 from gridnerf import config as cfgmod
 from gridnerf.errors import NumericsError
 
@@ -28,7 +28,7 @@ def _losses(run):
 
 
 def test_training_lowers_the_loss(tiny_run):
-    """The data loss on one fixed batch of training rays, at the start (train.initial_grid,
+    """The data loss on one fixed batch of training rays, at the start (stages.initial_grid,
     composited over black: its fog renders at ~70 % of the data's level) and after
     training; and the opacity term falls in the coarse stage, the only one it acts in.
     (Over the mean-colour backdrop the start is the constant mean colour, which 80 steps of
@@ -38,7 +38,6 @@ def test_training_lowers_the_loss(tiny_run):
     import jax
 
     from gridnerf import colour_target, dataset, eval_run, grid, losses, render
-    from gridnerf import train as trainmod
 
     run, cfg, summary = tiny_run
     _, scene, structure, params, _ = eval_run.load_run(run)
@@ -53,7 +52,7 @@ def test_training_lowers_the_loss(tiny_run):
                                       rays["target"].reshape(-1, 3),
                                       rays["mask"].reshape(-1, 3)))
 
-    start, start_params = trainmod.initial_grid(data, scene, cfg,
+    start, start_params = stages.initial_grid(data, scene, cfg,
                                                 jax.random.PRNGKey(cfg.train.seed),
                                                 colour.get("scene_ill"))
     start = dataclasses.replace(start, background=jax.numpy.asarray(grid.BLACK))
@@ -83,10 +82,9 @@ def test_checkpoint_is_finite_and_loads(tiny_run):
 
 
 def _crash_after(monkeypatch, n_steps: int) -> None:
-    """Make train.make_step's steps raise KeyboardInterrupt after n_steps calls (a kill)."""
-    from gridnerf import train as trainmod
+    """Make optim.make_step's steps raise KeyboardInterrupt after n_steps calls (a kill)."""
 
-    real_make_step, calls = trainmod.make_step, {"n": 0}
+    real_make_step, calls = optim.make_step, {"n": 0}
 
     def crashing_make_step(*args, **kwargs):
         step = real_make_step(*args, **kwargs)
@@ -99,7 +97,7 @@ def _crash_after(monkeypatch, n_steps: int) -> None:
 
         return wrapped
 
-    monkeypatch.setattr(trainmod, "make_step", crashing_make_step)
+    monkeypatch.setattr(optim, "make_step", crashing_make_step)
 
 
 def test_interrupted_training_resumes_from_checkpoint(small_scene, tmp_path, monkeypatch):
@@ -109,14 +107,14 @@ def test_interrupted_training_resumes_from_checkpoint(small_scene, tmp_path, mon
     cfg = replace(cfg, train=replace(cfg.train, steps_per_stage=(20, 20), checkpoint_every=10,
                                      checkpoint_seconds=0.0, log_every=4))
     run = tmp_path / "run"
-    real_make_step = trainmod.make_step
+    real_make_step = optim.make_step
     _crash_after(monkeypatch, 33)  # dies at stage 1 step 14, after its step-10 checkpoint
     with pytest.raises(KeyboardInterrupt):
         trainmod.train(small_scene, run, cfg)
     _, _, opt_leaves, header = trainmod.load_state(run)
     assert (header["stage"], header["step"]) == (1, 10)
     assert opt_leaves  # optimiser state is saved mid-stage
-    monkeypatch.setattr(trainmod, "make_step", real_make_step)
+    monkeypatch.setattr(optim, "make_step", real_make_step)
     trainmod.train(small_scene, run, cfg)
     resumed = [r for r in _losses(run) if r["stage"] == 1]
     # 4, 8 and 12 were logged before the crash; 12 (after the checkpoint) is trimmed and redone
@@ -255,7 +253,7 @@ def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch
         "grid.resolutions=[[16,0,8],[24,0,12]]", "train.steps_per_stage=[10,10]",
         "train.checkpoint_every=5", "train.checkpoint_seconds=0"])
     run = tmp_path / "run"
-    real_make_step = trainmod.make_step
+    real_make_step = optim.make_step
     _crash_after(monkeypatch, 17)  # dies in stage 1 after its step-5 checkpoint
     with pytest.raises(KeyboardInterrupt):
         trainmod.train(small_scene, run, cfg)
@@ -269,7 +267,7 @@ def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch
     h, w = scene.cameras.height // 2, scene.cameras.width // 2
     assert structure.resolution == stages.resolve_resolution(
         (24, 0, 12), lo, hi, (h, w), scene.forward_facing)
-    monkeypatch.setattr(trainmod, "make_step", real_make_step)
+    monkeypatch.setattr(optim, "make_step", real_make_step)
     summary = trainmod.train(small_scene, run, cfg)
     assert summary["resolution"] == list(structure.resolution)
     assert summary["data_level"] == structure.color_scale > 0  # loss.data_eps_mode=level's unit
@@ -313,14 +311,14 @@ def test_stopped_before_the_first_checkpoint_starts_over(small_scene, tmp_path, 
     run = tmp_path / "run"
     monkeypatch.chdir(small_scene.parent)
     relative = small_scene.relative_to(small_scene.parent)
-    real_make_step = trainmod.make_step
+    real_make_step = optim.make_step
     _crash_after(monkeypatch, 5)  # logged steps 2 and 4, no checkpoint
     with pytest.raises(KeyboardInterrupt):
         trainmod.train(relative, run, first)
     assert not (run / "checkpoint.npz").exists()
     assert cfgmod.load(run / "config.json") == first
     assert [r["step"] for r in _losses(run)] == [2, 4]
-    monkeypatch.setattr(trainmod, "make_step", real_make_step)
+    monkeypatch.setattr(optim, "make_step", real_make_step)
     summary = trainmod.train(relative, run, second)
     assert cfgmod.load(run / "config.json") == second
     assert [r["step"] for r in _losses(run)] == [2, 4, 6, 8]
@@ -423,7 +421,7 @@ def test_opacity_prior_only_in_its_stages():
     """loss.opacity_stages = n: stages < n train with the prior, later ones without; 0 keeps
     it everywhere; a negative count is refused."""
     from gridnerf.errors import ConfigError
-    from gridnerf.train import stage_config
+    from gridnerf.optim import stage_config
 
     cfg = cfgmod.override(cfgmod.preset("default"), ["loss.opacity=0.1",
                                                      "loss.opacity_stages=1"])
@@ -479,7 +477,7 @@ def test_illuminant_map_target_trains(small_scene, tmp_path):
     recs = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     assert all(np.isfinite(r["ca"]) for r in recs)
     with pytest.raises(ValueError, match="illuminant map"):
-        train.loss_fn(*_loss_args(cfg, data, scene))
+        optim.loss_fn(*_loss_args(cfg, data, scene))
 
 
 def _loss_args(cfg, data, scene):
@@ -505,13 +503,13 @@ def test_fitted_black_offsets_train_and_resume(small_scene, tmp_path, monkeypatc
         "data.black_offset=fit", "train.steps_per_stage=[20,20]", "train.checkpoint_every=10",
         "train.checkpoint_seconds=0"])
     run = tmp_path / "run"
-    real_make_step = trainmod.make_step
+    real_make_step = optim.make_step
     _crash_after(monkeypatch, 33)  # dies in the last stage, after its step-10 checkpoint
     with pytest.raises(KeyboardInterrupt):
         trainmod.train(small_scene, run, cfg)
     b = sensorfit.load_offsets(run)
     assert b is not None and b.shape == (2, 2) and np.isfinite(b).all()
-    monkeypatch.setattr(trainmod, "make_step", real_make_step)
+    monkeypatch.setattr(optim, "make_step", real_make_step)
     monkeypatch.setattr(sensorfit, "fit_field", lambda *a, **k: pytest.fail("fitted twice"))
     summary = trainmod.train(small_scene, run, cfg)
     np.testing.assert_array_equal(sensorfit.load_offsets(run), b)
@@ -532,7 +530,7 @@ def test_dark_frame_black_level_trains_resumes_and_reaches_eval(small_scene, tmp
         "data.black_offset=dark", "train.steps_per_stage=[20,20]", "train.checkpoint_every=10",
         "train.checkpoint_seconds=0"])
     run = tmp_path / "run"
-    real_make_step = trainmod.make_step
+    real_make_step = optim.make_step
     _crash_after(monkeypatch, 33)
     with pytest.raises(KeyboardInterrupt):
         trainmod.train(small_scene, run, cfg)
@@ -540,7 +538,7 @@ def test_dark_frame_black_level_trains_resumes_and_reaches_eval(small_scene, tmp
     truth = json.loads((small_scene / "sim.json").read_text())["noise"][
         "black_bias_dn_per_cfa_position"]
     np.testing.assert_allclose(offset, truth, atol=0.4)
-    monkeypatch.setattr(trainmod, "make_step", real_make_step)
+    monkeypatch.setattr(optim, "make_step", real_make_step)
     monkeypatch.setattr(darkframes, "measure", lambda *a, **k: pytest.fail("measured twice"))
     summary = trainmod.train(small_scene, run, cfg)
     np.testing.assert_array_equal(summary["black_offset_dn"], offset)
@@ -602,47 +600,45 @@ def test_fitted_candidates_render_the_training_rays_unchanged(tiny_run):
 
 
 def test_data_eps_note_only_where_the_absolute_eps_exceeds_the_noise():
-    """train.data_eps_note on the steps' config: silent at the simulator's noise (absolute
+    """data_term.data_eps_note on the steps' config: silent at the simulator's noise (absolute
     eps 0.86-1.44 sigma at gamma 1), with the level eps and under the default cap; past 2.5
     sigma (the cap off) it names the ratio and the fix."""
-    from gridnerf import train
 
     cfg = cfgmod.override(cfgmod.Config(), ["loss.data_eps_sigmas=0"])
-    assert train.data_eps_note(cfg, 0.00074) is None  # bucket at gamma 1: 1.35 sigma
-    assert train.data_eps_note(cfg, 0.6 * 0.00074) is None  # gamma 0.6: 2.25 sigma
-    note = train.data_eps_note(cfg, 0.4 * 0.00074)  # gamma 0.4: 3.4 sigma
+    assert data_term.data_eps_note(cfg, 0.00074) is None  # bucket at gamma 1: 1.35 sigma
+    assert data_term.data_eps_note(cfg, 0.6 * 0.00074) is None  # gamma 0.6: 2.25 sigma
+    note = data_term.data_eps_note(cfg, 0.4 * 0.00074)  # gamma 0.4: 3.4 sigma
     assert note is not None and "3.4x" in note and "loss.data_eps_sigmas=2" in note
-    assert train.data_eps_note(cfg, float("nan")) is None  # no neighbours to measure
-    assert train.data_eps_note(cfg, 0.0) is None  # noiseless frames: nothing to compare
+    assert data_term.data_eps_note(cfg, float("nan")) is None  # no neighbours to measure
+    assert data_term.data_eps_note(cfg, 0.0) is None  # noiseless frames: nothing to compare
     level = cfgmod.override(cfg, ["loss.data_eps_mode=level", "loss.data_eps=0.5"])
-    assert train.data_eps_note(level, 0.1 * 0.00074) is None
+    assert data_term.data_eps_note(level, 0.1 * 0.00074) is None
     default = cfgmod.Config()  # the cap: the steps' eps is 2 sigma, below the note's 2.5
-    assert train.data_eps_note(train.with_data_eps_cap(default, 0.1 * 0.00074),
+    assert data_term.data_eps_note(data_term.with_data_eps_cap(default, 0.1 * 0.00074),
                                0.1 * 0.00074) is None
 
 
 def test_data_eps_cap_binds_only_on_darker_raw_frames():
-    """train.with_data_eps_cap: RawNeRF's 1e-3 is kept where it is under 2 noise sigmas (the
+    """data_term.with_data_eps_cap: RawNeRF's 1e-3 is kept where it is under 2 noise sigmas (the
     simulated scenes at gamma 1: the config itself comes back); below, the eps is 2 sigma;
     the level eps, non-raw targets, the llnerf method, a cap of 0 and an unmeasured or
     zero sigma are left alone."""
-    from gridnerf import train
 
     cfg = cfgmod.Config()
-    assert train.with_data_eps_cap(cfg, 0.00074) is cfg  # 1.35 sigma
-    capped = train.with_data_eps_cap(cfg, 0.1 * 0.00074)  # 13.5 sigma
+    assert data_term.with_data_eps_cap(cfg, 0.00074) is cfg  # 1.35 sigma
+    capped = data_term.with_data_eps_cap(cfg, 0.1 * 0.00074)  # 13.5 sigma
     assert capped.loss.data_eps == pytest.approx(2 * 0.1 * 0.00074)
     assert cfgmod.diff(cfg, capped) == ["loss.data_eps"]
     three = cfgmod.override(cfg, ["loss.data_eps_sigmas=3"])
-    assert train.with_data_eps_cap(three, 1e-4).loss.data_eps == pytest.approx(3e-4)
+    assert data_term.with_data_eps_cap(three, 1e-4).loss.data_eps == pytest.approx(3e-4)
     for sets in (["loss.data_eps_mode=level", "loss.data_eps=0.5"], ["data.target=processed"],
                  ["loss.data_eps_sigmas=0"]):
         other = cfgmod.override(cfg, sets)
-        assert train.with_data_eps_cap(other, 1e-5) is other, sets
+        assert data_term.with_data_eps_cap(other, 1e-5) is other, sets
     llnerf = cfgmod.preset("llnerf")
-    assert train.with_data_eps_cap(llnerf, 1e-5) is llnerf
+    assert data_term.with_data_eps_cap(llnerf, 1e-5) is llnerf
     for sigma in (0.0, float("nan")):
-        assert train.with_data_eps_cap(cfg, sigma) is cfg
+        assert data_term.with_data_eps_cap(cfg, sigma) is cfg
 
 
 def test_capped_data_term_is_the_same_at_every_gamma():
@@ -651,7 +647,7 @@ def test_capped_data_term_is_the_same_at_every_gamma():
     cap binds, and the uncapped absolute eps does not."""
     import jax.numpy as jnp
 
-    from gridnerf import losses, train
+    from gridnerf import losses
 
     rng = np.random.default_rng(1)
     render = jnp.asarray(0.002 + 0.002 * rng.random((256, 3)), jnp.float32)
@@ -661,7 +657,7 @@ def test_capped_data_term_is_the_same_at_every_gamma():
     cfg = cfgmod.Config()
 
     def loss(gamma, c):
-        eps = train.with_data_eps_cap(c, gamma * sigma).loss.data_eps
+        eps = data_term.with_data_eps_cap(c, gamma * sigma).loss.data_eps
         return float(losses.data_loss(gamma * render, gamma * target, mask, eps))
 
     assert loss(0.1, cfg) == pytest.approx(loss(0.3, cfg), rel=1e-4)  # both capped
@@ -670,13 +666,13 @@ def test_capped_data_term_is_the_same_at_every_gamma():
 
 
 def test_data_noise_measures_the_frames_noise_and_scales_with_them(small_scene):
-    """train.data_noise on ray data whose frames are smooth shading plus Gaussian noise of
+    """data_term.data_noise on ray data whose frames are smooth shading plus Gaussian noise of
     known sigma: within 5 %; the frames scaled by gamma (data.exposure_ratio's protocol)
     give gamma x sigma; a saturated (masked) half changes nothing."""
     import jax
     from conftest import sim_near_far
 
-    from gridnerf import dataset, train
+    from gridnerf import dataset
     from gridnerf.scene import load_scene
 
     scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
@@ -693,12 +689,12 @@ def test_data_noise_measures_the_frames_noise_and_scales_with_them(small_scene):
                        inv_exposure=jax.numpy.ones((n,), np.float32))
 
     key = jax.random.PRNGKey(0)
-    got = train.data_noise(with_frames(noisy), key)
+    got = data_term.data_noise(with_frames(noisy), key)
     assert abs(got / sigma - 1.0) < 0.05
-    np.testing.assert_allclose(train.data_noise(with_frames(0.1 * noisy), key), 0.1 * got,
+    np.testing.assert_allclose(data_term.data_noise(with_frames(0.1 * noisy), key), 0.1 * got,
                                rtol=1e-4)
     clipped = noisy.copy()
     clipped[:, :, : w // 2] = 1.0  # saturated: masked out, and no noise to measure there
     valid = np.ones((n, h, w, 3), bool)
     valid[:, :, : w // 2] = False
-    assert abs(train.data_noise(with_frames(clipped, valid), key) / sigma - 1.0) < 0.05
+    assert abs(data_term.data_noise(with_frames(clipped, valid), key) / sigma - 1.0) < 0.05
