@@ -14,7 +14,8 @@ Writes <out>.md and <out>.json: per scene, then the mean over each report group 
 cover (nine built-in, tuning, held out, mixed light, held-out mixed light), each apart.
 
     python experiments/ablate.py [--scenes all|nine|heldout|a,b]
-                                 [--study parts|colour|smoothness|eps] [--quick]
+                                 [--study parts|colour|smoothness|eps|gain_model|tv_fraction]
+                                 [--quick]
 """
 
 from __future__ import annotations
@@ -99,8 +100,19 @@ GAIN_MODEL_VARIANTS = [
     ("auto_dark", "one gain where one light, lens-cap black level", "gain_auto_dark",
      "default", ["loss.gain_model=auto", "data.black_offset=dark"]),
 ]
+# --study tv_fraction: the share of the grid's rows the four grid regularisers (TV of
+# density, of colour, of the gains; sparsity) sample per step. Their backward scatters are
+# about 30 % of the last stage's step (docs/speed.md, session 26); at a tenth of the rows
+# the step is ~16 % faster (session 30). Is it free? Nothing was chosen on these runs
+TV_FRACTION_VARIANTS = [
+    ("tv_0.25", "grid regularisers on 25 % of the rows per step (default)", "default",
+     "default", []),
+    ("tv_0.1", "grid regularisers on 10 % of the rows per step", "tv0.1", "default",
+     ["loss.tv_fraction=0.1"]),
+]
 STUDIES = {"parts": VARIANTS, "colour": COLOUR_VARIANTS, "smoothness": SMOOTHNESS_VARIANTS,
-           "eps": EPS_VARIANTS, "gain_model": GAIN_MODEL_VARIANTS}
+           "eps": EPS_VARIANTS, "gain_model": GAIN_MODEL_VARIANTS,
+           "tv_fraction": TV_FRACTION_VARIANTS}
 # (column, eval summary key) shown for every variant; the no-gain run adds its global gain
 OUTPUTS = [("matrix", "gridnerf"), ("matrix_free", "gridnerf_matrix_free"),
            ("global_gain", "global_grey_world")]
@@ -197,7 +209,8 @@ def main() -> None:
     ap.add_argument("--study", default="parts", choices=list(STUDIES),
                     help="parts: Bright-NeRF's parts; colour: white balance and estimators; "
                     "smoothness: the gains' TV weight; eps: the data term's epsilon; "
-                    "gain_model: one gain where one light against the field")
+                    "gain_model: one gain where one light against the field; tv_fraction: the "
+                    "grid regularisers' row sample")
     args = ap.parse_args()
     out = args.out or ("reports/ablation" if args.study == "parts"
                        else f"reports/ablation_{args.study}")

@@ -90,7 +90,9 @@ STUDIES = [("ablation", "Ablation", "ablate"), ("sweep", "Darkness sweep", "swee
            ("black_level", "The black level from lens-cap frames", "black_level"),
            ("dark_gates", "Low-light gates (where they bind)", "dark_gates"),
            ("ablation_gain_model", "One gain where one light (loss.gain_model)", "ablate"),
-           ("offset_cast", "A partial white balance against the black level", "offset_cast")]
+           ("offset_cast", "A partial white balance against the black level", "offset_cast"),
+           ("ablation_tv_fraction", "The grid regularisers' row sample (loss.tv_fraction)",
+            "ablate")]
 QUICK_SCENES = ["bucket", "held_arc_brick"]
 METRICS = ("psnr", "ssim", "delta_e", "psnr_aligned", "ssim_aligned", "delta_e_aligned")
 
