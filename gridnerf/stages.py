@@ -1,6 +1,8 @@
-"""Coarse to fine: the grid between training stages, and the rays that decide it.
+"""Coarse to fine: the grid a run starts from, the grid between training stages, and the
+rays that decide it.
 
-Training runs one stage per resolution in grid.resolutions. Between stages the grid is
+Training starts from a dense first-stage grid on the scene's box (initial_grid) and runs
+one stage per resolution in grid.resolutions. Between stages the grid is
 carved to what the training rays see, its box optionally refitted to the content, and
 resampled to the next resolution (next_stage_grid; docs/reconstruction.md). Each stage's
 step then tests only as many candidate voxels per ray as its training rays cross
