@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from gridnerf import cameras as cam_mod
-from gridnerf import poses
+from gridnerf import pose_files, poses
 from gridnerf.cameras import Cameras
 from gridnerf.errors import GridNerfError
 from gridnerf.scene import raw_files
@@ -93,7 +93,7 @@ def from_sfm(scene_dir: Path, cams: Cameras) -> Bounds | None:
                                                 if im.has_pose}]
         if len(registered) < 3:
             return None
-        colmap_cams, points = cam_mod.load_colmap(sparse, registered)
+        colmap_cams, points = pose_files.load_colmap(sparse, registered)
     given = cams.take([cams.names.index(n) for n in registered]).c2w[:, :, 3]
     scale = pair_scale(given, colmap_cams.c2w[:, :, 3])
     found = cam_mod.bounds_from_points(colmap_cams, points, margin=0.0)

@@ -29,7 +29,7 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 
-from gridnerf import baseline, color, raw
+from gridnerf import baseline, color, pose_files, raw
 from gridnerf import cameras as cam_mod
 from gridnerf.errors import PoseError, SceneError
 from gridnerf.scene import raw_files
@@ -167,7 +167,7 @@ def _previous(transforms: Path):
     if not transforms.is_file():
         return None, None
     try:
-        cams, split, _ = cam_mod.load_transforms(transforms)
+        cams, split, _ = pose_files.load_transforms(transforms)
     except SceneError:
         return None, None
     return cams, split
@@ -294,7 +294,7 @@ def estimate_poses(scene_dir, min_registered_fraction: float = 0.5,
         }
         sparse = _install(rec, scene)
 
-    cams_colmap, points = cam_mod.load_colmap(sparse, registered_names)
+    cams_colmap, points = pose_files.load_colmap(sparse, registered_names)
     height, width = raw.read_raw(files[registered_names[0]]).raw_bayer.shape
     cams = cam_mod.resize_to(cams_colmap, width, height, where)
     near_far = cam_mod.bounds_from_points(cams_colmap, points, margin=0.1)
@@ -304,7 +304,7 @@ def estimate_poses(scene_dir, min_registered_fraction: float = 0.5,
         test = [x for x in prev_split["test"] if x in registered]
     if transforms.exists():
         os.replace(transforms, scene / "transforms.prev.json")
-    cam_mod.write_transforms(transforms, cams, train, test, near_far)
+    pose_files.write_transforms(transforms, cams, train, test, near_far)
     report = {
         "registered": k,
         "total": n,

@@ -1,7 +1,7 @@
 """Scene folder -> `Scene`: uint16 frame cache, cameras in a normalised world, split, gt paths.
 
 Layouts, in priority order for the poses:
-1. `transforms.json` (nerfstudio; gridnerf's own format, see cameras.load_transforms),
+1. `transforms.json` (nerfstudio; gridnerf's own format, see pose_files.load_transforms),
 2. `sparse/0` (COLMAP, the RawNeRF layout; frames = sorted raw files),
 3. `poses_bounds.npy` (LLFF; one row per sorted raw file).
 near/far: an explicit `near_far` argument, else transforms.json `near_far`, else the
@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gridnerf import cameras as cam_mod
-from gridnerf import raw, rays
+from gridnerf import pose_files, raw, rays
 from gridnerf.cameras import Cameras
 from gridnerf.errors import PoseError, SceneError
 
@@ -212,7 +212,7 @@ def _poses(scene: pathlib.Path, files):
     transforms, sparse, llff = (scene / "transforms.json", scene / "sparse" / "0",
                                 scene / "poses_bounds.npy")
     if transforms.is_file():
-        cams, split, near_far = cam_mod.load_transforms(transforms)
+        cams, split, near_far = pose_files.load_transforms(transforms)
         missing = [n for n in cams.names if n not in files]
         if missing:
             raise SceneError(transforms, f"frames {missing[:5]} have no raw file in raw/",
@@ -226,7 +226,7 @@ def _poses(scene: pathlib.Path, files):
         return cams.names, cams, split, near_far, transforms, None
     names = tuple(sorted(files))
     if sparse.is_dir():
-        cams, points = cam_mod.load_colmap(sparse, names)
+        cams, points = pose_files.load_colmap(sparse, names)
         return names, cams, None, None, sparse, points
     if llff.is_file():
         return names, None, None, None, llff, None
@@ -259,7 +259,7 @@ def _near_far(scene: pathlib.Path, near_far, colmap_points, colmap_cams) -> tupl
                          "fix poses_bounds.npy or add near_far to transforms.json")
     sparse = scene / "sparse" / "0"
     if colmap_points is None and sparse.is_dir():
-        colmap_cams, colmap_points = cam_mod.load_colmap(sparse)
+        colmap_cams, colmap_points = pose_files.load_colmap(sparse)
     if colmap_points is not None and len(colmap_points):
         bounds = cam_mod.bounds_from_points(colmap_cams, colmap_points)
         if bounds is not None and 0 < bounds[0] < bounds[1]:
@@ -340,7 +340,7 @@ def load_scene(path, near_far: tuple[float, float] | None = None) -> Scene:
     first, raw_bayer, meta = _read_frames(names, files)
     height, width = raw_bayer.shape[1:]
     if cams is None:
-        cams, _ = cam_mod.load_llff(source, names, width, height)
+        cams, _ = pose_files.load_llff(source, names, width, height)
         near, far = near_far or _near_far(scene, file_near_far, points, cams)
     cams = cam_mod.resize_to(cams, width, height, source)
     cam_mod.validate(cams, source)

@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from gridnerf import cameras as cam_mod
-from gridnerf import rays
+from gridnerf import pose_files, rays
 from gridnerf.errors import PoseError, SceneError
 
 W, H, F = 64, 48, 60.0  # principal point at the centre so LLFF can describe the same camera
@@ -69,12 +69,12 @@ def test_three_formats_agree_and_rays_hit_the_point(tmp_path):
     d_cam = np.array([(10.5 - W / 2) / F, -(7.5 - H / 2) / F, -1.0])
     np.testing.assert_allclose(point, 3.5 * cams.c2w[0, :, :3] @ d_cam, atol=1e-12)
 
-    cam_mod.write_transforms(tmp_path / "transforms.json", cams, ["a", "b"], ["c"], (1.0, 9.0))
-    from_json, split, near_far = cam_mod.load_transforms(tmp_path / "transforms.json")
+    pose_files.write_transforms(tmp_path / "transforms.json", cams, ["a", "b"], ["c"], (1.0, 9.0))
+    from_json, split, near_far = pose_files.load_transforms(tmp_path / "transforms.json")
     _write_colmap_text(tmp_path / "sparse" / "0", cams, [point])
-    from_colmap, points = cam_mod.load_colmap(tmp_path / "sparse" / "0", names=list(NAMES))
+    from_colmap, points = pose_files.load_colmap(tmp_path / "sparse" / "0", names=list(NAMES))
     _write_llff(tmp_path / "poses_bounds.npy", cams, scale=0.5)
-    from_llff, bounds = cam_mod.load_llff(tmp_path / "poses_bounds.npy", NAMES, W, H)
+    from_llff, bounds = pose_files.load_llff(tmp_path / "poses_bounds.npy", NAMES, W, H)
 
     assert split == {"train": ["a", "b"], "test": ["c"]} and near_far == (1.0, 9.0)
     np.testing.assert_allclose(points, [point], atol=1e-9)
@@ -197,20 +197,20 @@ def test_transforms_overrides_splits_and_errors(tmp_path):
     meta["frames"][2]["fl_x"] = 70.0
     meta["test_filenames"] = ["b"]  # a stem; train is the rest
     path.write_text(json.dumps(meta))
-    cams, split, near_far = cam_mod.load_transforms(path)
+    cams, split, near_far = pose_files.load_transforms(path)
     np.testing.assert_allclose(cams.fx, [F, F, 70.0])
     assert split == {"train": ["a", "c"], "test": ["b"]} and near_far is None
 
     meta["test_filenames"] = ["raw/zzz.dng"]
     path.write_text(json.dumps(meta))
     with pytest.raises(SceneError, match="zzz"):
-        cam_mod.load_transforms(path)
+        pose_files.load_transforms(path)
 
     meta = _meta()
     del meta["frames"][1]["transform_matrix"]
     path.write_text(json.dumps(meta))
     with pytest.raises(PoseError, match="gridnerf poses") as info:
-        cam_mod.load_transforms(path)
+        pose_files.load_transforms(path)
     assert str(path) in str(info.value) and "'b'" in str(info.value)
 
 
@@ -218,12 +218,12 @@ def test_llff_and_colmap_errors(tmp_path):
     cams = _scene_cams()
     _write_llff(tmp_path / "poses_bounds.npy", cams, scale=1.0)
     with pytest.raises(SceneError, match="3 poses for 4 raw frames"):
-        cam_mod.load_llff(tmp_path / "poses_bounds.npy", ["a", "b", "c", "d"], W, H)
+        pose_files.load_llff(tmp_path / "poses_bounds.npy", ["a", "b", "c", "d"], W, H)
     np.save(tmp_path / "bad.npy", np.zeros((3, 15)))
     with pytest.raises(SceneError, match="17"):
-        cam_mod.load_llff(tmp_path / "bad.npy", NAMES, W, H)
+        pose_files.load_llff(tmp_path / "bad.npy", NAMES, W, H)
     with pytest.raises(SceneError, match="aspect"):
-        cam_mod.load_llff(tmp_path / "poses_bounds.npy", NAMES, W, W)
+        pose_files.load_llff(tmp_path / "poses_bounds.npy", NAMES, W, W)
     _write_colmap_text(tmp_path / "sparse", cams, np.zeros((1, 3)))
     with pytest.raises(PoseError, match="remove the frame"):
-        cam_mod.load_colmap(tmp_path / "sparse", names=["a", "d"])
+        pose_files.load_colmap(tmp_path / "sparse", names=["a", "d"])

@@ -11,6 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from gridnerf import cameras as cam_mod
+from gridnerf import pose_files
 from gridnerf.dng import write_dng
 from gridnerf.errors import PoseError
 from gridnerf.poses import estimate_poses, pose_agreement, umeyama
@@ -22,7 +23,7 @@ def test_estimate_poses_on_simulated_box(tmp_path):
 
     scene = simulate_scene("box", tmp_path / "box", width=320, height=180, n_frames=12, seed=0)
     from_jpeg = shutil.copytree(scene, tmp_path / "box_jpeg")
-    truth, truth_split, _ = cam_mod.load_transforms(scene / "transforms.json")
+    truth, truth_split, _ = pose_files.load_transforms(scene / "transforms.json")
 
     # Previews made from the RAW frames: registration and accuracy against the true poses
     # (the simulator's transforms.json, moved to transforms.prev.json and compared).
@@ -36,7 +37,7 @@ def test_estimate_poses_on_simulated_box(tmp_path):
     assert report["rotation_error_deg"] < 1.0 and report["rotation_error_deg_max"] < 2.0
     assert report["position_error_relative"] < 0.15
 
-    cams, split, near_far = cam_mod.load_transforms(scene / "transforms.json")
+    cams, split, near_far = pose_files.load_transforms(scene / "transforms.json")
     assert set(cams.names) == set(truth.names) - set(report["dropped"])
     assert split["test"] == [n for n in truth_split["test"] if n in cams.names]
     assert (cams.width, cams.height) == (320, 180)

@@ -12,7 +12,7 @@ from conftest import sim_near_far
 from scipy.spatial.transform import Rotation
 
 from gridnerf import cameras as cam_mod
-from gridnerf import raw
+from gridnerf import pose_files, raw
 from gridnerf.dng import write_dng
 from gridnerf.errors import PoseError, RawError, SceneError
 from gridnerf.scene import BoundsMissing, load_scene
@@ -47,7 +47,7 @@ def _make_scene(root, split=True, near_far=(2.0, 10.0)):
         _write_frame(root / "raw" / f"{name}.dng", k)
     test = [n for k, n in enumerate(cams.names) if k % 3 == 0] if split else None
     train = [n for n in cams.names if n not in test] if split else None
-    cam_mod.write_transforms(root / "transforms.json", cams, train, test, near_far)
+    pose_files.write_transforms(root / "transforms.json", cams, train, test, near_far)
     return root, cams
 
 
