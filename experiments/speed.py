@@ -10,6 +10,8 @@ in <runs>/speed/<preset>/cache. Writes <out>.md (time-to-quality table), <out>.j
 <out>.png (one curve per preset, one panel per scene).
 
     python experiments/speed.py [--scenes bucket] [--presets fast,default,fine] [--quick]
+
+A preset may carry overrides after "+": `--presets default,default+loss.tv_fraction=0.1`.
 """
 
 from __future__ import annotations
@@ -36,12 +38,16 @@ PRESETS = ("fast", "default", "fine")
 
 
 def curve(scene: str, preset: str, runs: Path, every: int, quick: bool) -> dict:
-    """{"points": [{"wall_s", "step", "stage", "psnr"}], "train": the training item}."""
+    """{"points": [{"wall_s", "step", "stage", "psnr"}], "train": the training item}.
+
+    preset: a preset's name, optionally with overrides after "+", e.g.
+    "default+loss.tv_fraction=0.1" (each its own curve and cache folder)."""
     folder = scene_dir(scene, quick)
-    sets = quick_sets(cfgmod.preset(preset)) if quick else []
+    name, *extra = preset.split("+")
+    sets = (quick_sets(cfgmod.preset(name)) if quick else []) + extra
     meta = json.loads((folder / "sim.json").read_text()) if (folder / "sim.json").is_file() \
         else {"width": 0, "height": 0}
-    cfg = {**bench.FULL, "preset": preset, "sets": sets, "snapshot_every": every, "jobs": 1}
+    cfg = {**bench.FULL, "preset": name, "sets": sets, "snapshot_every": every, "jobs": 1}
     b = bench.Bench(Path(runs).resolve() / "speed" / preset, cfg, fresh=False, quick=False,
                     scene=folder.name, folder=folder.resolve())
     run = b.train("small", (meta["width"], meta["height"]), snapshots=True, need_run=True)
