@@ -1,6 +1,7 @@
 """What the data term is fitted against: the black level, the frames' noise, the eps.
 
-Decided once per run, before the first step (gridnerf.train):
+Decided once per run by gridnerf.train, before the first step (the fitted offsets: before
+the last stage, against the previous stage's field):
 - `with_weak_signal_black_level`: the file's black level, or the lens-cap frames' where an
   unknown offset would be a large share of the weakest colour's signal;
 - `with_fitted_offsets`: per-CFA black offsets fitted against the field (data.black_offset
