@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gridnerf import baseline, image_io, llnerf, raw, rays
+from gridnerf import baseline, image_io, raw, rays
 from gridnerf.errors import SceneError
 from gridnerf.scene import Scene
 
@@ -39,9 +39,6 @@ class RayData:
     cfa: jax.Array  # (2, 2) int32 colour index per CFA position
     # (N, hb, wb, 3) per-frame L_ca illuminant map (loss.ca_target = "map", with_map) or None
     illuminant_map: jax.Array | None = None
-    # (2, 2) black offset per CFA position in normalised raw, taken off the targets
-    # (data.black_offset = "fit", gridnerf.sensorfit), or None
-    black_offset: jax.Array | None = None
     mosaic: bool = field(default=False, metadata={"static": True})
     ndc: bool = field(default=True, metadata={"static": True})
 
@@ -57,88 +54,84 @@ def training_data(scene: Scene, data_cfg) -> RayData:
                  data_cfg.target, data_cfg.exposure_ratio)
 
 
+def _binned_only(scene: Scene, binning: bool, target: str) -> None:
+    if not binning:
+        raise SceneError(scene.path, f"data.target={target} trains on binned frames: it needs "
+                         "data.binning=true", "set data.binning=true")
+
+
+def raw_frames(scene: Scene, frames, binning: bool, downscale: int, exposure_ratio: float):
+    """The capture itself: binned camera RGB (rgb_cam) with its validity, or the Bayer
+    mosaic (raw_bayer, uint16), divided by each frame's exposure times exposure_ratio
+    (gamma: I_gamma = I_raw gamma after black-level removal, the paper's darkness sweep:
+    noise and signal alike, so only the magnitude changes)."""
+    inv_exposure = (float(exposure_ratio) / scene.exposure[frames]).astype(np.float32)
+    if binning:
+        pairs = [scene.rgb_cam_binned(int(i), downscale) for i in frames]
+        return (np.stack([p[0] for p in pairs]).astype(np.float32),
+                np.stack([p[1] for p in pairs]), inv_exposure)
+    if downscale != 1:
+        raise ValueError("mosaic training needs data.downscale=1 (use binning to downscale)")
+    return scene.raw_bayer[frames], np.ones(len(frames), bool), inv_exposure
+
+
+def reference_frames(scene: Scene, frames, binning: bool, downscale: int, exposure_ratio: float):
+    """The oracle's data: the clean normal-light references gt/<name>.exr (rgb_linear)
+    box-downscaled to the binned size, exposure 1, all valid."""
+    missing = [scene.names[i] for i in frames if scene.names[i] not in scene.gt_linear_paths]
+    if missing or not binning:
+        raise SceneError(scene.path / "gt", f"the oracle needs gt/<name>.exr for every "
+                         f"training frame (missing: {missing[:3]}) and data.binning=true",
+                         "train the oracle only on scenes with references")
+    pixels = np.stack([raw.downscale(image_io.read_exr(scene.gt_linear_paths[scene.names[i]]),
+                                     2 * downscale) for i in frames]).astype(np.float32)
+    return pixels, np.ones(pixels.shape, bool), np.ones(len(frames), np.float32)
+
+
+def processed_frames(scene: Scene, frames, binning: bool, downscale: int, exposure_ratio: float):
+    """The "2D + NeRF" data: each training frame processed on its own by the 2D pipeline
+    (baseline.process_denoised_frame: demosaic, grey world, colour matrix, auto exposure,
+    non-local means; rgb_linear), box-downscaled to the binned size, exposure 1."""
+    _binned_only(scene, binning, "processed")
+    pixels = np.stack([raw.downscale(baseline.process_denoised_frame(
+        scene.raw_normalized(int(i)), scene.cfa, scene.xyz_to_cam), 2 * downscale)
+        for i in frames]).astype(np.float32)
+    return pixels, np.ones(pixels.shape, bool), np.ones(len(frames), np.float32)
+
+
+# data.target -> (scene, frames, binning, downscale, exposure_ratio) -> (pixels, valid,
+# inv_exposure); a method with targets of its own passes its function to build
+TARGETS = {"raw": raw_frames, "reference": reference_frames, "processed": processed_frames}
+
+
 def build(scene: Scene, frames: np.ndarray, binning: bool, downscale: int = 1,
-          target: str = "raw", exposure_ratio: float = 1.0) -> RayData:
+          target="raw", exposure_ratio: float = 1.0) -> RayData:
     """Device arrays for `frames` (indices into scene.names).
 
-    target "reference": the oracle's data, the clean normal-light references gt/<name>.exr
-    (rgb_linear) box-downscaled to the binned size, exposure 1, all valid; "processed":
-    the "2D + NeRF" data, each training frame processed on its own by the 2D pipeline
-    (baseline.process_denoised_frame: demosaic, grey world, colour matrix, auto exposure,
-    non-local means; rgb_linear), box-downscaled the same way; "dark_srgb": the LLNeRF-style
-    row's data, each training frame as a camera saves a dark photo (the binned frame through
-    llnerf.dark_srgb_frame: grey world, colour matrix, no brightening, sRGB curve;
-    rgb_srgb in [0, 1]), exposure 1, pixels with a saturated channel invalid. exposure_ratio
-    gamma scales the raw targets (I_gamma = I_raw gamma after black-level removal, the
-    paper's darkness sweep: noise and signal alike, so only the magnitude changes); for
-    "dark_srgb" the binned raw before it is processed.
+    target: a name of TARGETS (data.target) or such a function itself. Every target but
+    the raw mosaic (binning off, "raw") is binned: rays through the centres of the binned
+    pixels.
     """
+    frames_fn = TARGETS[target] if isinstance(target, str) else target
+    pixels, valid, inv_exposure = frames_fn(scene, frames, binning, downscale, exposure_ratio)
+    mosaic = pixels.ndim == 3
     cams = scene.cameras
-    full = ndc_intrinsics(scene)
-    c2w = cams.c2w[frames].astype(np.float32)
-    black = scene.black_level[frames].astype(np.float32)
-    white = scene.white_level[frames].astype(np.float32)
-    # exposure_ratio: Bright-NeRF's darkness sweep, the raw scaled after black-level removal
-    inv_exposure = (float(exposure_ratio) / scene.exposure[frames]).astype(np.float32)
-    if target == "processed":  # the "2D + NeRF" row: each dark frame processed on its own
-        if not binning:
-            raise SceneError(scene.path, "data.target=processed trains on processed frames: "
-                             "it needs data.binning=true", "set data.binning=true")
-        factor = 1.0 / (2 * downscale)
-        pixels = np.stack([raw.downscale(baseline.process_denoised_frame(
-            scene.raw_normalized(int(i)), scene.cfa, scene.xyz_to_cam), 2 * downscale)
-            for i in frames]).astype(np.float32)
-        valid = np.ones(pixels.shape, bool)
-        inv_exposure = np.ones(len(frames), np.float32)
-    elif target == "dark_srgb":  # the LLNeRF-style row: the dark photos a camera saves
-        if not binning:
-            raise SceneError(scene.path, "data.target=dark_srgb trains on binned frames: it "
-                             "needs data.binning=true", "set data.binning=true")
-        factor = 1.0 / (2 * downscale)
-        pairs = [scene.rgb_cam_binned(int(i), downscale) for i in frames]
-        pixels = np.stack([llnerf.dark_srgb_frame(rgb_cam * float(exposure_ratio),
-                                                  scene.xyz_to_cam, ok)
-                           for rgb_cam, ok in pairs]).astype(np.float32)
-        valid = np.stack([np.broadcast_to(ok.all(axis=-1, keepdims=True), ok.shape)
-                          for _, ok in pairs])
-        inv_exposure = np.ones(len(frames), np.float32)
-    elif target == "reference":
-        missing = [scene.names[i] for i in frames if scene.names[i] not in scene.gt_linear_paths]
-        if missing or not binning:
-            raise SceneError(scene.path / "gt", f"the oracle needs gt/<name>.exr for every "
-                             f"training frame (missing: {missing[:3]}) and data.binning=true",
-                             "train the oracle only on scenes with references")
-        factor = 1.0 / (2 * downscale)
-        pixels = np.stack([raw.downscale(image_io.read_exr(scene.gt_linear_paths[scene.names[i]]),
-                                         2 * downscale) for i in frames]).astype(np.float32)
-        valid = np.ones(pixels.shape, bool)
-        inv_exposure = np.ones(len(frames), np.float32)
-    elif binning:
-        factor = 1.0 / (2 * downscale)
-        pairs = [scene.rgb_cam_binned(int(i), downscale) for i in frames]
-        pixels = np.stack([p[0] for p in pairs]).astype(np.float32)
-        valid = np.stack([p[1] for p in pairs])
-    else:
-        if downscale != 1:
-            raise ValueError("mosaic training needs data.downscale=1 (use binning to downscale)")
-        factor = 1.0
-        pixels = scene.raw_bayer[frames]
-        valid = np.ones(len(frames), bool)
+    factor = 1.0 if mosaic else 1.0 / (2 * downscale)
     intr = (
         np.stack([cams.fx[frames], cams.fy[frames], cams.cx[frames], cams.cy[frames]], axis=1)
         * factor
     )
     return RayData(
-        c2w=jnp.asarray(c2w),
+        c2w=jnp.asarray(cams.c2w[frames].astype(np.float32)),
         intrinsics=jnp.asarray(intr.astype(np.float32)),
-        ndc_intrinsics=jnp.asarray(full),
+        ndc_intrinsics=jnp.asarray(ndc_intrinsics(scene)),
         pixels=jnp.asarray(pixels),
         valid=jnp.asarray(valid),
-        black=jnp.asarray(black),
-        white=jnp.asarray(white),
+        black=jnp.asarray(scene.black_level[frames].astype(np.float32)),
+        white=jnp.asarray(scene.white_level[frames].astype(np.float32)),
         inv_exposure=jnp.asarray(inv_exposure),
         cfa=jnp.asarray(scene.cfa.astype(np.int32)),
-        mosaic=not binning,
+        mosaic=mosaic,
         ndc=scene.forward_facing,
     )
 
@@ -170,19 +163,14 @@ def to_grid_space(ndc: bool, ndc_intrinsics, origins, directions):
 
 def targets(data: RayData, frame, v, u):
     """Targets and masks at integer pixels: (..., 3) float32 each (mask 0/1); normalised raw
-    less the fitted black offsets when the data carry them, divided by the exposure."""
+    divided by the exposure."""
     if not data.mosaic:
         y = data.pixels[frame, v, u]
-        if data.black_offset is not None:  # binned: R, mean of the greens, B
-            onehot = jax.nn.one_hot(data.cfa, 3)  # (2, 2, 3)
-            y = y - (onehot * data.black_offset[..., None]).sum((0, 1)) / onehot.sum((0, 1))
         y = y * data.inv_exposure[frame][..., None]
         return y, data.valid[frame, v, u].astype(jnp.float32)
     raw = data.pixels[frame, v, u].astype(jnp.float32)
     black = data.black[frame, v % 2, u % 2]
     y = (raw - black) / (data.white[frame] - black)
-    if data.black_offset is not None:
-        y = y - data.black_offset[v % 2, u % 2]
     y = y * data.inv_exposure[frame]
     ok = (raw < data.white[frame]).astype(jnp.float32)
     mask = jax.nn.one_hot(data.cfa[v % 2, u % 2], 3) * ok[..., None]
@@ -265,30 +253,3 @@ def grid_box(scene: Scene) -> tuple[np.ndarray, np.ndarray, float, float]:
     centre = scene.cameras.c2w[:, :, 3].mean(axis=0)
     r = float(scene.far)
     return centre - r, centre + r, float(scene.near), float(scene.far)
-
-
-def frustum_xy(scene: Scene, frames, bbox_min, bbox_max, near_t: float,
-               margin: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
-    """NDC x/y extent that every ray of the given cameras crosses inside the z range of the
-    box: (lo (2,), hi (2,)). NDC rays are straight, so the extremes over depth lie at the
-    box's near and far z, and over the image on its border (sampled every 4 pixels).
-    A converging arc of +-17 degrees with a 55-degree lens sees NDC x up to +-1.9, where
-    the reference camera's frustum is +-1.
-    """
-    cams = scene.cameras
-    ndc = ndc_intrinsics(scene)
-    t_far = 0.5 * (float(bbox_max[2]) + 1.0)
-    h, w = cams.height, cams.width
-    cols, rows = np.arange(0, w, 4, dtype=np.float32), np.arange(0, h, 4, dtype=np.float32)
-    u = np.concatenate([cols, cols, np.zeros_like(rows), np.full_like(rows, w - 1)])
-    v = np.concatenate([np.zeros_like(cols), np.full_like(cols, h - 1), rows, rows])
-    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
-    for i in frames:
-        intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]], np.float32)
-        o, d = pixel_rays(jnp.asarray(cams.c2w[i], jnp.float32), jnp.asarray(intr), u, v)
-        o, d = (np.asarray(a) for a in to_grid_space(True, ndc, o, d))
-        for t in (near_t, t_far):
-            p = o[:, :2] + t * d[:, :2]
-            lo, hi = np.minimum(lo, p.min(axis=0)), np.maximum(hi, p.max(axis=0))
-    pad = margin * (hi - lo)
-    return lo - pad, hi + pad

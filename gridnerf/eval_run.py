@@ -12,9 +12,9 @@ raw and after a per-channel affine alignment in linear space, for
 - `baseline_denoised`: the same with non-local-means denoising (the paper's 2D row),
 - `baseline_binned_matched`: 2x2 binning, grey world, exposure matched to the reference
   (the generous per-frame pipeline of the reconstruction table),
-plus train_seconds, rays_per_second and peak memory. A run of loss.method = "llnerf" shows
-one output in place of the first three, `llnerf`: its enhanced render (gridnerf.llnerf),
-decoded from sRGB to linear, no auto exposure.
+plus train_seconds, rays_per_second and peak memory. The outputs are the method's
+(gridnerf.methods): a run of loss.method = "llnerf" shows one in place of the first three,
+`llnerf`: its enhanced render, decoded from sRGB to linear, no auto exposure.
 """
 
 from __future__ import annotations
@@ -22,7 +22,6 @@ from __future__ import annotations
 import json
 import resource
 import time
-from dataclasses import dataclass, replace
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -32,35 +31,35 @@ from gridnerf import (
     atomic,
     baseline,
     color,
-    colour_target,
     consistency,
     dataset,
     evaluate,
-    exposure,
-    illuminant,
     image_io,
-    llnerf,
+    methods,
     raw,
     rays,
     render,
 )
 from gridnerf import config as cfgmod
+from gridnerf import plan as planmod
 from gridnerf.errors import SceneError
-from gridnerf.runfolder import CHECKPOINT, lens_cap_black, load_state, open_scene
+from gridnerf.runfolder import CHECKPOINT, load_state, open_scene
 
 
 def load_run(run: Path):
-    """(cfg, scene, structure, params, summary) of a finished run."""
+    """(cfg, plan, scene, structure, params, summary) of a finished run."""
+    run = Path(run)
     if not (run / "summary.json").exists() or not (run / CHECKPOINT).exists():
         raise SceneError(
             run, "no finished training run here", f"run `gridnerf train <scene> --out {run}`"
         )
     cfg = cfgmod.load(run / "config.json")
+    plan = planmod.load(run)
     summary = json.loads((run / "summary.json").read_text())
     scene = open_scene(Path(summary["scene"]), run, estimate=False,
-                       dark=lens_cap_black(cfg, run))
+                       dark=plan.black_level == "lens_cap")
     structure, params, _, _ = load_state(run)
-    return cfg, scene, structure, params, summary
+    return cfg, plan, scene, structure, params, summary
 
 
 def render_view(structure, params, scene, cfg, c2w, intrinsics, height, width,
@@ -79,142 +78,31 @@ def render_view(structure, params, scene, cfg, c2w, intrinsics, height, width,
     return out
 
 
-# rays of the training render that auto exposure and the global grey world are taken on
-TRAINING_RENDER_RAYS = 65536
-
-
-def training_render(structure, params, scene, cfg) -> dict:
-    """The field rendered on an even, fixed sample of every training frame (about
-    TRAINING_RENDER_RAYS pixels on a regular grid, dataset.strided_pixels): (N, hs, ws, ...).
-
-    Not a random sample: 128 random 8x8 patches (the sample before) set the auto exposure
-    of box 28 % apart between two training seeds (0.6 dB) where a bright coloured wall
-    filled some patches and not others; an even grid over all frames does not depend on
-    the seed."""
-    data = dataset.training_data(scene, cfg.data)
-    rays = dataset.rays_at(data, *dataset.strided_pixels(data, TRAINING_RENDER_RAYS))
-    near_t, far_t = dataset.grid_box(scene)[2:]
-    return render.render_image(
-        structure, params, rays["origins"], rays["directions"], near_t, far_t, cfg.render
-    )
-
-
-def global_gains(out: dict) -> np.ndarray:
-    """(3,) one grey-world von Kries gain for the whole scene: the gains of the grey world of
-    the field's low-light colour on the training rays (training_render), no gain field.
-
-    The "global white balance" reference of the colour issue: a field that only learned
-    one white balance scores the same as rgb_low times these gains.
-    """
-    return np.asarray(illuminant.gains_from_illuminant(_grey_world(out)))
-
-
-def _grey_world(out: dict) -> np.ndarray:
-    """(3,) grey world of the field's low-light colour on the training render."""
-    return np.asarray(illuminant.grey_world(np.asarray(out["rgb_low"], np.float64)))
-
-
-def field_neutral(out: dict) -> np.ndarray:
-    """(3,) the camera-RGB white the field's gains balance: 1 / their mean per unit opacity
-    over the training render (the composited gain divided by the opacity, pooled)."""
-    gain = np.asarray(out["gain"], np.float64).reshape(-1, 3).sum(0)
-    acc = float(np.asarray(out["acc"], np.float64).sum())
-    return np.asarray(illuminant.unit(acc / np.maximum(gain, 1e-12)))
-
-
-@dataclass(frozen=True)
-class Output:
-    """How one output shows a render: rgb_linear = alpha * matrix @ (out[source] * gains)."""
-
-    source: str  # "rgb_restored" (the field's own gains) or "rgb_low"
-    gains: np.ndarray  # (3,) von Kries gains applied on top (ones: none)
-    matrix: np.ndarray  # (3, 3) display matrix (exposure.display_matrix)
-    alpha: float = 1.0
-
-    def show(self, out: dict) -> tuple[np.ndarray, np.ndarray]:
-        """(rgb_linear, rgb_srgb) of a render (render_view / training_render output)."""
-        return exposure.to_display(np.asarray(out[self.source]) * self.gains, self.alpha,
-                                   self.matrix)
-
-
-@dataclass(frozen=True)
-class EnhancedOutput:
-    """The LLNeRF-style output: the dark sRGB render enhanced per ray
-    (llnerf.enhanced_render), decoded to linear sRGB; no exposure (alpha stays 1)."""
-
-    alpha: float = 1.0
-
-    def show(self, out: dict) -> tuple[np.ndarray, np.ndarray]:
-        """(rgb_linear, rgb_srgb) of a render (render_view / training_render output)."""
-        rgb_srgb = np.asarray(llnerf.enhanced_render(out["rgb_low"], out["gain"], out["acc"]),
-                              np.float32)
-        return color.srgb_decode(rgb_srgb).astype(np.float32), rgb_srgb
+def run_outputs(cfg, plan, scene, structure, params, out: dict | None = None) -> dict:
+    """The run's shown outputs {name: output with .show(render)}, as its method shows them
+    (methods.get(loss.method).outputs), exposed on the training render (or `out`)."""
+    return methods.get(cfg.loss.method).outputs(structure, params, scene, cfg, plan, out)
 
 
 def main_output(cfg) -> str:
-    """The name of a run's shown output: "llnerf" for loss.method = "llnerf", else
-    "gridnerf" (the one written as <view>_pred.png and rendered along camera paths)."""
-    return "llnerf" if cfg.loss.method == "llnerf" else "gridnerf"
-
-
-def outputs(structure, params, scene, cfg, out: dict | None = None,
-            one_gain: np.ndarray | None = None) -> dict[str, Output | EnhancedOutput]:
-    """The shown outputs of a run, each exposed on the training render (training_render,
-    or `out`): "gridnerf" (the colour matrix, or matrix-free when output.use_color_matrix
-    is off), "gridnerf_matrix_free", and "global_grey_world" (the field's low-light colour
-    times one grey-world gain for the scene, global_gains). output.color_matrix =
-    "adapted" takes the matrix for the white the gains balanced (field_neutral; the grey
-    world's for the global row), exposure.display_matrix. one_gain: (3,) the run's one
-    gain (colour_target.load_one_gain) where its colour is one gain: the first two show the
-    low-light colour times it instead of the field's gains. loss.method = "llnerf": only
-    "llnerf" (EnhancedOutput), nothing exposed."""
-    if cfg.loss.method == "llnerf":
-        return {"llnerf": EnhancedOutput()}
-    out = training_render(structure, params, scene, cfg) if out is None else out
-    raw_target = cfg.data.target == "raw"
-    ones = np.ones(3) if one_gain is None else np.asarray(one_gain, np.float64)
-    source = "rgb_restored" if cfg.loss.use_gains and one_gain is None else "rgb_low"
-    adapted = cfg.output.color_matrix == "adapted"
-    neutral = None
-    if cfg.loss.use_gains and adapted:
-        neutral = field_neutral(out) if one_gain is None else illuminant.unit(1.0 / ones)
-    grey = _grey_world(out) if adapted else None
-    free = Output(source, ones, np.eye(3))
-    shown = {
-        "gridnerf": (Output(source, ones, exposure.display_matrix(scene.xyz_to_cam, raw_target,
-                                                                  neutral))
-                     if cfg.output.use_color_matrix else free),
-        "gridnerf_matrix_free": free,
-        "global_grey_world": Output("rgb_low", global_gains(out), exposure.display_matrix(
-            scene.xyz_to_cam, raw_target and cfg.output.use_color_matrix, grey)),
-    }
-    target = cfg.output.target_luminance
-    return {k: replace(o, alpha=exposure.alpha_for_luminance(o.show(out)[0], target))
-            for k, o in shown.items()}
-
-
-def run_outputs(run: Path, structure, params, scene, cfg, out: dict | None = None
-                ) -> dict[str, Output | EnhancedOutput]:
-    """outputs() of the run in folder `run`: with its one gain where its colour is one
-    gain (colour_target.load_one_gain), else the field's."""
-    return outputs(structure, params, scene, cfg, out,
-                   one_gain=colour_target.load_one_gain(run, cfg))
+    """The name of a run's shown output (its method's MAIN_OUTPUT: "gridnerf" or
+    "llnerf"), the one written as <view>_pred.png and rendered along camera paths."""
+    return methods.get(cfg.loss.method).MAIN_OUTPUT
 
 
 def evaluate_run(run: Path) -> dict:
     """Render the test views, compare with gt/, write eval/ images and eval/metrics.json."""
     t0 = time.perf_counter()
-    cfg, scene, structure, params, summary = load_run(run)
+    cfg, plan, scene, structure, params, summary = load_run(run)
     if len(scene.test_idx) == 0:
         raise SceneError(scene.path, "the scene's test split is empty: there is nothing to "
                          "score", "list frames in test_filenames of transforms.json (or "
                          "remove the split lists: every 8th frame is then a test frame)")
     out_dir = run / "eval"
     out_dir.mkdir(parents=True, exist_ok=True)
-    one_gain = colour_target.load_one_gain(run, cfg)  # read once: shown and recorded
-    shown = outputs(structure, params, scene, cfg, one_gain=one_gain)
+    one_gain = plan.one_gain
+    shown = run_outputs(cfg, plan, scene, structure, params)
     main = main_output(cfg)
-    adapted = cfg.output.color_matrix == "adapted"  # the baselines take the same matrix
     per_view: dict[str, dict[str, dict]] = {
         m: {} for m in [*shown, "baseline_dark_frame", "baseline_denoised",
                         "baseline_binned_matched"]}
@@ -245,19 +133,18 @@ def evaluate_run(run: Path) -> dict:
                     )
         if gt_linear is not None:
             dark_linear = baseline.process_dark_frame(
-                scene.raw_normalized(i), scene.cfa, scene.xyz_to_cam, adapted=adapted)
+                scene.raw_normalized(i), scene.cfa, scene.xyz_to_cam)
             dark_linear = raw.downscale(dark_linear, ds) if ds > 1 else dark_linear
             image_io.write_png(out_dir / f"{name}_baseline.png", color.srgb_encode(dark_linear))
             per_view["baseline_dark_frame"][name] = evaluate.image_metrics(dark_linear, gt_linear)
             denoised_linear = baseline.process_denoised_frame(
-                scene.raw_normalized(i), scene.cfa, scene.xyz_to_cam, adapted=adapted)
+                scene.raw_normalized(i), scene.cfa, scene.xyz_to_cam)
             denoised_linear = raw.downscale(denoised_linear, ds) if ds > 1 else denoised_linear
             per_view["baseline_denoised"][name] = evaluate.image_metrics(denoised_linear,
                                                                          gt_linear)
             binned_linear = baseline.process_binned_frame(
                 scene.raw_normalized(i), scene.cfa, scene.xyz_to_cam,
-                gt_linear if ds == 1 else reference_linear(scene, name, cams.height, cams.width),
-                adapted=adapted)
+                gt_linear if ds == 1 else reference_linear(scene, name, cams.height, cams.width))
             binned_linear = raw.downscale(binned_linear, ds) if ds > 1 else binned_linear
             per_view["baseline_binned_matched"][name] = evaluate.image_metrics(
                 binned_linear, gt_linear)
@@ -267,7 +154,7 @@ def evaluate_run(run: Path) -> dict:
         "test_views": [scene.names[i] for i in scene.test_idx],
         "alpha": {k: o.alpha for k, o in shown.items()},
         # what carried the colour: the gain field, or one gain for the capture (its gains)
-        "colour": "field" if one_gain is None else {"one_gain": one_gain.tolist()},
+        "colour": plan.colour.model if one_gain is None else {"one_gain": list(one_gain)},
         "train_seconds": summary["train_seconds"],
         "rays_per_second": summary["rays_per_second"],
         "train_peak_rss_mb": summary.get("peak_rss_mb"),
@@ -330,8 +217,8 @@ def camera_path(scene, kind: str, n_frames: int) -> np.ndarray:
 
 def render_run(run: Path, path: str = "spiral", n_frames: int = 60) -> Path:
     """Render test views (`path='test'`) or a camera path to run/render/: PNG, EXR, mp4."""
-    cfg, scene, structure, params, _ = load_run(run)
-    main = run_outputs(run, structure, params, scene, cfg)[main_output(cfg)]
+    cfg, plan, scene, structure, params, _ = load_run(run)
+    main = run_outputs(cfg, plan, scene, structure, params)[main_output(cfg)]
     cams = scene.cameras
     ds = cfg.data.eval_downscale
     h, w = cams.height // ds, cams.width // ds

@@ -324,14 +324,13 @@ def prune(structure: GridStructure, params, keep_vertex_mask):
     return new, jax.tree_util.tree_map(lambda a: a[rows], params)
 
 
-def density_keep_mask(structure: GridStructure, params, threshold: float, dilate: int = 1,
-                      step_size: float = 0.5) -> np.ndarray:
-    """(M,) bool: rows whose alpha over step_size voxels exceeds threshold, dilated by
-    `dilate` vertices (3x3x3 neighbourhood per step) so surfaces keep their support."""
-    return dilate_rows(structure, _alpha(params["density"], step_size) > threshold, dilate)
+# empty-space skipping: cells whose largest corner alpha (over half a voxel) is below this
+# are skipped, and the bitmask is refreshed every OCCUPANCY_EVERY training steps
+OCCUPANCY_THRESHOLD = 0.005
+OCCUPANCY_EVERY = 100
 
 
-def update_occupancy(structure: GridStructure, params, threshold: float,
+def update_occupancy(structure: GridStructure, params, threshold: float = OCCUPANCY_THRESHOLD,
                      step_size: float = 0.5) -> GridStructure:
     """Bitmask of blocks holding a cell with a corner whose alpha over step_size > threshold.
 

@@ -180,13 +180,9 @@ def edge_aware_gain_tv(structure: GridStructure, params, scale: float = 0.5, eps
     return jnp.mean(weight * jnp.sum(jnp.sqrt(eps + jnp.sum(d**2, axis=1)), axis=-1))
 
 
-def sparsity_loss(density_raw: jax.Array, sample_key=None, fraction: float = 1.0,
-                  mode: str = "cauchy") -> jax.Array:
-    """Sparsity prior on density: "cauchy" (Plenoxels' forward-facing regulariser) or "l1".
-
-    "l1": mean sigma. Its gradient on the raw parameter is sigmoid(raw) ~ sigma for thin
-    fog, where Cauchy's is ~4 sigma^2: Cauchy leaves fog of sigma ~0.02 per voxel in place,
-    L1 removes it unless the data needs it.
+def sparsity_loss(density_raw: jax.Array, sample_key=None, fraction: float = 1.0
+                  ) -> jax.Array:
+    """Cauchy sparsity prior on density (Plenoxels' forward-facing regulariser).
 
     density_raw: (M,) raw density rows; mean of log(1 + 2 sigma^2), sigma = softplus(raw).
     Pushes free space to zero density so pruning and empty-space skipping have work to do;
@@ -197,26 +193,7 @@ def sparsity_loss(density_raw: jax.Array, sample_key=None, fraction: float = 1.0
         return jnp.zeros((), density_raw.dtype)
     rows = _sample_rows(m, sample_key, fraction)
     d = density_raw if rows is None else density_raw[rows]
-    if mode == "l1":
-        return jnp.mean(jax.nn.softplus(d))
     return jnp.mean(jnp.log1p(2.0 * jax.nn.softplus(d) ** 2))
-
-
-def distortion_loss(weights: jax.Array, s_vox: jax.Array, step_vox: jax.Array) -> jax.Array:
-    """Mip-NeRF 360 distortion loss, mean over rays, distances in voxels.
-
-    weights, s_vox, step_vox: (n, K) per-sample rendering weights, sample positions along
-    the ray (sorted) and interval lengths (0 = unused slot). Per ray
-    sum_ij w_i w_j |s_i - s_j| + 1/3 sum_i w_i^2 step_i, computed in O(K) with prefix sums
-    (2 sum_i w_i (s_i W_<i - (ws)_<i)). It is small when each ray's weight sits in one short
-    interval (a surface) and large for fog or a floater in front of a surface.
-    """
-    w = jnp.where(step_vox > 0, weights, 0.0)
-    w_before = jnp.cumsum(w, axis=-1) - w
-    ws_before = jnp.cumsum(w * s_vox, axis=-1) - w * s_vox
-    inter = 2.0 * jnp.sum(w * (s_vox * w_before - ws_before), axis=-1)
-    intra = jnp.sum(w**2 * step_vox, axis=-1) / 3.0
-    return jnp.mean(inter + intra)
 
 
 def opacity_loss(acc: jax.Array) -> jax.Array:

@@ -39,7 +39,6 @@ pixels (its offset stays 0, count 0).
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -88,23 +87,6 @@ def tukey_lambda_variance(sigma: float, lam: float) -> float:
         return sigma**2 * math.pi**2 / 3.0
     g = math.lgamma(lam + 1.0) * 2.0 - math.lgamma(2.0 * lam + 2.0)
     return sigma**2 * 2.0 / lam**2 * (1.0 / (1.0 + 2.0 * lam) - math.exp(g))
-
-
-def sim_truth(sim: dict | str | Path) -> dict:
-    """True noise figures of a simulated scene (its sim.json, or the dict), in DN as
-    NoiseFit.in_dn gives them: K, read variance = Tukey-lambda + row^2 + 1/12 (rounding),
-    read sigma, black offsets (2, 2); and "scale" = white - black."""
-    if not isinstance(sim, dict):
-        path = Path(sim)
-        sim = json.loads((path / "sim.json" if path.is_dir() else path).read_text())
-    noise = sim["noise"]
-    var = (tukey_lambda_variance(noise["read_tukey_sigma_dn"], noise["read_tukey_lambda"])
-           + noise["row_sigma_dn"] ** 2 + 1.0 / 12.0)
-    return {"K_dn_per_electron": float(sim["K_dn_per_electron"]), "read_var_dn2": var,
-            "read_sigma_dn": math.sqrt(var),
-            "black_offset_dn": [list(map(float, r))
-                                for r in noise["black_bias_dn_per_cfa_position"]],
-            "scale": float(sim["white_level"] - sim["black_level"])}
 
 
 def neighbour_sigma(target, mask=None) -> float:
@@ -289,9 +271,9 @@ def fit_scene(scene_dir, mean_fn: Callable[[str], np.ndarray], names=None,
               mean_includes_offset: bool = False, **kwargs) -> tuple[NoiseFit, float]:
     """Fit the noise model on a scene folder's RAW frames.
 
-    mean_fn(name) -> (H, W) the clean mean of frame `name` in normalised raw at that
-    frame's own exposure (e.g. a render mosaicked through the CFA; `sim_clean_mean` for a
-    simulated scene); names: the frame stems to use (default: all of raw/). Saturated
+    mean_fn(name) -> (H, W) the clean mean of frame `name` in normalised raw at that frame's
+    own exposure (e.g. a render mosaicked through the CFA; gridnerf.sim.truth.clean_mean for
+    a simulated scene); names: the frame stems to use (default: all of raw/). Saturated
     photosites are left out. Returns (fit, scale) with scale = white - black of the first
     frame (NoiseFit.in_dn(scale) gives DN).
     """
@@ -311,29 +293,3 @@ def fit_scene(scene_dir, mean_fn: Callable[[str], np.ndarray], names=None,
     fit = fit_noise(np.stack(means), np.stack(ys), np.stack(masks),
                     mean_includes_offset=mean_includes_offset, **kwargs)
     return fit, scale
-
-
-def sim_clean_mean(scene_dir) -> Callable[[str], np.ndarray]:
-    """For a simulated single-illuminant scene: name -> the exact clean mean (H, W) of that
-    frame in normalised raw (no offset), from its reference gt/<name>.exr and sim.json
-    (the reference divided by gt_scale is the simulator's clean render; camera response
-    under the scene's illuminant, CFA, electrons per unit signal, K, white - black)."""
-    from gridnerf.image_io import read_exr
-    from gridnerf.sim import sensor
-
-    folder = Path(scene_dir)
-    sim = json.loads((folder / "sim.json").read_text())
-    if len(sim.get("illuminants", [None])) > 1:
-        raise ValueError(f"{folder} is lit by several illuminants; its reference is white "
-                         "balanced per light, so the raw signal cannot be rebuilt from it")
-    params = sensor.SensorParams(camera_model=sim["camera_model"],
-                                 cfa_pattern=sim["cfa_pattern"],
-                                 kelvin=float(sim["illuminant_kelvin"]))
-    gain = (sim["electrons_per_unit_signal"] * sim["K_dn_per_electron"]
-            / (sim["white_level"] - sim["black_level"]) / sim["gt_scale"])
-
-    def mean(name: str) -> np.ndarray:
-        rgb_cam = sensor.scene_to_cam(read_exr(folder / "gt" / f"{name}.exr"), params)
-        return np.maximum(sensor.mosaic(rgb_cam, params.cfa), 0.0) * gain
-
-    return mean

@@ -1,25 +1,25 @@
 """One optimisation step: the loss of a batch of ray patches, the optimiser, the jitted step.
 
 The spine's middle: rays (gridnerf.dataset.batch) -> grid render (gridnerf.render) ->
-losses (gridnerf.losses, gridnerf.llnerf) -> an optax update. gridnerf.train runs these
-steps stage by stage; the benchmark and the tests build the same step here.
+losses (the method's terms, gridnerf.methods, and the grid priors shared by every method,
+gridnerf.losses) -> an optax update. gridnerf.train runs these steps stage by stage; the
+benchmark and the tests build the same step here.
 """
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax
+import numpy as np
 import optax
 
-from gridnerf import data_term, dataset, devices, illuminant, llnerf, losses, render
+from gridnerf import dataset, devices, illuminant, losses, methods, render
 from gridnerf.config import Config
+from gridnerf.plan import RunPlan, StepPlan
 
 
-def make_optimizer(cfg: Config, steps: int, stage: int = 0) -> optax.GradientTransformation:
-    """Adam per field with an exponential decay to lr * lr_decay over the stage; after the
-    first stage the density rate is scaled by train.fine_density_lr_scale (the geometry is
-    refined, not re-learnt, so it cannot turn per-view noise into floaters)."""
+def make_optimizer(cfg: Config, steps: int) -> optax.GradientTransformation:
+    """Adam per field with an exponential decay to lr * lr_decay over the stage; the gains
+    are not trained without a gain model (loss.gain_model "none")."""
 
     def adam(lr):
         sched = optax.exponential_decay(
@@ -27,73 +27,45 @@ def make_optimizer(cfg: Config, steps: int, stage: int = 0) -> optax.GradientTra
         )
         return optax.adam(sched, b1=0.9, b2=0.99, eps=1e-8)
 
-    lr_density = cfg.train.lr_density * (cfg.train.fine_density_lr_scale if stage else 1.0)
     gain_tx = adam(cfg.train.lr_gain) if cfg.loss.use_gains else optax.set_to_zero()
     return optax.multi_transform(
-        {"density": adam(lr_density), "rgb": adam(cfg.train.lr_rgb), "log_gain": gain_tx},
+        {"density": adam(cfg.train.lr_density), "rgb": adam(cfg.train.lr_rgb),
+         "log_gain": gain_tx},
         {"density": "density", "rgb": "rgb", "log_gain": "log_gain"},
     )
 
 
-def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_t: float,
-            locus=None, scene_ill=None):
-    """Total loss and its terms for one batch of (P, p, p) ray patches.
+def step_plan(cfg: Config, plan: RunPlan, stage: int, scene) -> StepPlan:
+    """The StepPlan of stage `stage` of a run: its plan's eps, opacity weight and candidate
+    count; the gain terms where the colour is the gain field; the capture's illuminant
+    (float32) where the plan has one; the camera's Planckian locus for the batch target
+    with loss.ca_locus."""
+    anchor = None if plan.colour.anchor is None else np.asarray(plan.colour.anchor, np.float32)
+    locus = None
+    if (cfg.loss.ca_target == "batch" and cfg.loss.ca_locus and plan.colour.model == "field"
+            and plan.method == "brightnerf"):
+        locus = np.asarray(illuminant.planckian_locus(scene.xyz_to_cam), np.float32)
+    return StepPlan(data_eps=plan.data_eps, opacity=plan.opacity[stage],
+                    n_candidates=plan.n_candidates[stage],
+                    train_gains=plan.colour.model == "field", anchor=anchor, locus=locus)
 
-    locus: (n, 3) camera-RGB Planckian locus (illuminant.planckian_locus) when
-    loss.ca_locus, the L_ca illuminant estimate is projected onto it; else None.
-    scene_ill: (3,) the capture's illuminant (colour_target.scene_illuminant) when loss.ca_target is
-    "scene": the L_ca target for every batch, no per-batch estimate; else None.
-    loss.method = "llnerf": the LLNeRF-style terms (llnerf.batch_terms) replace the data term,
-    L_ca and the smoothness; the terms after them are shared.
-    """
+
+def loss_fn(params, structure, rays: dict, key, cfg: Config, step: StepPlan, near_t: float,
+            far_t: float):
+    """Total loss and its terms for one batch of (P, p, p) ray patches: the method's terms
+    (methods.get(loss.method).batch_terms) and the grid priors every method shares (the
+    opacity prior where step.opacity > 0, TV of density and colour, sparsity)."""
     shape = rays["target"].shape  # (P, p, p, 3)
     flat = {k: v.reshape(-1, 3) for k, v in rays.items()}
     k0, key = jax.random.split(key)
-    out = render.render_rays(
-        structure, params, flat["origins"], flat["directions"], near_t, far_t, cfg.render, key=k0
-    )
+    out = render.render_rays(structure, params, flat["origins"], flat["directions"], near_t,
+                             far_t, cfg.render, key=k0, n_cand=step.n_candidates)
     lc = cfg.loss
     k1, k2 = jax.random.split(key)
-    if lc.method == "llnerf":
-        terms = llnerf.batch_terms(structure, params, flat, out, shape, k1, cfg)
-    else:
-        terms = {"data": losses.data_loss(out["rgb_low"], flat["target"], flat["mask"],
-                                          data_term.data_eps(cfg, structure.color_scale))}
-    if lc.use_gains and lc.method == "brightnerf":
-        gain = out["gain"]
-        if lc.gain_map == "normalized":
-            # divided by the opacity: half-transparent rays are not pushed to target / acc
-            gain = losses.normalized_gain(*render.frozen_density_gain(out))
-        c_ill = None  # None: ca_loss's grey world of the batch (the paper's target)
-        if lc.ca_target == "map":
-            if "illuminant" not in flat:
-                raise ValueError("loss.ca_target = 'map' needs the data's illuminant map "
-                                 "(colour_target.with_illuminant_map)")
-            c_ill = flat["illuminant"]  # (n, 3): each ray's block of its frame's map
-        elif scene_ill is not None:
-            c_ill = scene_ill
-        elif lc.ca_illuminant != "grey_world" or locus is not None:
-            c_ill = losses.batch_illuminant(lc.ca_illuminant, out["rgb_low"], out["acc"],
-                                            shape, lc.ca_illuminant_p)
-            if locus is not None:
-                c_ill = illuminant.to_locus(c_ill, locus)
-        terms["ca"] = losses.ca_loss(out["rgb_low"], gain, stop_grad_mean=lc.ca_stop_grad,
-                                     illuminant=c_ill)
-        smooth = 0.0
-        if lc.smooth_mode in ("patch", "both"):
-            smooth = smooth + losses.smooth_loss_patch(
-                gain.reshape(shape), out["rgb_low"].reshape(shape)
-            )
-        if lc.smooth_mode in ("tv", "both"):
-            smooth = smooth + losses.edge_aware_gain_tv(
-                structure, params, sample_key=k1, fraction=lc.tv_fraction
-            )
-        terms["smooth"] = smooth
-    if lc.opacity > 0:
+    terms, weights = methods.get(lc.method).batch_terms(structure, params, flat, out, shape,
+                                                        k1, cfg, step)
+    if step.opacity > 0:
         terms["opacity"] = losses.opacity_loss(out["acc"])
-    if lc.distortion > 0:
-        terms["distortion"] = losses.distortion_loss(out["weights"], out["s_vox"],
-                                                     out["step_vox"])
     terms["tv_density"] = losses.tv_loss(
         structure, params["density"][:, None], sample_key=k2, fraction=lc.tv_fraction
     )
@@ -101,65 +73,37 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, near_t: float, far_
         structure, params["rgb"], sample_key=k2, fraction=lc.tv_fraction
     )
     terms["sparsity"] = losses.sparsity_loss(
-        params["density"], sample_key=k2, fraction=lc.tv_fraction, mode=lc.sparsity_mode
+        params["density"], sample_key=k2, fraction=lc.tv_fraction
     )
-    weights = {
-        "data": lc.w_data,
-        "ca": lc.w_ca,
-        "smooth": lc.w_smooth,
-        "tv_density": lc.tv_density,
-        "tv_rgb": lc.tv_rgb,
-        "sparsity": lc.sparsity,
-        "distortion": lc.distortion,
-        "opacity": lc.opacity,
-        "exposure": lc.w_exposure,
-        "color_constancy": lc.w_color_constancy,
-        "enhance_tv": lc.w_enhance_tv,
-    }
+    weights = {**weights, "opacity": step.opacity, "tv_density": lc.tv_density,
+               "tv_rgb": lc.tv_rgb, "sparsity": lc.sparsity}
     total = sum(weights[k] * v for k, v in terms.items())
     return total, terms
 
 
-def make_step(cfg: Config, tx, near_t: float, far_t: float, locus=None, scene_ill=None,
-              one_gain: bool = False):
+def make_step(cfg: Config, step: StepPlan, tx, near_t: float, far_t: float):
     """Jitted step: (params, opt_state, structure, data, key) -> (params, opt_state, loss, aux).
 
-    locus: the camera's Planckian locus (n, 3) for loss.ca_locus; scene_ill: the capture's
-    illuminant (3,) for loss.ca_target = "scene" (see loss_fn); else None. one_gain: the
-    colour is one gain for the capture (colour_target.one_gain): the steps have no gain
-    terms (L_ca, smoothness), so the gains get no gradient and stay where they started.
-
-    The batch's patches are split over all local devices (gridnerf.devices); parameters are
-    replicated. train.batch_patches must be a multiple of the device count.
+    step: the stage's StepPlan (step_plan). The batch's patches are split over all local
+    devices (gridnerf.devices); parameters are replicated. train.batch_patches must be a
+    multiple of the device count.
     """
     devices.check_divisible(cfg.train.batch_patches, "train.batch_patches")
-    if (cfg.loss.use_gains and cfg.loss.method == "brightnerf" and cfg.loss.ca_target != "batch"
-            and scene_ill is None):
-        raise ValueError("loss.ca_target = 'scene' needs the capture's illuminant: pass "
-                         "make_step(..., **colour_target.colour_inputs(data, scene, cfg)[1])")
-
-    loss_cfg = (dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, use_gains=False))
-                if one_gain else cfg)
+    if (step.train_gains and cfg.loss.method == "brightnerf"
+            and cfg.loss.ca_target == "scene" and step.anchor is None):
+        raise ValueError("loss.ca_target = 'scene' needs the capture's illuminant: build the "
+                         "step from the run plan (optim.step_plan)")
 
     @jax.jit
-    def step(params, opt_state, structure, data, key):
+    def step_fn(params, opt_state, structure, data, key):
         kb, kl = jax.random.split(key)
         rays = devices.shard_rays(
             dataset.batch(data, kb, cfg.train.batch_patches, cfg.train.patch_size))
         (total, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-            params, structure, rays, kl, loss_cfg, near_t, far_t, locus, scene_ill
+            params, structure, rays, kl, cfg, step, near_t, far_t
         )
         updates, opt_state = tx.update(grads, opt_state, params)
         params = optax.apply_updates(params, updates)
         return params, opt_state, total, terms
 
-    return step
-
-
-def stage_config(cfg: Config, stage: int) -> Config:
-    """The config one stage's step is built with: `cfg` with loss.opacity = 0 from stage
-    loss.opacity_stages on (when that is > 0); otherwise `cfg` itself."""
-    n = cfg.loss.opacity_stages
-    if n == 0 or stage < n or cfg.loss.opacity == 0:
-        return cfg
-    return dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, opacity=0.0))
+    return step_fn

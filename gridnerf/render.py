@@ -15,13 +15,13 @@ forward-facing scenes, or world rays with near/far). Marching happens in index s
 
 Rays with more than K occupied candidates are truncated after the K-th (`n_occupied` in
 the output says how many there were). Options are gridnerf.config.RenderConfig (static
-under jit): samples_per_voxel, max_samples (K), chunk, skip_empty, n_candidates (N; 0 = the
-box diagonal's count, which render_image and training first fit to their own rays).
+under jit): samples_per_voxel, max_samples (K), chunk, skip_empty. The candidate count N is
+a separate static argument `n_cand` (0: the box diagonal's count); render_image fits it to
+its own rays and training to each stage's training rays (the run plan keeps it).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import jax
@@ -36,10 +36,10 @@ from gridnerf.grid import GridStructure
 _TINY = 1e-12
 
 
-def n_candidates(structure: GridStructure, cfg: RenderConfig) -> int:
-    """Static candidate count N: cfg.n_candidates or the box diagonal in voxels x spv."""
-    if cfg.n_candidates:
-        return int(cfg.n_candidates)
+def n_candidates(structure: GridStructure, cfg: RenderConfig, n_cand: int = 0) -> int:
+    """Static candidate count N: n_cand, or (0) the box diagonal in voxels x spv."""
+    if n_cand:
+        return int(n_cand)
     diag = math.sqrt(sum((r - 1) ** 2 for r in structure.resolution))
     return int(math.ceil(diag * float(cfg.samples_per_voxel)))
 
@@ -50,7 +50,7 @@ def fit_n_candidates(structure: GridStructure, origins, directions, near_t, far_
 
     origins, directions: (n, 3) (e.g. all training rays, host arrays); near_t, far_t: scalars
     or (n,). Forward-facing NDC rays cross ~Rz voxels, far fewer than the box diagonal that
-    n_candidates() assumes, so this saves candidate work; pass it as cfg.n_candidates.
+    n_candidates() assumes, so this saves candidate work; pass it as n_cand.
     """
     o, d = np.asarray(origins, np.float32), np.asarray(directions, np.float32)
     near = np.broadcast_to(np.asarray(near_t, np.float32), o.shape[:1])
@@ -118,7 +118,8 @@ def composite(sigma, step_vox, values: dict) -> tuple[jax.Array, dict]:
     return w, {k: jnp.einsum("nk,nk...->n...", w, v) for k, v in values.items()}
 
 
-def march(structure: GridStructure, origins, directions, near_t, far_t, cfg, key=None):
+def march(structure: GridStructure, origins, directions, near_t, far_t, cfg, key=None,
+          n_cand: int = 0):
     """Sample placement with empty-space skipping (steps 1-3 of the module docstring).
 
     origins, directions: (n, 3) grid coordinates; near_t, far_t: scalars or (n,).
@@ -126,7 +127,7 @@ def march(structure: GridStructure, origins, directions, near_t, far_t, cfg, key
     parameters, step (n, K) voxels (0 for unused slots), n_occupied (n,) int32.
     """
     n = origins.shape[0]
-    n_cand = n_candidates(structure, cfg)
+    n_cand = n_candidates(structure, cfg, n_cand)
     spv = float(cfg.samples_per_voxel)
     near_t = jnp.broadcast_to(jnp.asarray(near_t, jnp.float32), (n,))
     far_t = jnp.broadcast_to(jnp.asarray(far_t, jnp.float32), (n,))
@@ -155,19 +156,21 @@ def march(structure: GridStructure, origins, directions, near_t, far_t, cfg, key
 
 
 def render_rays(structure: GridStructure, params, origins, directions, near_t, far_t, cfg,
-                key=None) -> dict:
+                key=None, n_cand: int = 0) -> dict:
     """Render rays through the grid.
 
     origins, directions: (n, 3) grid coordinates (directions need not be unit);
     near_t, far_t: scalars or (n,); cfg: RenderConfig (static under jit);
-    key: optional PRNG key -> one random offset per ray for the candidate grid (training).
+    key: optional PRNG key -> one random offset per ray for the candidate grid (training);
+    n_cand: static candidate count (0: the box diagonal's, n_candidates).
     Returns rgb_low (n,3) low-light camera RGB, gain (n,3) = sum w s, rgb_restored (n,3) =
     sum w c_l s, depth (n,) expected t (not divided by acc), acc (n,), n_occupied (n,) int32,
     and per sample (n, K): `weights` w_i, `s_vox` position along the ray in voxels from the
     first sample, `step_vox` interval length in voxels (0 for unused slots), and
     `gain_samples` (n, K, 3) the gains s_i (frozen_density_gain).
     """
-    u, t, step, n_occupied = march(structure, origins, directions, near_t, far_t, cfg, key)
+    u, t, step, n_occupied = march(structure, origins, directions, near_t, far_t, cfg, key,
+                                   n_cand)
     table = gridlib.feature_table(structure, params, pad_to=8)
     feats = gridlib.trilinear_index_space(structure, table, u)[..., : structure.n_channels]
     unit_dirs = directions / jnp.maximum(jnp.linalg.norm(directions, axis=-1, keepdims=True),
@@ -207,78 +210,21 @@ def composite_background(structure: GridStructure, sums: dict, acc) -> dict:
             "rgb_restored": sums["rgb_restored"] + rest * (low * gain)}
 
 
-def essential_samples(w: jax.Array, mass: float) -> jax.Array:
-    """(n, K) weights -> (n, K) bool: the heaviest samples of each ray that together hold
-    `mass` of its total weight. A ray through fog needs most of its samples, a ray that
-    ends on a surface only those at the surface."""
-    order = jnp.argsort(-w, axis=-1)  # heaviest first
-    ws = jnp.take_along_axis(w, order, axis=-1)
-    before = jnp.cumsum(ws, axis=-1) - ws
-    n_ess = jnp.sum(before < mass * jnp.sum(w, axis=-1, keepdims=True), axis=-1)
-    rank = jnp.argsort(order, axis=-1)
-    return (rank < n_ess[:, None]) & (w > 0.0)
-
-
-def _sample_weights(structure: GridStructure, params, origins, directions, near_t, far_t,
-                    cfg, keep=None):
-    """Weights w (n, K) of the samples, their cells' corner rows (n, K, 8) and, when `keep`
-    (M,) bool is given, the weights (n, K) the same samples get once the rows outside
-    `keep` are empty (grid.prune): a carving's effect on each ray without building it."""
+def vertex_visibility(structure: GridStructure, params, origins, directions, near_t, far_t,
+                      cfg) -> tuple[jax.Array, jax.Array]:
+    """Per vertex (M,): the largest rendering weight w_i = T_i alpha_i any of these rays
+    gives a sample in a cell touching it (svox2's weight-threshold pruning criterion: free
+    space and everything hidden behind surfaces score ~0), and the sum of those weights
+    (where the rendered mass is; a floater that serves one view holds little of it)."""
     u, _, step, _ = march(structure, origins, directions, near_t, far_t, cfg)
     table = gridlib.feature_table(structure, params, pad_to=8)
     feats = gridlib.trilinear_index_space(structure, table, u)[..., : structure.n_channels]
     w, _ = composite(jax.nn.softplus(feats[..., 0]), step, {})
     w = jnp.where(step > 0, w, 0.0)
     rows = gridlib.corner_rows(structure, u)[0]  # (n, K, 8)
-    if keep is None:
-        return w, rows, None
-    carved = table.at[:-1, 0].set(jnp.where(keep, table[:-1, 0], gridlib.EMPTY_DENSITY_RAW))
-    dens = gridlib.trilinear_index_space(structure, carved, u)[..., 0]
-    w_kept, _ = composite(jax.nn.softplus(dens), step, {})
-    return w, rows, jnp.where(step > 0, w_kept, 0.0)
-
-
-def _scatter_max(structure: GridStructure, rows, per_sample) -> jax.Array:
-    """(n, K) per-sample values -> (M,) per vertex: the largest over the samples whose cell
-    the vertex is a corner of."""
-    v8 = jnp.broadcast_to(per_sample[..., None], rows.shape).reshape(-1)
-    return jnp.zeros((structure.n_rows + 1,), jnp.float32).at[rows.reshape(-1)].max(v8)[:-1]
-
-
-def vertex_visibility(structure: GridStructure, params, origins, directions, near_t, far_t,
-                      cfg, mass: float = 0.9) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Per vertex (M,): the largest rendering weight w_i = T_i alpha_i any of these rays
-    gives a sample in a cell touching it (svox2's weight-threshold pruning criterion: free
-    space and everything hidden behind surfaces score ~0); the sum of those weights
-    (where the rendered mass is; a floater that serves one view holds little of it); and
-    1 where some ray needs the vertex to keep `mass` of its weight (essential_samples),
-    else 0: carving by it never takes more than 1 - mass of any training ray's opacity."""
-    w, rows, _ = _sample_weights(structure, params, origins, directions, near_t, far_t, cfg)
-    ess = essential_samples(w, mass).astype(jnp.float32)
     w8 = jnp.broadcast_to(w[..., None], rows.shape).reshape(-1)
     zeros = jnp.zeros((structure.n_rows + 1,), jnp.float32)
-    return (_scatter_max(structure, rows, w), zeros.at[rows.reshape(-1)].add(w8 / 8.0)[:-1],
-            _scatter_max(structure, rows, ess))
-
-
-def carving_rescue(structure: GridStructure, params, keep, origins, directions, near_t, far_t,
-                   cfg, mass: float = 0.9, ratio: float = 0.2,
-                   min_acc: float = 0.1) -> tuple[jax.Array, jax.Array]:
-    """What a carving would empty, and what puts it back.
-
-    keep: (M,) bool, the rows a carving keeps. A ray is emptied when it renders at least
-    `min_acc` opacity now and less than `ratio` of that once the other rows are gone: a
-    dim wall whose weight spreads over many samples, each below the weight threshold, is
-    cut out whole, and nothing can grow back where no vertex is left. Returns (M,) 1 for
-    the vertices an emptied ray needs to keep `mass` of its weight (essential_samples),
-    else 0; and (n,) 1 for emptied rays, else 0. Fog in front of a surface is not
-    rescued: the surface keeps its ray's opacity."""
-    w, rows, w_kept = _sample_weights(structure, params, origins, directions, near_t, far_t,
-                                      cfg, keep)
-    acc, acc_kept = jnp.sum(w, axis=-1), jnp.sum(w_kept, axis=-1)
-    emptied = (acc >= min_acc) & (acc_kept < ratio * acc)
-    ess = essential_samples(w, mass) & emptied[:, None]
-    return _scatter_max(structure, rows, ess.astype(jnp.float32)), emptied.astype(jnp.float32)
+    return zeros.at[rows.reshape(-1)].max(w8)[:-1], zeros.at[rows.reshape(-1)].add(w8 / 8.0)[:-1]
 
 
 # per-sample outputs of render_rays, (n, K) each: needed by losses, not by images (at
@@ -286,36 +232,34 @@ def carving_rescue(structure: GridStructure, params, keep, origins, directions, 
 PER_SAMPLE = ("weights", "s_vox", "step_vox", "gain_samples")
 
 
-def _render_pixels(structure, params, origins, directions, near_t, far_t, cfg):
-    out = render_rays(structure, params, origins, directions, near_t, far_t, cfg)
+def _render_pixels(structure, params, origins, directions, near_t, far_t, cfg, n_cand):
+    out = render_rays(structure, params, origins, directions, near_t, far_t, cfg, n_cand=n_cand)
     return {k: v for k, v in out.items() if k not in PER_SAMPLE}
 
 
-_render_jit = jax.jit(_render_pixels, static_argnames=("cfg",))
+_render_jit = jax.jit(_render_pixels, static_argnames=("cfg", "n_cand"))
 
 # an image render's fitted candidate count is rounded up to a multiple of this, so a path of
 # views compiles a handful of shapes rather than one per view
 CANDIDATE_QUANTUM = 32
 
 
-def image_config(structure: GridStructure, cfg: RenderConfig, origins, directions, near_t,
-                 far_t) -> RenderConfig:
-    """cfg with n_candidates fitted to these rays where it is 0 (auto); otherwise cfg.
+def image_candidates(structure: GridStructure, cfg: RenderConfig, origins, directions, near_t,
+                     far_t) -> int:
+    """The candidate count n_cand of an image render, fitted to its rays.
 
-    origins, directions: (n, 3); near_t, far_t: scalars or (n,). The auto count crosses the
-    box diagonal (bucket's 192x113x64 grid: 346 candidates), but a forward-facing view's
-    longest ray crosses far fewer voxels (bucket's test view: 114). Every ray keeps its full
+    origins, directions: (n, 3); near_t, far_t: scalars or (n,). The box diagonal's count
+    (bucket's 192x113x64 grid: 346 candidates) is far more than a forward-facing view's
+    longest ray crosses (bucket's test view: 114). Every ray keeps its full
     1 / samples_per_voxel spacing with either count, so the samples, and the image, are the
     same; only the candidate test shrinks (bucket, 480x270: march 0.95 -> 0.36 s of a
-    1.7 s render on a loaded machine). Fitted counts are rounded up to CANDIDATE_QUANTUM
-    and never exceed the auto count.
+    1.7 s render on a loaded machine). Rounded up to CANDIDATE_QUANTUM, never above the
+    box diagonal's count.
     """
-    if cfg.n_candidates:
-        return cfg
     auto = n_candidates(structure, cfg)
     n = fit_n_candidates(structure, origins, directions, near_t, far_t, cfg.samples_per_voxel)
     n = -(-n // CANDIDATE_QUANTUM) * CANDIDATE_QUANTUM
-    return dataclasses.replace(cfg, n_candidates=min(n, auto))
+    return min(n, auto)
 
 
 def render_image(structure: GridStructure, params, origins, directions, near_t, far_t, cfg,
@@ -325,7 +269,7 @@ def render_image(structure: GridStructure, params, origins, directions, near_t, 
     per-sample ones (PER_SAMPLE), which never leave the device.
 
     near_t, far_t: scalars or (H, W). One jit per chunk shape: the last chunk is padded.
-    With cfg.n_candidates 0 the candidate count is fitted to the image's rays (image_config).
+    The candidate count is fitted to the image's rays (image_candidates).
     Each chunk is split over all local devices (gridnerf.devices).
     """
     shape = origins.shape[:-1]
@@ -335,7 +279,7 @@ def render_image(structure: GridStructure, params, origins, directions, near_t, 
     near = np.broadcast_to(np.asarray(near_t, np.float32), shape).reshape(-1)
     far = np.broadcast_to(np.asarray(far_t, np.float32), shape).reshape(-1)
     n = o.shape[0]
-    cfg = image_config(structure, cfg, o, d, near, far)
+    n_cand = image_candidates(structure, cfg, o, d, near, far)
     n_dev = devices.device_count()
     chunk = -(-max(1, min(chunk, n)) // n_dev) * n_dev  # chunks split evenly over devices
     outs: dict[str, list] = {}
@@ -344,7 +288,7 @@ def render_image(structure: GridStructure, params, origins, directions, near_t, 
         pad = chunk - (sl.stop - sl.start)
         args = devices.put_rays(*[np.pad(a[sl], [(0, pad)] + [(0, 0)] * (a.ndim - 1),
                                           mode="edge") for a in (o, d, near, far)])
-        res = _render_jit(structure, params, *args, cfg=cfg)
+        res = _render_jit(structure, params, *args, cfg=cfg, n_cand=n_cand)
         for name, v in res.items():
             outs.setdefault(name, []).append(np.asarray(v)[: chunk - pad])
     return {k: np.concatenate(v, 0).reshape(*shape, *v[0].shape[1:]) for k, v in outs.items()}

@@ -1,6 +1,8 @@
 """The run folder: what a training run keeps beside its checkpoint, shared by train and eval.
 
     <run>/config.json     resolved config (gridnerf.config), written once training starts
+    <run>/plan.json       the run plan (gridnerf.plan): what training decided from the
+                          frames (black level, data eps, colour, candidate counts)
     <run>/bounds.json     scene bounds estimated by gridnerf.bounds when the scene's files
                           give none (written once, reused by resume and eval)
     <run>/checkpoint.npz  grid + optimiser state (train.py)
@@ -28,6 +30,7 @@ from pathlib import Path
 from gridnerf import atomic, bounds, checkpoint, darkframes, grid
 from gridnerf import config as cfgmod
 from gridnerf.errors import CheckpointError, ConfigError, RunLockedError, SceneError
+from gridnerf.plan import PLAN
 from gridnerf.scene import BoundsMissing, Scene, load_scene
 
 BOUNDS = "bounds.json"
@@ -36,8 +39,8 @@ METRICS = "metrics.jsonl"
 LOCK = ".lock"
 CHECKPOINT = "checkpoint.npz"
 SUMMARY = "summary.json"
-# Fields a checkpoint's arrays depend on: a resumed run can never change them.
-SHAPE_FIELDS = ("grid.resolutions", "grid.sh_degree", "loss.use_gains")
+# Fields a checkpoint's arrays or its run plan depend on: a resumed run can never change them.
+SHAPE_FIELDS = ("grid.resolutions", "grid.sh_degree", "loss.gain_model", "loss.method")
 
 
 class Session:
@@ -94,7 +97,7 @@ def _remove_stale_tmp(run: Path) -> None:
     """Delete the `<file>.tmp` a killed training (kill -9, power loss) left mid-write of one
     of the run folder's files (gridnerf.atomic never moves a .tmp into place, so it is
     never read). Only called with the lock held: no other training is writing them."""
-    for name in (CONFIG, BOUNDS, CHECKPOINT, METRICS, SUMMARY):
+    for name in (CONFIG, PLAN, BOUNDS, CHECKPOINT, METRICS, SUMMARY):
         (run / f"{name}.tmp").unlink(missing_ok=True)
 
 
@@ -180,22 +183,13 @@ def trim_metrics(run: Path, stage: int, step: int) -> None:
     atomic.write_text(path, "".join(f"{line}\n" for line in kept))
 
 
-def lens_cap_black(cfg: cfgmod.Config, run: Path) -> bool:
-    """Whether the run's frames take the black level of the scene's lens-cap frames:
-    data.black_offset = "dark", or "file" where training found the signal too weak for the
-    file's black level (data.lens_cap_share) and kept the offsets in black_level.json."""
-    return cfg.data.black_offset == "dark" or (
-        cfg.data.black_offset == "file" and (Path(run) / darkframes.BLACK_LEVEL).is_file())
-
-
 def open_scene(scene_dir, run: Path, estimate: bool = True, dark: bool = False) -> Scene:
     """Load the run's scene with the bounds and the black level the run uses.
 
     The run's bounds.json wins; otherwise the scene's own bounds; otherwise (estimate=True)
     gridnerf.bounds estimates them from the given poses and they are saved in bounds.json.
-    dark (lens_cap_black of the run's config): the black level the run measured from
-    lens-cap frames (black_level.json, gridnerf.darkframes) is added to the
-    file's.
+    dark (the run plan's black_level is "lens_cap"): the black level the run measured from
+    lens-cap frames (black_level.json, gridnerf.darkframes) is added to the file's.
     """
     scene = _open_scene(scene_dir, run, estimate)
     offset = darkframes.load(run) if dark else None

@@ -6,18 +6,15 @@ one stage per resolution in grid.resolutions. Between stages the grid is
 carved to what the training rays see, its box optionally refitted to the content, and
 resampled to the next resolution (next_stage_grid; docs/reconstruction.md). Each stage's
 step then tests only as many candidate voxels per ray as its training rays cross
-(with_fitted_candidates). All of this walks the training rays in chunks (training_rays).
+(fitted_candidates). All of this walks the training rays in chunks (training_rays).
 """
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from gridnerf import data_term, dataset, grid, illuminant, llnerf, render
+from gridnerf import data_term, dataset, grid, render
 from gridnerf.config import Config
 from gridnerf.errors import NumericsError
 
@@ -43,29 +40,32 @@ def resolve_resolution(res, bbox_min, bbox_max, image_hw: tuple[int, int],
 # margin on the longest training ray when fitting the candidate count (a batch ray's pixel
 # may sit a fraction of a pixel off the fitted ones)
 CANDIDATE_MARGIN = 1.05
+# carving keeps this many vertices around the survivors of the weight threshold
+PRUNE_DILATE = 1
+# the box fitted after the first stage leaves this share of the rendered mass outside it at
+# each end of each axis, with a margin of FIT_MARGIN first-stage voxels around the content
+FIT_QUANTILE = 0.005
+FIT_MARGIN = 2.0
+INIT_DENSITY = -4.0  # raw density a grid starts from (softplus: sigma 0.018 per voxel)
 
 
-def with_fitted_candidates(cfg: Config, structure, data: dataset.RayData, near_t: float,
-                           far_t: float) -> Config:
-    """cfg with render.n_candidates fitted to this stage's grid and the training rays
-    (render.fit_n_candidates over every training pixel, times CANDIDATE_MARGIN), where
-    the config leaves it 0 (auto); otherwise cfg itself.
+def fitted_candidates(structure, data: dataset.RayData, near_t: float, far_t: float,
+                      render_cfg) -> int:
+    """The candidate count of a stage's step: render.fit_n_candidates over every training
+    pixel, times CANDIDATE_MARGIN, at most the box diagonal's count (render.n_candidates).
 
-    The auto count crosses the box diagonal (192x118x64: 351 candidates per ray), but a
-    forward-facing NDC ray crosses little more than the z voxels: every training ray keeps
-    its full 1 / samples_per_voxel spacing either way, so the samples are the same and
-    only the candidate test (occupancy lookups, running count, search) shrinks.
-    Image renders (eval, exposure, paths) fit the count to their own rays (render.image_config).
+    The box diagonal (192x118x64: 351 candidates per ray) is far more than a
+    forward-facing NDC ray crosses (little more than the z voxels): every training ray
+    keeps its full 1 / samples_per_voxel spacing either way, so the samples are the same
+    and only the candidate test (occupancy lookups, running count, search) shrinks.
+    Image renders fit the count to their own rays (render.image_candidates).
     """
-    if cfg.render.n_candidates:
-        return cfg
     longest = 0
     for oc, dc, _ in training_rays(data, 1 << 16, stride=1):
         longest = max(longest, render.fit_n_candidates(
-            structure, oc, dc, near_t, far_t, cfg.render.samples_per_voxel))
-    n = min(int(np.ceil(longest * CANDIDATE_MARGIN)) + 1,
-            render.n_candidates(structure, cfg.render))
-    return dataclasses.replace(cfg, render=dataclasses.replace(cfg.render, n_candidates=n))
+            structure, oc, dc, near_t, far_t, render_cfg.samples_per_voxel))
+    return min(int(np.ceil(longest * CANDIDATE_MARGIN)) + 1,
+               render.n_candidates(structure, render_cfg))
 
 
 def training_rays(data: dataset.RayData, chunk: int, stride: int = 2):
@@ -86,40 +86,18 @@ def training_rays(data: dataset.RayData, chunk: int, stride: int = 2):
 
 
 def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, near_t: float,
-                      far_t: float, stride: int = 2) -> tuple[np.ndarray, ...]:
+                      far_t: float, stride: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """Per vertex (M,) over the training rays (every `stride`-th pixel per axis): max and
-    sum of the rendering weights and whether some ray needs it to keep grid.prune_mass of
-    its weight (render.vertex_visibility): the carving criteria and where the mass is."""
-    fn = jax.jit(render.vertex_visibility, static_argnames=("cfg", "mass"))
+    sum of the rendering weights (render.vertex_visibility): the carving criterion and
+    where the mass is."""
+    fn = jax.jit(render.vertex_visibility, static_argnames=("cfg",))
     vis = np.zeros(structure.n_rows, np.float32)
-    essential = np.zeros(structure.n_rows, bool)
     mass = np.zeros(structure.n_rows, np.float64)
     for oc, dc, _ in training_rays(data, int(cfg.render.chunk), stride):
-        v_max, v_sum, v_ess = fn(structure, params, oc, dc, near_t, far_t, cfg.render,
-                                 mass=cfg.grid.prune_mass)
+        v_max, v_sum = fn(structure, params, oc, dc, near_t, far_t, cfg.render)
         vis = np.maximum(vis, np.asarray(v_max))
         mass += np.asarray(v_sum, np.float64)
-        essential |= np.asarray(v_ess) > 0
-    return vis, mass, essential
-
-
-def carving_rescue(structure, params, keep: np.ndarray, data: dataset.RayData, cfg: Config,
-                   near_t: float, far_t: float, stride: int = 2) -> tuple[np.ndarray, float]:
-    """(M,) bool: vertices that training rays emptied by carving to `keep` need back
-    (render.carving_rescue with grid.prune_mass, prune_guard and prune_guard_acc), and the
-    share of the training rays (every `stride`-th pixel per axis) that were emptied."""
-    fn = jax.jit(render.carving_rescue, static_argnames=("cfg", "mass", "ratio", "min_acc"))
-    rescue = np.zeros(structure.n_rows, bool)
-    emptied, n = 0.0, 0
-    keep = jnp.asarray(keep)
-    for oc, dc, n_real in training_rays(data, int(cfg.render.chunk), stride):
-        v_res, r_empty = fn(structure, params, keep, oc, dc, near_t, far_t, cfg.render,
-                            mass=cfg.grid.prune_mass, ratio=cfg.grid.prune_guard,
-                            min_acc=cfg.grid.prune_guard_acc)
-        rescue |= np.asarray(v_res) > 0
-        emptied += float(np.asarray(r_empty)[:n_real].sum())
-        n += n_real
-    return rescue, emptied / max(n, 1)
+    return vis, mass
 
 
 def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fit: bool,
@@ -127,67 +105,47 @@ def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fi
     """Carve, optionally refit the box to the content, and resample to resolution `res`
     (a y of 0 is resolved on the new box, see resolve_resolution).
 
-    Carving keeps vertices some training ray weights by more than grid.prune_threshold
-    (visibility), or whose own alpha exceeds it (density), dilated by grid.prune_dilate;
-    "guarded" carves by visibility, then gives back what the training rays it would empty
-    need (carving_rescue). Returns (structure, params, info) with info = box and occupancy
-    figures (and the share of emptied training rays for "guarded").
+    Carving keeps the vertices some training ray weighs by more than grid.prune_threshold,
+    dilated by PRUNE_DILATE; the fitted box leaves FIT_QUANTILE of the rendered mass out at
+    each end (grid.content_box). Returns (structure, params, info) with info = box and
+    occupancy figures.
     """
     gc = cfg.grid
-    vis, mass, essential = vertex_visibility(structure, params, data, cfg, near_t, far_t)
-    info = {}
-    if gc.prune_mode in ("visibility", "guarded"):
-        keep = grid.dilate_rows(structure, vis > gc.prune_threshold, gc.prune_dilate)
-        if gc.prune_mode == "guarded":
-            rescue, info["emptied_ray_fraction"] = carving_rescue(
-                structure, params, keep, data, cfg, near_t, far_t)
-            keep |= grid.dilate_rows(structure, rescue, gc.prune_dilate)
-    elif gc.prune_mode == "ray_mass":
-        keep = grid.dilate_rows(structure, essential, gc.prune_dilate)
-    else:
-        keep = grid.density_keep_mask(structure, params, gc.prune_threshold, gc.prune_dilate)
+    vis, mass = vertex_visibility(structure, params, data, cfg, near_t, far_t)
+    keep = grid.dilate_rows(structure, vis > gc.prune_threshold, PRUNE_DILATE)
     if not keep.any() or not mass.sum() > 0:
         raise NumericsError(None, "the coarse grid is empty: no vertex is visible from the "
                             "training views", "check the poses and the frames' exposure")
     lo, hi = np.asarray(structure.bbox_min), np.asarray(structure.bbox_max)
-    if fit:
-        fit_lo, fit_hi = grid.content_box(structure, mass, gc.fit_quantile, margin=gc.fit_margin)
-        axes = slice(None) if gc.fit_xy else slice(2, 3)  # x/y kept: only depth is refitted
+    if fit:  # in the box's own dtype
+        fit_lo, fit_hi = grid.content_box(structure, mass, FIT_QUANTILE, margin=FIT_MARGIN)
         lo, hi = lo.copy(), hi.copy()
-        lo[axes], hi[axes] = fit_lo[axes], fit_hi[axes]
+        lo[:], hi[:] = fit_lo, fit_hi
     old_box = np.prod(np.asarray(structure.bbox_max) - np.asarray(structure.bbox_min))
     structure, params = grid.prune(structure, params, keep)
     res = resolve_resolution(res, lo, hi, data.image_hw, forward_facing)
     structure, params = grid.resample(structure, params, res, lo, hi)
-    info.update({"bbox_min": np.asarray(lo).tolist(), "bbox_max": np.asarray(hi).tolist(),
-                 "box_fraction_of_previous": float(np.prod(hi - lo) / old_box),
-                 "occupied_fraction": structure.n_rows / float(np.prod(res)),
-                 "resolution": res})
+    info = {"bbox_min": np.asarray(lo).tolist(), "bbox_max": np.asarray(hi).tolist(),
+            "box_fraction_of_previous": float(np.prod(hi - lo) / old_box),
+            "occupied_fraction": structure.n_rows / float(np.prod(res)),
+            "resolution": res}
     return structure, params, info
 
 
-def initial_grid(data: dataset.RayData, scene, cfg: Config, key, scene_ill=None):
+def initial_grid(data: dataset.RayData, scene, cfg: Config, key, init_log_gain):
     """(structure, params) a run starts from: the dense first-stage grid on the scene's box,
-    colour at the data's mean level, gains at the L_ca target (scene_ill (3,), else the
-    data's grey world; ones without gains; loss.method = "llnerf": llnerf.init_log_gain),
-    the backdrop of grid.background."""
+    colour at the data's mean level, the backdrop of grid.background. init_log_gain:
+    (color_scale, grey-world log gains (3,)) -> the log gains (3,) the field starts at
+    (the method's: gridnerf.methods)."""
     bbox_min, bbox_max, near_t, _ = dataset.grid_box(scene)
-    if scene.forward_facing and cfg.grid.ndc_xy == "frustums":
-        bbox_min[:2], bbox_max[:2] = dataset.frustum_xy(scene, scene.train_idx, bbox_min,
-                                                        bbox_max, near_t)
     color_scale, log_gain, mean_colour = data_term.data_statistics(data, jax.random.fold_in(key, 1))
-    if scene_ill is not None:  # start the gains at the target
-        log_gain = np.log(illuminant.gains_from_illuminant(scene_ill, floor=1e-6))
-    if cfg.loss.method == "llnerf":  # alpha brings the mean level to E, gamma 1
-        log_gain = llnerf.init_log_gain(color_scale, cfg.loss.exposure_level)
-    if not cfg.loss.use_gains:
-        log_gain = np.zeros(3)
+    log_gain = init_log_gain(color_scale, log_gain)
     background = grid.BLACK
     if cfg.grid.background == "mean":  # the capture's mean colour, at the gains' start
         background = np.stack([mean_colour, np.exp(log_gain)])
     return grid.init_grid(
         resolve_resolution(cfg.grid.resolutions[0], bbox_min, bbox_max, data.image_hw,
                            scene.forward_facing),
-        bbox_min, bbox_max, sh_degree=cfg.grid.sh_degree, init_density=cfg.grid.init_density,
+        bbox_min, bbox_max, sh_degree=cfg.grid.sh_degree, init_density=INIT_DENSITY,
         init_log_gain=log_gain, color_scale=color_scale, background=background,
         key=jax.random.fold_in(key, 2))

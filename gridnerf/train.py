@@ -1,11 +1,13 @@
 """Training: scene -> rays -> grid render -> losses -> optax step, coarse to fine.
 
 The stage loop around gridnerf.optim's jitted step, one per resolution stage (shapes
-change only between stages), with the data term's setup (gridnerf.data_term) and the grid
-changes between stages (gridnerf.stages) decided before each.
-The run folder (gridnerf.runfolder) holds config.json, checkpoint.npz (atomic,
-finite-only, written every train.checkpoint_every steps or
-train.checkpoint_seconds, resumed automatically) and metrics.jsonl. One
+change only between stages). What the run decides from the frames (the black level and
+the data term's eps, gridnerf.data_term; the colour, the method's plan_colour; each
+stage's candidate count, gridnerf.stages) is the run plan (gridnerf.plan), saved as
+plan.json and read back on resume; the config is never changed.
+The run folder (gridnerf.runfolder) holds config.json, plan.json, checkpoint.npz (atomic,
+finite-only, written every train.checkpoint_every steps or CHECKPOINT_SECONDS, resumed
+automatically) and metrics.jsonl. One
 training per folder (a lock); a failed start leaves nothing behind. A
 non-finite loss stops training with a clear message; the last good
 checkpoint is kept. The loss stays on the device between host syncs: only log steps
@@ -28,23 +30,24 @@ from tqdm import tqdm
 from gridnerf import (
     atomic,
     checkpoint,
-    colour_target,
     darkframes,
     data_term,
     dataset,
     grid,
     illuminant,
+    methods,
     optim,
     runfolder,
-    sensorfit,
     stages,
 )
 from gridnerf import config as cfgmod
+from gridnerf import plan as planmod
 from gridnerf.config import Config
 from gridnerf.errors import CheckpointError, NumericsError
 from gridnerf.runfolder import load_state, save_state
 
 CHECKPOINT = runfolder.CHECKPOINT
+CHECKPOINT_SECONDS = 30.0  # a checkpoint also when this long has passed since the last
 
 
 def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage: int,
@@ -65,7 +68,7 @@ def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage:
                        f"is {tuple(schedule[stage][0])}")
         else:
             try:
-                template = optim.make_optimizer(cfg, schedule[stage][1], stage).init(params)
+                template = optim.make_optimizer(cfg, schedule[stage][1]).init(params)
                 checkpoint.unflatten_like(template, opt_leaves)
             except ValueError as exc:
                 problem = f"its optimiser state does not fit ({exc})"
@@ -107,28 +110,33 @@ def train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool = Fals
 def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
            session: runfolder.Session) -> dict:
     cfg = runfolder.resolve_config(run, cfg, overwrite_config)
-    if cfg.data.black_offset == "dark" and darkframes.load(run) is None:
-        measured = darkframes.measure(scene_dir)  # before the scene loads: a fast refusal
-        darkframes.save(run, measured)  # open_scene adds it to the file's black level
-        print("black level from the dark frames: offsets (DN, CFA order) "
-              f"{np.round(np.ravel(measured['offset_dn']), 2).tolist()}")
-    scene = runfolder.open_scene(scene_dir, run, dark=runfolder.lens_cap_black(cfg, run))
-    scene = data_term.with_weak_signal_black_level(scene, scene_dir, run, cfg)
-    data = dataset.training_data(scene, cfg.data)
+    method = methods.get(cfg.loss.method)
+    method.check(cfg)
+    resuming = (run / CHECKPOINT).exists()
+    saved = planmod.load(run) if resuming else None
+    scene = runfolder.open_scene(scene_dir, run)
+    if saved is None:
+        black = data_term.black_level(scene_dir, run, cfg, scene)
+    else:
+        black = saved.black_level
+    if black == "lens_cap":
+        scene = darkframes.apply(scene, darkframes.load(run))
+    data = method.training_data(scene, cfg)
     near_t, far_t = dataset.grid_box(scene)[2:]
-    data, colour = colour_target.colour_inputs(data, scene, cfg)
-    scene_ill = None if "scene_ill" not in colour else np.asarray(colour["scene_ill"])
-    if scene_ill is not None:
+    data, colour = method.plan_colour(data, scene, cfg, None if saved is None else saved.colour)
+    if colour.anchor is not None:
+        anchor = np.asarray(colour.anchor, np.float32)
         print("L_ca target: the capture's illuminant (camera RGB) "
-              f"{np.round(scene_ill / scene_ill.max(), 3).tolist()}")
-    if data.illuminant_map is not None:
-        spread = illuminant.angular_error_deg(np.asarray(data.illuminant_map), scene_ill)
-        print(f"L_ca illuminant map: {spread.shape[1]}x{spread.shape[2]} blocks per frame, "
-              f"{np.percentile(spread, 90):.2f} deg from the capture's at the 90th percentile")
+              f"{np.round(anchor / anchor.max(), 3).tolist()}")
+        if data.illuminant_map is not None:
+            spread = illuminant.angular_error_deg(np.asarray(data.illuminant_map), anchor)
+            print(f"L_ca illuminant map: {spread.shape[1]}x{spread.shape[2]} blocks per "
+                  f"frame, {np.percentile(spread, 90):.2f} deg from the capture's at the "
+                  "90th percentile")
     key = jax.random.PRNGKey(cfg.train.seed)
     schedule = list(zip(cfg.grid.resolutions, cfg.train.steps_per_stage, strict=True))
 
-    if (run / CHECKPOINT).exists():
+    if resuming:
         structure, params, opt_leaves, header = load_state(run)
         stage, start, elapsed = header["stage"], header["step"], header["train_seconds"]
         key = jnp.asarray(np.array(header["key"], np.uint32))
@@ -138,25 +146,35 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
             session.started()
             return json.loads((run / "summary.json").read_text())
         print(f"resuming {run} at stage {stage}, step {start}")
+        plan = saved
     else:
-        structure, params = stages.initial_grid(data, scene, cfg, key, scene_ill)
+        structure, params = stages.initial_grid(
+            data, scene, cfg, key,
+            lambda scale, grey: method.init_log_gain(cfg, colour, scale, grey))
         stage, start, elapsed, opt_leaves = 0, 0, 0.0, []
-    # the frames' noise, measured alike on a fresh start and on a resume (the seed's key)
-    sigma = data_term.data_noise(data,
-                                 jax.random.fold_in(jax.random.PRNGKey(cfg.train.seed), 7))
-    step_cfg = data_term.with_data_eps_cap(cfg, sigma)
-    if step_cfg is not cfg:
-        print(f"data eps: {cfg.loss.data_eps:g} is {cfg.loss.data_eps / sigma:.1f}x the noise "
-              f"sigma {sigma:.2g} of the training frames, capped at "
-              f"{cfg.loss.data_eps_sigmas:g} sigma: {step_cfg.loss.data_eps:.3g} "
-              "(loss.data_eps_sigmas)")
-    if note := data_term.data_eps_note(step_cfg, sigma):
-        print(note)
+        # the frames' noise (the seed's key) and the data term's eps capped against it
+        sigma = data_term.data_noise(data,
+                                     jax.random.fold_in(jax.random.PRNGKey(cfg.train.seed), 7))
+        eps = data_term.capped_eps(cfg, sigma)
+        if eps != cfg.loss.data_eps:
+            print(f"data eps: {cfg.loss.data_eps:g} is {cfg.loss.data_eps / sigma:.1f}x the "
+                  f"noise sigma {sigma:.2g} of the training frames, capped at "
+                  f"{cfg.loss.data_eps_sigmas:g} sigma: {eps:.3g} (loss.data_eps_sigmas)")
+        if note := data_term.data_eps_note(cfg, eps, sigma):
+            print(note)
+        n_stages = len(schedule)
+        plan = planmod.RunPlan(
+            method=method.NAME, black_level=black,
+            data_noise=float(sigma) if np.isfinite(sigma) else None, data_eps=eps,
+            colour=colour,
+            opacity=planmod.opacity_schedule(cfg.loss.opacity, n_stages,
+                                             cfg.loss.opacity_stages),
+            n_candidates=(0,) * n_stages)
 
-    # Training really starts: save the config, drop metrics logged after the checkpoint.
+    # Training really starts: save the config and the plan, drop metrics logged after the
+    # checkpoint.
     cfgmod.save(cfg, run / runfolder.CONFIG)
-    if colour.get("one_gain"):
-        colour_target.save_one_gain(run, scene_ill)
+    planmod.save(run, plan)
     runfolder.trim_metrics(run, stage, start)
     session.started()
     log = open(run / runfolder.METRICS, "a")  # noqa: SIM115
@@ -169,9 +187,6 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     rate = 0.0
     while stage < len(schedule):
         res, steps = schedule[stage]
-        if (cfg.data.black_offset == "fit" and stage == len(schedule) - 1
-                and data.black_offset is None):  # against the previous stage's field
-            data = data_term.with_fitted_offsets(run, data, structure, params, scene, cfg)
         if stage > 0 and start == 0 and not opt_leaves:
             structure, params, info = stages.next_stage_grid(
                 structure, params, res, data, cfg, near_t, far_t,
@@ -180,17 +195,19 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
                   f"{np.round(info['bbox_min'], 3).tolist()}.."
                   f"{np.round(info['bbox_max'], 3).tolist()}, "
                   f"{100 * info['occupied_fraction']:.1f}% of the box occupied"
-                  + (f", {100 * info['emptied_ray_fraction']:.2f}% of the training rays "
-                     "rescued from carving" if "emptied_ray_fraction" in info else ""))
-        tx = optim.make_optimizer(cfg, steps, stage)
+                  )
+        tx = optim.make_optimizer(cfg, steps)
         opt_state = tx.init(params)
         if opt_leaves:
             opt_state = checkpoint.unflatten_like(opt_state, opt_leaves)
             opt_leaves = []
-        stage_cfg = stages.with_fitted_candidates(optim.stage_config(step_cfg, stage), structure,
-                                                  data, near_t, far_t)
-        step_fn = optim.make_step(stage_cfg, tx, near_t, far_t, **colour)
-        structure = grid.update_occupancy(structure, params, cfg.grid.occupancy_threshold)
+        if not plan.n_candidates[stage]:  # decided on this stage's grid, kept in the plan
+            plan = plan.with_candidates(stage, stages.fitted_candidates(
+                structure, data, near_t, far_t, cfg.render))
+            planmod.save(run, plan)
+        step_fn = optim.make_step(cfg, optim.step_plan(cfg, plan, stage, scene), tx, near_t,
+                                  far_t)
+        structure = grid.update_occupancy(structure, params)
         t_stage = time.perf_counter()
         last_save = t_stage
         steps_timed = 0
@@ -200,12 +217,12 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
             params, opt_state, total, terms = step_fn(params, opt_state, structure, data, sub)
             pending.append(total)
             steps_timed += 1
-            if (step + 1) % cfg.grid.occupancy_every == 0:
-                structure = grid.update_occupancy(structure, params, cfg.grid.occupancy_threshold)
+            if (step + 1) % grid.OCCUPANCY_EVERY == 0:
+                structure = grid.update_occupancy(structure, params)
             bar.update(1)
             last = step + 1 == steps
             logging = (step + 1) % cfg.train.log_every == 0 or last
-            overdue = 0 < cfg.train.checkpoint_seconds <= time.perf_counter() - last_save
+            overdue = CHECKPOINT_SECONDS <= time.perf_counter() - last_save
             saving = (step + 1) % cfg.train.checkpoint_every == 0 or last or overdue
             if not (logging or saving or steps_timed == 1):
                 continue  # the loss stays on the device: no host sync on this step
@@ -252,18 +269,16 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         "train_seconds": elapsed,
         "rays_per_second": rate,
         "voxels": int(structure.n_rows),
-        # the training data's mean level (grid colour scale; loss.data_eps_mode=level's unit)
+        # the training data's mean level (the grid's colour scale)
         "data_level": float(structure.color_scale),
         # the training frames' noise sigma (data_noise) and the absolute eps the data term used
-        "data_noise": sigma if np.isfinite(sigma) else None,
-        "data_eps": data_term.data_eps(step_cfg, structure.color_scale),
+        "data_noise": plan.data_noise,
+        "data_eps": plan.data_eps,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
-    if runfolder.lens_cap_black(cfg, run) and (offset := darkframes.load(run)) is not None:
+    if plan.black_level == "lens_cap" and (offset := darkframes.load(run)) is not None:
         summary["black_offset_dn"] = offset.tolist()
-    if colour.get("one_gain"):
-        summary["one_gain"] = json.loads((run / colour_target.ONE_GAIN).read_text())["gains"]
-    if (run / sensorfit.SENSOR_FIT).exists():
-        summary["sensor_fit_dn"] = json.loads((run / sensorfit.SENSOR_FIT).read_text())["dn"]
+    if plan.one_gain is not None:
+        summary["one_gain"] = list(plan.one_gain)
     atomic.write_text(run / "summary.json", json.dumps(summary, indent=2))
     return summary

@@ -1,9 +1,8 @@
-"""The LLNeRF-style row (gridnerf.llnerf): decomposition, enhancement, losses, data, preset."""
+"""The LLNeRF-style row (gridnerf.methods.llnerf): enhancement, losses, data, config."""
 
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 
 import jax
 import jax.numpy as jnp
@@ -11,8 +10,8 @@ import numpy as np
 import pytest
 
 from gridnerf import config as cfgmod
-from gridnerf import llnerf
 from gridnerf.errors import ConfigError
+from gridnerf.methods import llnerf
 
 
 def _colours(seed=0, shape=(4, 8, 8, 3)) -> jnp.ndarray:
@@ -106,31 +105,18 @@ def test_the_enhancement_losses_train_only_the_enhancement():
     assert float(ga[:, 0].sum()) < 0  # too dark: raising alpha lowers the exposure loss
 
 
-def test_config_ties_the_method_to_its_data():
+def test_the_method_checks_its_config():
     cfg = cfgmod.preset("llnerf")
-    assert (cfg.data.target, cfg.loss.method, cfg.loss.use_gains) == ("dark_srgb", "llnerf",
-                                                                       True)
-    assert (cfg.loss.w_exposure, cfg.loss.exposure_level) == (0.1, 0.55)
-    for sets in (["data.target=raw"], ["loss.use_gains=false"], ["loss.exposure_pool=3"],
-                 ["loss.exposure_level=1.5"], ["data.binning=false"]):
+    assert (cfg.data.target, cfg.loss.method, cfg.loss.gain_model) == ("raw", "llnerf", "field")
+    assert (llnerf.W_EXPOSURE, llnerf.EXPOSURE_LEVEL) == (0.1, 0.55)
+    llnerf.check(cfg)
+    for sets in (["data.target=reference"], ["loss.gain_model=none"], ["train.patch_size=6"],
+                 ["data.binning=false"]):
         with pytest.raises(ConfigError):
-            cfgmod.override(cfg, sets)
-    with pytest.raises(ConfigError, match="dark_srgb"):
-        cfgmod.override(cfgmod.preset("default"), ["data.target=dark_srgb"])
-    # the llnerf fields are inert elsewhere; a saved config without them reads as default
-    d = cfgmod.preset("default")
-    assert cfgmod.effective(d) == cfgmod.effective(cfgmod.override(d, ["loss.w_exposure=1"]))
-    assert cfgmod.effective(cfg) != cfgmod.effective(cfgmod.override(cfg, ["loss.w_exposure=1"]))
-    # L_ca and the smoothness are not trained by the llnerf method: a change of the colour
-    # defaults leaves its runs current; the gain map's compositing is
-    assert cfgmod.effective(cfg) == cfgmod.effective(
-        cfgmod.override(cfg, ["loss.ca_target=map", "loss.w_ca=0.3", "loss.w_smooth=0"]))
-    assert cfgmod.effective(cfg) != cfgmod.effective(
-        cfgmod.override(cfg, ["loss.gain_map=raw"]))
-    saved = cfgmod.to_dict(d)
-    for k in cfgmod.LLNERF_FIELDS + ("method",):
-        del saved["loss"][k]
-    assert cfgmod.from_dict(saved) == d
+            llnerf.check(cfgmod.override(cfg, sets))
+    # one gain is Bright-NeRF's L_ca target: the config refuses it for this method
+    with pytest.raises(ConfigError, match="gain_model"):
+        cfgmod.override(cfg, ["loss.gain_model=global"])
 
 
 def test_dark_srgb_target(small_scene):
@@ -140,8 +126,9 @@ def test_dark_srgb_target(small_scene):
     from gridnerf.scene import load_scene
 
     scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
-    data = dataset.build(scene, scene.train_idx, True, target="dark_srgb")
-    darker = dataset.build(scene, scene.train_idx, True, target="dark_srgb", exposure_ratio=0.5)
+    data = dataset.build(scene, scene.train_idx, True, target=llnerf.dark_srgb_frames)
+    darker = dataset.build(scene, scene.train_idx, True, target=llnerf.dark_srgb_frames,
+                           exposure_ratio=0.5)
     pixels = np.asarray(data.pixels)
     assert pixels.shape[1:] == (45, 80, 3) and pixels.min() >= 0 and pixels.max() <= 1
     assert np.all(np.asarray(data.inv_exposure) == 1)
@@ -159,7 +146,7 @@ def test_dark_srgb_target(small_scene):
     mean_cam = raw.bin2x2(scene.raw_normalized(i), scene.cfa).mean((0, 1))
     assert np.ptp(mean_linear) / mean_linear.mean() < 0.5 * np.ptp(mean_cam) / mean_cam.mean()
     with pytest.raises(Exception, match="binning"):
-        dataset.build(scene, scene.train_idx, False, target="dark_srgb")
+        dataset.build(scene, scene.train_idx, False, target=llnerf.dark_srgb_frames)
 
 
 def test_tiny_llnerf_trains_and_evaluates(small_scene, tmp_path):
@@ -167,8 +154,7 @@ def test_tiny_llnerf_trains_and_evaluates(small_scene, tmp_path):
     from gridnerf.eval_run import evaluate_run
     from gridnerf.train import load_state, train
 
-    tiny = cfgmod.preset("tiny")
-    cfg = replace(cfgmod.preset("llnerf"), grid=tiny.grid, render=tiny.render, train=tiny.train)
+    cfg = cfgmod.override(cfgmod.preset("tiny"), ["loss.method=llnerf"])
     run = tmp_path / "llnerf"
     train(small_scene, run, cfg)
     _, params, _, header = load_state(run)

@@ -195,31 +195,6 @@ def test_sparsity_loss_prefers_empty_space():
     assert float(losses.sparsity_loss(jnp.zeros((0,)))) == 0.0
 
 
-def _distortion_brute(w, s, step):
-    w = np.where(step > 0, w, 0.0)
-    inter = np.sum(w[:, :, None] * w[:, None, :] * np.abs(s[:, :, None] - s[:, None, :]),
-                   axis=(1, 2))
-    return np.mean(inter + np.sum(w**2 * step, axis=1) / 3.0)
-
-
-def test_distortion_loss_matches_pairwise_sum_and_prefers_one_surface():
-    rng = np.random.default_rng(0)
-    k = 12
-    s = np.cumsum(rng.uniform(0.3, 1.0, (5, k)), axis=1).astype(np.float32)
-    step = np.full((5, k), 0.7, np.float32)
-    step[:, -2:] = 0.0  # unused slots count nothing
-    w = rng.uniform(0, 0.2, (5, k)).astype(np.float32)
-    got = float(losses.distortion_loss(jnp.asarray(w), jnp.asarray(s), jnp.asarray(step)))
-    assert got == pytest.approx(_distortion_brute(w, s, step), rel=1e-4)
-    spike = np.zeros((1, k), np.float32)
-    spike[0, 4] = 0.9
-    fog = np.full((1, k), 0.9 / 10, np.float32)
-    args = (jnp.asarray(s[:1]), jnp.asarray(step[:1]))
-    assert float(losses.distortion_loss(jnp.asarray(spike), *args)) < float(
-        losses.distortion_loss(jnp.asarray(fog), *args))
-    assert float(losses.distortion_loss(jnp.zeros((1, k)), *args)) == 0.0
-
-
 def test_l1_sparsity_pulls_thin_fog_harder_than_cauchy():
     fog = jnp.full((10,), -4.0)  # sigma 0.018 per voxel
     g_l1 = jax.grad(lambda d: losses.sparsity_loss(d, mode="l1"))(fog)

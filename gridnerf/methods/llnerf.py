@@ -5,7 +5,7 @@ ICCV 2023) trains on the camera-finished (sRGB) dark photos, splits the colour i
 lighting and a reflectance part and enhances the lighting under unsupervised losses. Here
 on the same sparse grid as the method (loss.method = "llnerf", the `llnerf` preset):
 
-- data (dark_srgb_frame, data.target = "dark_srgb"): each training frame as a camera saves
+- data (dark_srgb_frame, training_data): each training frame as a camera saves
   a dark photo: 2x2 binning of the normalised raw, grey world, the colour matrix, NO
   brightening, the sRGB curve, clipped to [0, 1]. The grid's low-light colour stores it.
 - decomposition (decompose): a rendered dark colour c (sRGB) is lighting v = max_k c_k
@@ -14,20 +14,22 @@ on the same sparse grid as the method (loss.method = "llnerf", the `llnerf` pres
   vertex in the grid's gain field (log_gain channel ALPHA = log alpha, GAMMA = log gamma;
   channel 2 unused), composited along the ray (the renderer's gain = sum_i w_i exp(log_gain_i))
   and divided by the opacity as losses.normalized_gain does (enhancement_params).
-- losses (loss_terms, enhancement_tv), per batch of (P, p, p) ray patches: data = c against
-  the dark sRGB, "rawnerf" (losses.data_loss: LLNeRF's released script trains its sRGB
-  input with data_loss_type 'rawnerf', and the grid's regularisers were weighed against
-  that term; the plain MSE of dark sRGB is ~1000x smaller) or "mse" (plain masked MSE),
-  loss.llnerf_data; LLNeRF's enhancement losses in Zero-DCE's form (Guo et al., CVPR 2020)
-  on c_e: exposure control, mean over pool x pool regions of |mean intensity - E|; colour
-  constancy, sum over channel pairs of (mean_p - mean_q)^2 over the batch; total variation
-  of log alpha and log gamma on the grid (losses.tv_loss). The enhancement losses see c as
-  a constant, so they train the enhancement field alone and the dark colour follows the
-  data.
+- losses (loss_terms, enhancement_tv), per batch of (P, p, p) ray patches: data = c
+  against the dark sRGB, "rawnerf" (losses.data_loss: LLNeRF's released script trains its
+  sRGB input with data_loss_type 'rawnerf', and the grid's regularisers were weighed against
+  that term; the plain MSE of dark sRGB is ~1000x smaller: 6e-4 on the 160x90 test bucket
+  against 0.6 weighted, so the TV, opacity and sparsity priors would dominate the fit) or
+  "mse" (plain masked MSE), DATA_TERM; LLNeRF's enhancement losses in Zero-DCE's form (Guo
+  et al., CVPR 2020) on c_e: exposure control, mean over pool x pool regions of |mean
+  intensity - E|; colour constancy, sum over channel pairs of (mean_p - mean_q)^2 over the
+  batch; total variation of log alpha and log gamma on the grid (losses.tv_loss). The
+  enhancement losses see c as a constant, so they train the enhancement field alone and the
+  dark colour follows the data.
 
-Weights and E (config.LossConfig: w_exposure 0.1, exposure_level 0.55, w_color_constancy
-0.1, w_enhance_tv 0.1) are those of LLNeRF's released training script (exposure_loss_mult,
-fixed_exposure, gray_loss_mult, alpha_/gamma_ltv_loss_mult). Differences from LLNeRF: its
+Weights and E (W_EXPOSURE 0.1, EXPOSURE_LEVEL 0.55, W_COLOR_CONSTANCY 0.1, W_ENHANCE_TV 0.1)
+are those of LLNeRF's released training script (github.com/onpix/LLNeRF scripts/trian.sh:
+exposure_loss_mult, fixed_exposure, gray_loss_mult, alpha_/gamma_ltv_loss_mult; Zero-DCE's
+own E is 0.6). Differences from LLNeRF: its
 release learns gamma per channel (3) and alpha as a scalar, which the 3-channel gain field
 cannot hold with both; its losses are per-pixel squared ones; it enhances per sample, not
 per ray.
@@ -35,13 +37,26 @@ per ray.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gridnerf import baseline, color, exposure, losses, render
+from gridnerf import baseline, color, dataset, exposure, losses, render
+from gridnerf.config import Config
+from gridnerf.errors import ConfigError, SceneError
 from gridnerf.grid import GridStructure
+from gridnerf.plan import ColourPlan
 
+NAME = "llnerf"
+MAIN_OUTPUT = "llnerf"
+W_EXPOSURE = 0.1  # exposure control: mean |pooled mean intensity - E|
+EXPOSURE_LEVEL = 0.55  # E, the sRGB intensity the enhanced render is pushed to
+EXPOSURE_POOL = 4  # side of the pooled regions of a ray patch (divides train.patch_size)
+W_COLOR_CONSTANCY = 0.1  # sum over channel pairs of (mean_p - mean_q)^2
+W_ENHANCE_TV = 0.1  # grid TV of log alpha and log gamma
+DATA_TERM = "rawnerf"  # the data term on the dark sRGB: "rawnerf" or "mse"
 EPS = 1e-6  # floor of the lighting v: r = c / max(v, EPS) and v^gamma stay finite at v = 0
 ALPHA, GAMMA = 0, 1  # log_gain channels of log alpha and log gamma
 _TINY = 1e-30
@@ -102,7 +117,7 @@ def enhanced_render(rgb_srgb, gain, acc):
     return enhance(rgb_srgb, *enhancement_params(gain, acc))
 
 
-def init_log_gain(mean_level: float, level: float) -> np.ndarray:
+def init_log_gain_at(mean_level: float, level: float) -> np.ndarray:
     """(3,) log_gain a run starts from: gamma = 1 and alpha = level / mean_level, so the
     data's mean intensity (mean_level, e.g. data_term.data_statistics) starts at the exposure
     level E (as the method's gains start at the L_ca target)."""
@@ -161,22 +176,87 @@ def loss_terms(rgb_srgb, gain, acc, target, mask, patch_shape, level: float,
             "color_constancy": color_constancy_loss(rgb_e)}
 
 
-def batch_terms(structure, params, flat: dict, out: dict, shape, k1, cfg) -> dict:
-    """The LLNeRF-style terms of one batch (for gridnerf.optim.loss_fn; cfg its Config):
-    "data" (the dark render against the dark sRGB, loss.llnerf_data), "exposure" and
-    "color_constancy" (of the enhanced render), "enhance_tv" (grid TV of log alpha and log
-    gamma, rows sampled with k1).
+def check(cfg: Config) -> None:
+    """ConfigError unless the config trains this row: the dark frames come from the raw
+    capture, binned, with the gains (its enhancement field) on, and EXPOSURE_POOL divides
+    the ray patches."""
+    if cfg.data.target != "raw" or not cfg.data.binning or not cfg.loss.use_gains:
+        raise ConfigError(
+            None, f"loss.method = 'llnerf' with data.target = {cfg.data.target!r}, "
+            f"data.binning = {str(cfg.data.binning).lower()} and loss.gain_model = "
+            f"{cfg.loss.gain_model!r}", "use the llnerf preset (data.target=raw, "
+            "data.binning=true, a gain model other than none)")
+    if cfg.train.patch_size % EXPOSURE_POOL:
+        raise ConfigError(None, f"train.patch_size = {cfg.train.patch_size} is not a multiple "
+                          f"of the LLNeRF row's exposure pool ({EXPOSURE_POOL})",
+                          f"set train.patch_size to a multiple of {EXPOSURE_POOL}, e.g. 8")
 
-    flat: the batch's (n, 3) arrays; out: its render; shape: (P, p, p, 3). With
-    loss.gain_map = "normalized" the enhancement parameters are composited with
-    stop-gradient weights (render.frozen_density_gain, as for L_ca), so the enhancement
-    losses train the enhancement field alone.
+
+def dark_srgb_frames(scene, frames, binning: bool, downscale: int, exposure_ratio: float):
+    """The row's targets (a dataset.TARGETS-style function): each frame as a camera saves a
+    dark photo (dark_srgb_frame of the binned raw times exposure_ratio; rgb_srgb in
+    [0, 1]), exposure 1, pixels with a saturated channel invalid."""
+    if not binning:
+        raise SceneError(scene.path, "the LLNeRF row trains on binned frames: it needs "
+                         "data.binning=true", "set data.binning=true")
+    pairs = [scene.rgb_cam_binned(int(i), downscale) for i in frames]
+    pixels = np.stack([dark_srgb_frame(rgb_cam * float(exposure_ratio), scene.xyz_to_cam, ok)
+                       for rgb_cam, ok in pairs]).astype(np.float32)
+    valid = np.stack([np.broadcast_to(ok.all(axis=-1, keepdims=True), ok.shape)
+                      for _, ok in pairs])
+    return pixels, valid, np.ones(len(frames), np.float32)
+
+
+def training_data(scene, cfg: Config) -> dataset.RayData:
+    d = cfg.data
+    return dataset.build(scene, scene.train_idx, d.binning, d.downscale, dark_srgb_frames,
+                         d.exposure_ratio)
+
+
+def plan_colour(data, scene, cfg: Config, saved=None):
+    """Nothing is estimated from the frames: the enhancement losses set the colour."""
+    return data, ColourPlan(model="none")
+
+
+def init_log_gain(cfg: Config, colour, color_scale: float, grey_log_gain) -> np.ndarray:
+    """alpha brings the data's mean level to EXPOSURE_LEVEL, gamma 1 (init_log_gain)."""
+    return init_log_gain_at(color_scale, EXPOSURE_LEVEL)
+
+
+def batch_terms(structure, params, flat: dict, out: dict, shape, key, cfg: Config, step):
+    """(terms, weights) of one batch: "data" (the dark render against the dark sRGB,
+    DATA_TERM), "exposure" and "color_constancy" (of the enhanced render), "enhance_tv"
+    (grid TV of log alpha and log gamma, rows sampled with `key`).
+
+    flat: the batch's (n, 3) arrays; out: its render; shape: (P, p, p, 3). The
+    enhancement parameters are composited with stop-gradient weights
+    (render.frozen_density_gain, as for L_ca), so the enhancement losses train the
+    enhancement field alone.
     """
-    gain, acc = out["gain"], out["acc"]
-    if cfg.loss.gain_map == "normalized":
-        gain, acc = render.frozen_density_gain(out)
+    gain, acc = render.frozen_density_gain(out)
     terms = loss_terms(out["rgb_low"], gain, acc, flat["target"], flat["mask"], shape,
-                       cfg.loss.exposure_level, cfg.loss.exposure_pool, cfg.loss.llnerf_data)
-    terms["enhance_tv"] = enhancement_tv(structure, params["log_gain"], sample_key=k1,
+                       EXPOSURE_LEVEL, EXPOSURE_POOL, DATA_TERM)
+    terms["enhance_tv"] = enhancement_tv(structure, params["log_gain"], sample_key=key,
                                          fraction=cfg.loss.tv_fraction)
-    return terms
+    return terms, {"data": cfg.loss.w_data, "exposure": W_EXPOSURE,
+                   "color_constancy": W_COLOR_CONSTANCY, "enhance_tv": W_ENHANCE_TV}
+
+
+@dataclass(frozen=True)
+class EnhancedOutput:
+    """The row's output: the dark sRGB render enhanced per ray (enhanced_render), decoded
+    to linear sRGB; no exposure (alpha stays 1)."""
+
+    alpha: float = 1.0
+
+    def show(self, out: dict) -> tuple[np.ndarray, np.ndarray]:
+        """(rgb_linear, rgb_srgb) of a render."""
+        rgb_srgb = np.asarray(enhanced_render(out["rgb_low"], out["gain"], out["acc"]),
+                              np.float32)
+        return color.srgb_decode(rgb_srgb).astype(np.float32), rgb_srgb
+
+
+def outputs(structure, params, scene, cfg: Config, plan, out: dict | None = None
+            ) -> dict[str, EnhancedOutput]:
+    """One output, "llnerf": the enhanced render, nothing exposed."""
+    return {"llnerf": EnhancedOutput()}

@@ -1,0 +1,153 @@
+"""The run plan: every decision a training makes from the frames, typed, frozen, saved.
+
+The config (gridnerf.config) is what the user asked for; it is never rewritten. What
+training decides at run time from the capture goes here instead, is saved as
+<run>/plan.json beside config.json, and is what the step, a resume, eval and render read:
+
+- the black level the frames take (the file's, or the lens-cap frames' offsets on top:
+  data.black_offset = "dark", or the weak-signal gate of gridnerf.data_term);
+- the data term's eps (loss.data_eps capped at loss.data_eps_sigmas noise sigmas) and the
+  noise sigma it was capped against;
+- the colour (ColourPlan): which estimator "consistent" picked, the capture's illuminant
+  (the L_ca target's anchor, where the gains start), one gain or the gain field;
+- per stage: the opacity prior's weight and the fitted candidate count of the step.
+
+The plan is built once before the first step (candidate counts are filled in as each
+stage's grid is made: `with_candidates`); a resumed run reads it back and keeps it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Literal
+
+from gridnerf import atomic
+from gridnerf.errors import CheckpointError
+
+PLAN = "plan.json"
+
+
+@dataclass(frozen=True)
+class ColourPlan:
+    """What restores the colour and what L_ca pulls it towards.
+
+    model: "field" (per-voxel gains trained by L_ca and the smoothness), "one_gain" (one
+    gain for the capture, `gains`; the steps train no gains) or "none" (no gains, or a
+    method with its own colour terms). estimator: the illuminant estimator used on the
+    frames ("consistent" resolved to the one it picked), None where nothing was estimated
+    from the frames (the batch target, no gains). anchor: (3,) unit camera RGB, the
+    capture's illuminant (the "scene" target, the "map" target's anchor), or None.
+    light_spread_deg: how far the capture's illuminant maps stray from the consensus (the
+    one-light test), None where it was not measured. estimate_downscale: the box
+    downscale the estimates ran at.
+    """
+
+    model: Literal["field", "one_gain", "none"] = "none"
+    estimator: str | None = None
+    anchor: tuple[float, float, float] | None = None
+    gains: tuple[float, float, float] | None = None
+    light_spread_deg: float | None = None
+    estimate_downscale: int = 1
+
+
+@dataclass(frozen=True)
+class RunPlan:
+    """The decisions of one training run (module docstring).
+
+    black_level: "file" or "lens_cap" (<run>/black_level.json's offsets added to the
+    file's); data_noise: the training frames' noise sigma (normalised raw; None where not
+    measurable); data_eps: the data term's eps the steps use; opacity: the opacity prior's
+    weight in each stage; n_candidates: each stage's static candidate count per ray (0:
+    not decided yet).
+    """
+
+    method: str
+    black_level: Literal["file", "lens_cap"]
+    data_noise: float | None
+    data_eps: float
+    colour: ColourPlan
+    opacity: tuple[float, ...]
+    n_candidates: tuple[int, ...]
+
+    @property
+    def one_gain(self) -> tuple[float, float, float] | None:
+        """(3,) the capture's one gain where the colour is one gain, else None."""
+        return self.colour.gains if self.colour.model == "one_gain" else None
+
+    def with_candidates(self, stage: int, n: int) -> RunPlan:
+        """The plan with stage `stage`'s candidate count set to n."""
+        counts = list(self.n_candidates)
+        counts[stage] = int(n)
+        return replace(self, n_candidates=tuple(counts))
+
+
+def opacity_schedule(weight: float, stages: int, first: int) -> tuple[float, ...]:
+    """The opacity prior's weight in each of `stages` stages: `weight` in the first `first`
+    (loss.opacity_stages; 0: in every stage), 0 after."""
+    return tuple(weight if first == 0 or s < first else 0.0 for s in range(stages))
+
+
+def to_dict(plan: RunPlan) -> dict:
+    return asdict(plan)
+
+
+def from_dict(d: dict) -> RunPlan:
+    """RunPlan from to_dict output (tuples restored); KeyError/TypeError/ValueError if not."""
+    c = dict(d["colour"])
+    for k in ("anchor", "gains"):
+        c[k] = None if c.get(k) is None else tuple(float(v) for v in c[k])
+    d = dict(d)
+    d["colour"] = ColourPlan(**c)
+    d["opacity"] = tuple(float(v) for v in d["opacity"])
+    d["n_candidates"] = tuple(int(v) for v in d["n_candidates"])
+    plan = RunPlan(**d)
+    if not math.isfinite(plan.data_eps) or plan.data_eps <= 0:
+        raise ValueError(f"data_eps {plan.data_eps}")
+    return plan
+
+
+def save(run: Path, plan: RunPlan) -> None:
+    """<run>/plan.json (atomic)."""
+    atomic.write_text(Path(run) / PLAN, json.dumps(to_dict(plan), indent=2) + "\n")
+
+
+def load(run: Path) -> RunPlan:
+    """The plan saved in <run>/plan.json; CheckpointError naming the file if it is missing
+    or unreadable (a run trained before plans were kept has none: train it again)."""
+    path = Path(run) / PLAN
+    try:
+        return from_dict(json.loads(path.read_text()))
+    except FileNotFoundError:
+        raise CheckpointError(path, "the run has no plan.json (trained by an older version, "
+                              "or its training never started)", "train the run again "
+                              "into a new --out") from None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise CheckpointError(path, f"cannot read the run plan ({type(exc).__name__}: {exc})",
+                              "delete the run folder and train again") from None
+
+
+def load_if_any(run: Path) -> RunPlan | None:
+    """The saved plan, or None where the run has none yet (a fresh start)."""
+    return load(run) if (Path(run) / PLAN).exists() else None
+
+
+@dataclass(frozen=True, eq=False)
+class StepPlan:
+    """What one stage's step is built with (optim.make_step), from the run plan.
+
+    data_eps: the data term's eps; opacity: the opacity prior's weight this stage;
+    n_candidates: the static candidate count per ray; train_gains: whether the gain terms
+    (L_ca, smoothness) are in the loss (False with one gain or no gains); anchor: (3,)
+    float32 the capture's illuminant (the "scene" and "map" targets) or None; locus: (n, 3)
+    float32 the camera's Planckian locus for the "batch" target with loss.ca_locus, or None.
+    """
+
+    data_eps: float
+    opacity: float
+    n_candidates: int
+    train_gains: bool
+    anchor: object = None
+    locus: object = None

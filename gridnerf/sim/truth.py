@@ -1,0 +1,56 @@
+"""What the simulator knows and a capture does not: the true noise figures of a simulated
+scene and the exact clean raw of its frames (for tests and studies of the noise fit,
+gridnerf.noisefit; never for training)."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from gridnerf.image_io import read_exr
+from gridnerf.noisefit import tukey_lambda_variance
+from gridnerf.sim import sensor
+
+
+def noise_truth(sim: dict | str | Path) -> dict:
+    """True noise figures of a simulated scene (its sim.json, or the dict), in DN as
+    NoiseFit.in_dn gives them: K, read variance = Tukey-lambda + row^2 + 1/12 (rounding),
+    read sigma, black offsets (2, 2); and "scale" = white - black."""
+    if not isinstance(sim, dict):
+        path = Path(sim)
+        sim = json.loads((path / "sim.json" if path.is_dir() else path).read_text())
+    noise = sim["noise"]
+    var = (tukey_lambda_variance(noise["read_tukey_sigma_dn"], noise["read_tukey_lambda"])
+           + noise["row_sigma_dn"] ** 2 + 1.0 / 12.0)
+    return {"K_dn_per_electron": float(sim["K_dn_per_electron"]), "read_var_dn2": var,
+            "read_sigma_dn": math.sqrt(var),
+            "black_offset_dn": [list(map(float, r))
+                                for r in noise["black_bias_dn_per_cfa_position"]],
+            "scale": float(sim["white_level"] - sim["black_level"])}
+
+
+def clean_mean(scene_dir) -> Callable[[str], np.ndarray]:
+    """For a simulated single-illuminant scene: name -> the exact clean mean (H, W) of that
+    frame in normalised raw (no offset), from its reference gt/<name>.exr and sim.json
+    (the reference divided by gt_scale is the simulator's clean render; camera response
+    under the scene's illuminant, CFA, electrons per unit signal, K, white - black)."""
+    folder = Path(scene_dir)
+    sim = json.loads((folder / "sim.json").read_text())
+    if len(sim.get("illuminants", [None])) > 1:
+        raise ValueError(f"{folder} is lit by several illuminants; its reference is white "
+                         "balanced per light, so the raw signal cannot be rebuilt from it")
+    params = sensor.SensorParams(camera_model=sim["camera_model"],
+                                 cfa_pattern=sim["cfa_pattern"],
+                                 kelvin=float(sim["illuminant_kelvin"]))
+    gain = (sim["electrons_per_unit_signal"] * sim["K_dn_per_electron"]
+            / (sim["white_level"] - sim["black_level"]) / sim["gt_scale"])
+
+    def mean(name: str) -> np.ndarray:
+        rgb_cam = sensor.scene_to_cam(read_exr(folder / "gt" / f"{name}.exr"), params)
+        return np.maximum(sensor.mosaic(rgb_cam, params.cfa), 0.0) * gain
+
+    return mean
