@@ -37,11 +37,12 @@ def test_training_lowers_the_loss(tiny_run):
 
     import jax
 
-    from gridnerf import colour_target, dataset, eval_run, grid, losses, render
+    from gridnerf import dataset, eval_run, grid, losses, methods, render
 
     run, cfg, summary = tiny_run
-    _, scene, structure, params, _ = eval_run.load_run(run)
-    data, colour = colour_target.colour_inputs(dataset.training_data(scene, cfg.data), scene, cfg)
+    _, plan, scene, structure, params, _ = eval_run.load_run(run)
+    method = methods.get(cfg.loss.method)
+    data, colour = method.plan_colour(method.training_data(scene, cfg), scene, cfg, plan.colour)
     rays = dataset.batch(data, jax.random.PRNGKey(11), 128, 8)
     near_t, far_t = dataset.grid_box(scene)[2:]
 
@@ -52,9 +53,9 @@ def test_training_lowers_the_loss(tiny_run):
                                       rays["target"].reshape(-1, 3),
                                       rays["mask"].reshape(-1, 3)))
 
-    start, start_params = stages.initial_grid(data, scene, cfg,
-                                                jax.random.PRNGKey(cfg.train.seed),
-                                                colour.get("scene_ill"))
+    start, start_params = stages.initial_grid(
+        data, scene, cfg, jax.random.PRNGKey(cfg.train.seed),
+        lambda scale, grey: method.init_log_gain(cfg, colour, scale, grey))
     start = dataclasses.replace(start, background=jax.numpy.asarray(grid.BLACK))
     first, last = data_loss(start, start_params), data_loss(structure, params)
     assert last < 0.7 * first, (first, last)
@@ -103,9 +104,9 @@ def _crash_after(monkeypatch, n_steps: int) -> None:
 def test_interrupted_training_resumes_from_checkpoint(small_scene, tmp_path, monkeypatch):
     from gridnerf import train as trainmod
 
-    cfg = cfgmod.preset("tiny")
-    cfg = replace(cfg, train=replace(cfg.train, steps_per_stage=(20, 20), checkpoint_every=10,
-                                     checkpoint_seconds=0.0, log_every=4))
+    monkeypatch.setattr(trainmod, "CHECKPOINT_SECONDS", float("inf"))
+    cfg = cfgmod.override(cfgmod.preset("tiny"), [
+        "train.steps_per_stage=[20,20]", "train.checkpoint_every=10", "train.log_every=4"])
     run = tmp_path / "run"
     real_make_step = optim.make_step
     _crash_after(monkeypatch, 33)  # dies at stage 1 step 14, after its step-10 checkpoint
@@ -158,7 +159,7 @@ def test_eval_writes_metrics_and_images(tiny_run):
 
 
 def test_global_gains_equalise_the_render_means():
-    from gridnerf.eval_run import global_gains
+    from gridnerf.outputs import global_gains
 
     rgb_low = np.random.default_rng(0).uniform(size=(500, 3)) * [0.02, 0.04, 0.01]
     gains = global_gains({"rgb_low": rgb_low})
@@ -171,10 +172,11 @@ def test_global_gains_equalise_the_render_means():
 def test_config_overrides_and_round_trip(tmp_path):
     cfg = cfgmod.override(
         cfgmod.preset("default"),
-        ["train.steps_per_stage=[5,6,7]", "loss.use_gains=false", "grid.sh_degree=1"],
+        ["train.steps_per_stage=[5,6,7]", "loss.gain_model=none", "grid.sh_degree=1"],
     )
     assert cfg.train.steps_per_stage == (5, 6, 7)
     assert cfg.loss.use_gains is False and cfg.grid.sh_degree == 1
+    assert len([f for s in cfgmod.to_dict(cfg).values() for f in s]) <= 45  # the method's
     cfgmod.save(cfg, tmp_path / "c.json")
     assert cfgmod.load(tmp_path / "c.json") == cfg
     with pytest.raises(ValueError, match="bad override"):
@@ -204,9 +206,9 @@ def test_cli_reports_bad_input_with_exit_status_2(tmp_path, capsys):
 def test_checkpoints_by_time_as_well_as_steps(small_scene, tmp_path, monkeypatch):
     from gridnerf import train as trainmod
 
-    cfg = cfgmod.preset("tiny")
-    cfg = replace(cfg, train=replace(cfg.train, steps_per_stage=(20, 20), checkpoint_every=1000,
-                                     checkpoint_seconds=1e-9))
+    monkeypatch.setattr(trainmod, "CHECKPOINT_SECONDS", 1e-9)
+    cfg = cfgmod.override(cfgmod.preset("tiny"), [
+        "train.steps_per_stage=[20,20]", "train.checkpoint_every=1000"])
     run = tmp_path / "run"
     _crash_after(monkeypatch, 7)
     with pytest.raises(KeyboardInterrupt):
@@ -251,7 +253,8 @@ def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch
 
     cfg = cfgmod.override(cfgmod.preset("tiny"), [
         "grid.resolutions=[[16,0,8],[24,0,12]]", "train.steps_per_stage=[10,10]",
-        "train.checkpoint_every=5", "train.checkpoint_seconds=0"])
+        "train.checkpoint_every=5"])
+    monkeypatch.setattr(trainmod, "CHECKPOINT_SECONDS", float("inf"))
     run = tmp_path / "run"
     real_make_step = optim.make_step
     _crash_after(monkeypatch, 17)  # dies in stage 1 after its step-5 checkpoint
@@ -270,23 +273,10 @@ def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch
     monkeypatch.setattr(optim, "make_step", real_make_step)
     summary = trainmod.train(small_scene, run, cfg)
     assert summary["resolution"] == list(structure.resolution)
-    assert summary["data_level"] == structure.color_scale > 0  # loss.data_eps_mode=level's unit
+    assert summary["data_level"] == structure.color_scale > 0
     assert summary["data_noise"] > 0  # measured on the resume as on a fresh start
     assert summary["data_eps"] == min(cfg.loss.data_eps,
                                       cfg.loss.data_eps_sigmas * summary["data_noise"])
-
-
-def test_ray_mass_carving_and_depth_only_refit(small_scene, tmp_path):
-    from gridnerf.train import train
-
-    cfg = cfgmod.override(cfgmod.preset("tiny"), [
-        "grid.prune_mode=ray_mass", "grid.prune_mass=0.9", "grid.fit_xy=false"])
-    run = tmp_path / "run"
-    summary = train(small_scene, run, cfg)
-    structure = load_state_of(run)
-    lo, hi = np.asarray(structure.bbox_min), np.asarray(structure.bbox_max)
-    np.testing.assert_allclose([lo[0], lo[1], hi[0], hi[1]], [-1.25, -1.25, 1.25, 1.25])
-    assert 0 < summary["occupied_fraction"] <= 1.0  # 40 coarse steps: mostly fog, kept
 
 
 def load_state_of(run):
@@ -305,7 +295,8 @@ def test_stopped_before_the_first_checkpoint_starts_over(small_scene, tmp_path, 
     from gridnerf.eval_run import load_run
 
     base = ["grid.resolutions=[[16,16,8]]", "train.steps_per_stage=[8]", "train.log_every=2",
-            "train.checkpoint_every=1000", "train.checkpoint_seconds=0"]
+            "train.checkpoint_every=1000"]
+    monkeypatch.setattr(trainmod, "CHECKPOINT_SECONDS", float("inf"))
     first = cfgmod.override(cfgmod.preset("tiny"), [*base, "train.batch_patches=4"])
     second = cfgmod.override(cfgmod.preset("tiny"), base)
     run = tmp_path / "run"
@@ -324,7 +315,7 @@ def test_stopped_before_the_first_checkpoint_starts_over(small_scene, tmp_path, 
     assert [r["step"] for r in _losses(run)] == [2, 4, 6, 8]
     assert summary["scene"] == str(small_scene.resolve())
     monkeypatch.chdir(tmp_path)
-    _, scene, _, _, _ = load_run(run)
+    _, _, scene, _, _, _ = load_run(run)
     assert len(scene.train_idx) > 0
 
 
@@ -338,98 +329,40 @@ def test_scene_illuminant_from_the_training_frames(small_scene):
     sim = json.loads((small_scene / "sim.json").read_text())
     truth = np.asarray(sim["illuminant_neutral_cam"])
     scene = load_scene(small_scene, near_far=(1.0, 10.0))
-    cfg = cfgmod.preset("tiny")
-    cfg = replace(cfg, loss=replace(cfg.loss, ca_target="scene", ca_illuminant="grey_world",
-                                    ca_locus=False))
+    cfg = cfgmod.override(cfgmod.preset("tiny"), ["loss.ca_target=scene",
+                                                  "loss.ca_illuminant=grey_world",
+                                                  "loss.ca_locus=false"])
+
+    def estimate(data, c):
+        return colour_target.scene_illuminant(scene, c, colour_target.estimate_frames(data, scene),
+                                              "grey_world")
+
     binned = dataset.build(scene, scene.train_idx, True)
-    est = colour_target.scene_illuminant(binned, scene, cfg)
+    est = estimate(binned, cfg)
     assert np.isfinite(est).all() and abs(np.linalg.norm(est) - 1) < 1e-9
     assert float(illuminant.angular_error_deg(est, truth)) < 15.0
     mosaic = dataset.build(scene, scene.train_idx, False)
-    np.testing.assert_allclose(colour_target.scene_illuminant(mosaic, scene, cfg), est, atol=1e-6)
-    on = replace(cfg, loss=replace(cfg.loss, ca_locus=True))
+    np.testing.assert_allclose(estimate(mosaic, cfg), est, atol=1e-6)
+    on = cfgmod.override(cfg, ["loss.ca_locus=true"])
     locus = illuminant.planckian_locus(scene.xyz_to_cam)
-    assert np.min(illuminant.angular_error_deg(colour_target.scene_illuminant(binned, scene, on),
-                                               locus)) < 1e-6
-
-
-def test_effective_config_ignores_gain_fields_without_gains():
-    """Configs that train alike compare equal: the colour-prior fields of a run without
-    gains (the oracle) do not matter; with gains they do."""
-    o = cfgmod.preset("oracle")
-    other = replace(o, loss=replace(o.loss, ca_illuminant="grey_world", ca_locus=True,
-                                    ca_target="scene", w_ca=0.5))
-    assert o != other and cfgmod.effective(o) == cfgmod.effective(other)
-    d = cfgmod.preset("default")
-    assert cfgmod.effective(d) != cfgmod.effective(
-        replace(d, loss=replace(d.loss, ca_locus=not d.loss.ca_locus)))
-    tweaked = replace(o, loss=replace(o.loss, tv_density=0.5))  # not a gain field
-    assert cfgmod.effective(o) != cfgmod.effective(tweaked)
-
-
-def test_data_eps_cap_is_inert_where_it_cannot_act_and_old_configs_load_with_it():
-    """loss.data_eps_sigmas matters only for an absolute eps on raw frames; a saved config
-    without the field loads with the cap (config.LEGACY); a negative cap is refused."""
-    d = cfgmod.preset("default")
-    assert cfgmod.effective(cfgmod.override(d, ["loss.data_eps_sigmas=3"])) != (
-        cfgmod.effective(d))
-    for base in (cfgmod.override(d, ["loss.data_eps_mode=level"]), cfgmod.preset("oracle"),
-                 cfgmod.preset("llnerf")):
-        assert cfgmod.effective(cfgmod.override(base, ["loss.data_eps_sigmas=3"])) == (
-            cfgmod.effective(base))
-    saved = cfgmod.to_dict(d)
-    del saved["loss"]["data_eps_sigmas"]
-    assert cfgmod.from_dict(saved).loss.data_eps_sigmas == 2.0
-    with pytest.raises(cfgmod.ConfigError, match="data_eps_sigmas"):
-        cfgmod.override(d, ["loss.data_eps_sigmas=-1"])
-
-
-def test_lens_cap_gate_is_inert_off_the_file_black_level_and_old_configs_load_with_it():
-    """data.lens_cap_share is read under data.black_offset = "file" only; a saved config
-    without it loads with the gate (config.LEGACY: it binds on no kept run), so the kept
-    results keep their fingerprints; a negative share is refused."""
-    d = cfgmod.preset("default")
-    assert cfgmod.effective(cfgmod.override(d, ["data.lens_cap_share=0"])) != (
-        cfgmod.effective(d))
-    for mode in ("dark", "fit"):
-        base = cfgmod.override(d, [f"data.black_offset={mode}"])
-        assert cfgmod.effective(cfgmod.override(base, ["data.lens_cap_share=0"])) == (
-            cfgmod.effective(base))
-    saved = cfgmod.to_dict(d)
-    del saved["data"]["lens_cap_share"]
-    assert cfgmod.from_dict(saved) == d
-    with pytest.raises(cfgmod.ConfigError, match="lens_cap_share"):
-        cfgmod.override(d, ["data.lens_cap_share=-1"])
-
-
-def test_effective_config_ignores_map_fields_without_the_map_target():
-    """The illuminant map's block, threshold and anchor matter only with ca_target = map,
-    and the values inert fields compare at are fixed, not today's defaults."""
-    scene = cfgmod.override(cfgmod.preset("default"), ["loss.ca_target=scene"])
-    for item in ("loss.ca_map_tau=0.3", "loss.ca_map_block=8", "loss.ca_map_anchor=regions",
-                 "loss.ca_map_anchor=capture"):
-        assert cfgmod.effective(cfgmod.override(scene, [item])) == cfgmod.effective(scene)
-    mapped = cfgmod.override(scene, ["loss.ca_target=map"])
-    assert cfgmod.effective(cfgmod.override(mapped, ["loss.ca_map_tau=0.3"])) != (
-        cfgmod.effective(mapped))
-    inert = cfgmod.effective(cfgmod.preset("nogain")).loss
-    assert (inert.ca_target, inert.ca_map_anchor) == (
-        cfgmod.INERT_REFERENCE.ca_target, cfgmod.INERT_REFERENCE.ca_map_anchor)
+    assert np.min(illuminant.angular_error_deg(estimate(binned, on), locus)) < 1e-6
+    # the plan of the scene target: the anchor is this estimate, the field trains
+    _, colour = colour_target.plan_colour(binned, scene, cfg)
+    assert colour.model == "field" and colour.estimator == "grey_world"
+    np.testing.assert_allclose(colour.anchor, est)
 
 
 def test_opacity_prior_only_in_its_stages():
     """loss.opacity_stages = n: stages < n train with the prior, later ones without; 0 keeps
     it everywhere; a negative count is refused."""
     from gridnerf.errors import ConfigError
-    from gridnerf.optim import stage_config
+    from gridnerf.plan import opacity_schedule
 
-    cfg = cfgmod.override(cfgmod.preset("default"), ["loss.opacity=0.1",
-                                                     "loss.opacity_stages=1"])
-    assert stage_config(cfg, 0) == cfg
-    later = stage_config(cfg, 1)
-    assert later.loss.opacity == 0.0 and replace(later, loss=cfg.loss) == cfg
-    everywhere = cfgmod.override(cfg, ["loss.opacity_stages=0"])
-    assert all(stage_config(everywhere, k) == everywhere for k in range(3))
+    assert opacity_schedule(0.1, 3, 1) == (0.1, 0.0, 0.0)
+    assert opacity_schedule(0.1, 3, 2) == (0.1, 0.1, 0.0)
+    assert opacity_schedule(0.1, 3, 0) == (0.1, 0.1, 0.1)
+    assert opacity_schedule(0.0, 2, 1) == (0.0, 0.0)
+    cfg = cfgmod.preset("default")
     with pytest.raises(ConfigError, match="loss.opacity_stages"):
         cfgmod.override(cfg, ["loss.opacity_stages=-1"])
 
@@ -446,8 +379,8 @@ def test_consensus_needs_the_scene_target():
         cfgmod.override(cfg, ["loss.ca_illuminant=consensus", "loss.ca_target=batch"])
     batch = cfgmod.override(cfg, ["loss.ca_illuminant=grey_world", "loss.ca_target=batch"])
     assert batch.loss.ca_target == "batch"
-    with pytest.raises(ConfigError, match="loss.ca_one_light_deg"):
-        cfgmod.override(cfg, ["loss.ca_one_light_deg=-1"])
+    with pytest.raises(ConfigError, match="loss.gain_model"):
+        cfgmod.override(batch, ["loss.gain_model=auto"])
 
 
 def test_illuminant_map_target_trains(small_scene, tmp_path):
@@ -458,17 +391,18 @@ def test_illuminant_map_target_trains(small_scene, tmp_path):
     from gridnerf import colour_target, dataset, train
     from gridnerf.scene import load_scene
 
-    cfg = cfgmod.override(cfgmod.preset("tiny"), ["loss.ca_target=map", "loss.ca_map_block=4"])
-    assert cfg.loss.ca_map_anchor == "regions"  # the default
+    cfg = cfgmod.override(cfgmod.preset("tiny"), ["loss.ca_target=map"])
     scene = load_scene(small_scene, near_far=(1.0, 10.0))
     data = dataset.build(scene, scene.train_idx, True)
-    anchor = colour_target.scene_illuminant(data, scene, cfg)
-    capture = cfgmod.override(cfg, ["loss.ca_map_anchor=capture"])
-    mapped, kept = colour_target.with_illuminant_map(data, scene, capture, anchor)
-    np.testing.assert_array_equal(kept, anchor)  # "capture": the anchor given
+    frames = colour_target.estimate_frames(data, scene)
+    anchor = colour_target.scene_illuminant(scene, cfg, frames, "grey_edge")
+    mapped, kept = colour_target.with_illuminant_map(data, scene, cfg, frames, "grey_edge",
+                                                     anchor=anchor)
+    np.testing.assert_array_equal(kept, anchor)  # a resumed run's anchor is kept
     h, w = data.image_hw
-    assert mapped.illuminant_map.shape == (len(scene.train_idx), h // 4, w // 4, 3)
-    _, found = colour_target.with_illuminant_map(data, scene, cfg, anchor)
+    block = colour_target.MAP_BLOCK
+    assert mapped.illuminant_map.shape == (len(scene.train_idx), h // block, w // block, 3)
+    _, found = colour_target.with_illuminant_map(data, scene, cfg, frames, "grey_edge")
     assert found.shape == (3,) and np.all(np.isfinite(found))
     rays = dataset.batch(mapped, jax.random.PRNGKey(0), 4, 8)
     assert rays["illuminant"].shape == (4, 8, 8, 3)
@@ -488,34 +422,11 @@ def _loss_args(cfg, data, scene):
     lo, hi, near_t, far_t = dataset.grid_box(scene)
     structure, params = grid.init_grid((8, 8, 8), lo, hi)
     rays = dataset.batch(data, jax.random.PRNGKey(0), 2, 4)
-    return params, structure, rays, jax.random.PRNGKey(1), cfg, near_t, far_t, None, np.ones(3)
+    from gridnerf.plan import StepPlan
 
-
-def test_fitted_black_offsets_train_and_resume(small_scene, tmp_path, monkeypatch):
-    """data.black_offset = "fit": the offsets are fitted once before the last stage, kept in
-    sensor_fit.json (finite, in DN in the summary), read back by a run resumed inside the
-    last stage; a one-stage config is refused."""
-    from gridnerf import sensorfit
-    from gridnerf import train as trainmod
-    from gridnerf.errors import ConfigError
-
-    cfg = cfgmod.override(cfgmod.preset("tiny"), [
-        "data.black_offset=fit", "train.steps_per_stage=[20,20]", "train.checkpoint_every=10",
-        "train.checkpoint_seconds=0"])
-    run = tmp_path / "run"
-    real_make_step = optim.make_step
-    _crash_after(monkeypatch, 33)  # dies in the last stage, after its step-10 checkpoint
-    with pytest.raises(KeyboardInterrupt):
-        trainmod.train(small_scene, run, cfg)
-    b = sensorfit.load_offsets(run)
-    assert b is not None and b.shape == (2, 2) and np.isfinite(b).all()
-    monkeypatch.setattr(optim, "make_step", real_make_step)
-    monkeypatch.setattr(sensorfit, "fit_field", lambda *a, **k: pytest.fail("fitted twice"))
-    summary = trainmod.train(small_scene, run, cfg)
-    np.testing.assert_array_equal(sensorfit.load_offsets(run), b)
-    assert np.isfinite(np.asarray(summary["sensor_fit_dn"]["black_offset_dn"])).all()
-    with pytest.raises(ConfigError, match="data.black_offset"):
-        cfgmod.override(cfg, ["grid.resolutions=[[24,24,16]]", "train.steps_per_stage=[40]"])
+    step = StepPlan(data_eps=1e-3, opacity=0.1, n_candidates=0, train_gains=True,
+                    anchor=np.ones(3, np.float32))
+    return params, structure, rays, jax.random.PRNGKey(1), cfg, step, near_t, far_t
 
 
 def test_dark_frame_black_level_trains_resumes_and_reaches_eval(small_scene, tmp_path,
@@ -527,8 +438,8 @@ def test_dark_frame_black_level_trains_resumes_and_reaches_eval(small_scene, tmp
     from gridnerf.eval_run import load_run
 
     cfg = cfgmod.override(cfgmod.preset("tiny"), [
-        "data.black_offset=dark", "train.steps_per_stage=[20,20]", "train.checkpoint_every=10",
-        "train.checkpoint_seconds=0"])
+        "data.black_offset=dark", "train.steps_per_stage=[20,20]", "train.checkpoint_every=10"])
+    monkeypatch.setattr(trainmod, "CHECKPOINT_SECONDS", float("inf"))
     run = tmp_path / "run"
     real_make_step = optim.make_step
     _crash_after(monkeypatch, 33)
@@ -542,58 +453,32 @@ def test_dark_frame_black_level_trains_resumes_and_reaches_eval(small_scene, tmp
     monkeypatch.setattr(darkframes, "measure", lambda *a, **k: pytest.fail("measured twice"))
     summary = trainmod.train(small_scene, run, cfg)
     np.testing.assert_array_equal(summary["black_offset_dn"], offset)
-    _, scene, *_ = load_run(run)
+    plan, scene = load_run(run)[1:3]
+    assert plan.black_level == "lens_cap"
     file_black = scene.black_level - offset.astype(np.float32)[None]
     np.testing.assert_allclose(file_black, 512.0, atol=1e-3)  # the DNG's tag, plus offset
 
 
-def test_guarded_carving_gives_back_what_a_weight_threshold_empties(small_scene, tmp_path):
-    """With a harsh weight threshold (the 90th percentile of the vertices' weights) some
-    training rays lose most of their opacity; the guarded carving keeps every vertex the
-    plain one keeps, plus what those rays need."""
-    from gridnerf import dataset, stages
-    from gridnerf import train as trainmod
-    from gridnerf.eval_run import load_run
-
-    cfg = cfgmod.override(cfgmod.preset("tiny"), [
-        "grid.resolutions=[[24,0,12]]", "train.steps_per_stage=[40]"])
-    trainmod.train(small_scene, tmp_path / "run", cfg)
-    _, scene, structure, params, _ = load_run(tmp_path / "run")
-    data = dataset.training_data(scene, cfg.data)
-    _, _, near_t, far_t = dataset.grid_box(scene)
-    vis = stages.vertex_visibility(structure, params, data, cfg, near_t, far_t)[0]
-    harsh = float(np.percentile(vis, 90))
-    kept = {}
-    for mode in ("visibility", "guarded"):
-        c = cfgmod.override(cfg, [f"grid.prune_mode={mode}", f"grid.prune_threshold={harsh}"])
-        st, _, info = stages.next_stage_grid(structure, params, (24, 0, 12), data, c, near_t,
-                                               far_t, fit=False)
-        kept[mode] = np.asarray(st.index) < st.n_rows
-    assert 0.0 < info["emptied_ray_fraction"] <= 1.0
-    assert not (kept["visibility"] & ~kept["guarded"]).any()
-    assert kept["guarded"].sum() > kept["visibility"].sum()
-
-
 def test_fitted_candidates_render_the_training_rays_unchanged(tiny_run):
-    """with_fitted_candidates: fewer candidates than the box diagonal on a forward-facing
-    grid, and every training batch ray gets the very same samples and colour."""
+    """stages.fitted_candidates: fewer candidates than the box diagonal on a forward-facing
+    grid, and every training batch ray gets the very same samples and colour; the run plan
+    keeps the count of its last stage."""
     import jax
 
     from gridnerf import dataset, eval_run, render
-    from gridnerf.stages import with_fitted_candidates
+    from gridnerf.stages import fitted_candidates
 
-    cfg, scene, structure, params, _ = eval_run.load_run(tiny_run[0])
+    cfg, plan, scene, structure, params, _ = eval_run.load_run(tiny_run[0])
     data = dataset.training_data(scene, cfg.data)
     near_t, far_t = dataset.grid_box(scene)[2:]
-    fitted = with_fitted_candidates(cfg, structure, data, near_t, far_t)
-    n_fit = fitted.render.n_candidates
+    n_fit = fitted_candidates(structure, data, near_t, far_t, cfg.render)
     assert 0 < n_fit < render.n_candidates(structure, cfg.render)
-    assert with_fitted_candidates(fitted, structure, data, near_t, far_t) is fitted
+    assert plan.n_candidates[-1] == n_fit and all(n > 0 for n in plan.n_candidates)
     rays = dataset.batch(data, jax.random.PRNGKey(3), 16, 8)
     key = jax.random.PRNGKey(4)
     o, d = (rays[k].reshape(-1, 3) for k in ("origins", "directions"))
-    outs = [render.render_rays(structure, params, o, d, near_t, far_t, c.render, key=key)
-            for c in (cfg, fitted)]
+    outs = [render.render_rays(structure, params, o, d, near_t, far_t, cfg.render, key=key,
+                               n_cand=n) for n in (0, n_fit)]
     for name in ("rgb_low", "acc", "depth"):
         np.testing.assert_allclose(np.asarray(outs[0][name]), np.asarray(outs[1][name]),
                                    rtol=1e-5, atol=1e-7)
@@ -605,40 +490,36 @@ def test_data_eps_note_only_where_the_absolute_eps_exceeds_the_noise():
     sigma (the cap off) it names the ratio and the fix."""
 
     cfg = cfgmod.override(cfgmod.Config(), ["loss.data_eps_sigmas=0"])
-    assert data_term.data_eps_note(cfg, 0.00074) is None  # bucket at gamma 1: 1.35 sigma
-    assert data_term.data_eps_note(cfg, 0.6 * 0.00074) is None  # gamma 0.6: 2.25 sigma
-    note = data_term.data_eps_note(cfg, 0.4 * 0.00074)  # gamma 0.4: 3.4 sigma
-    assert note is not None and "3.4x" in note and "loss.data_eps_sigmas=2" in note
-    assert data_term.data_eps_note(cfg, float("nan")) is None  # no neighbours to measure
-    assert data_term.data_eps_note(cfg, 0.0) is None  # noiseless frames: nothing to compare
-    level = cfgmod.override(cfg, ["loss.data_eps_mode=level", "loss.data_eps=0.5"])
-    assert data_term.data_eps_note(level, 0.1 * 0.00074) is None
-    default = cfgmod.Config()  # the cap: the steps' eps is 2 sigma, below the note's 2.5
-    assert data_term.data_eps_note(data_term.with_data_eps_cap(default, 0.1 * 0.00074),
-                               0.1 * 0.00074) is None
+
+    def note(c, sigma):
+        return data_term.data_eps_note(c, data_term.capped_eps(c, sigma), sigma)
+
+    assert note(cfg, 0.00074) is None  # bucket at gamma 1: 1.35 sigma
+    assert note(cfg, 0.6 * 0.00074) is None  # gamma 0.6: 2.25 sigma
+    text = note(cfg, 0.4 * 0.00074)  # gamma 0.4: 3.4 sigma
+    assert text is not None and "3.4x" in text and "loss.data_eps_sigmas=2" in text
+    assert note(cfg, float("nan")) is None  # no neighbours to measure
+    assert note(cfg, 0.0) is None  # noiseless frames: nothing to compare
+    assert note(cfgmod.override(cfg, ["data.target=processed"]), 0.1 * 0.00074) is None
+    # the cap: the steps' eps is 2 sigma, below the note's 2.5
+    assert note(cfgmod.Config(), 0.1 * 0.00074) is None
 
 
 def test_data_eps_cap_binds_only_on_darker_raw_frames():
-    """data_term.with_data_eps_cap: RawNeRF's 1e-3 is kept where it is under 2 noise sigmas (the
-    simulated scenes at gamma 1: the config itself comes back); below, the eps is 2 sigma;
-    the level eps, non-raw targets, the llnerf method, a cap of 0 and an unmeasured or
-    zero sigma are left alone."""
+    """data_term.capped_eps: RawNeRF's 1e-3 is kept where it is under 2 noise sigmas (the
+    simulated scenes at gamma 1); below, the eps is 2 sigma; non-raw targets, the llnerf
+    method, a cap of 0 and an unmeasured or zero sigma are left alone."""
 
     cfg = cfgmod.Config()
-    assert data_term.with_data_eps_cap(cfg, 0.00074) is cfg  # 1.35 sigma
-    capped = data_term.with_data_eps_cap(cfg, 0.1 * 0.00074)  # 13.5 sigma
-    assert capped.loss.data_eps == pytest.approx(2 * 0.1 * 0.00074)
-    assert cfgmod.diff(cfg, capped) == ["loss.data_eps"]
+    assert data_term.capped_eps(cfg, 0.00074) == cfg.loss.data_eps  # 1.35 sigma
+    assert data_term.capped_eps(cfg, 0.1 * 0.00074) == pytest.approx(2 * 0.1 * 0.00074)
     three = cfgmod.override(cfg, ["loss.data_eps_sigmas=3"])
-    assert data_term.with_data_eps_cap(three, 1e-4).loss.data_eps == pytest.approx(3e-4)
-    for sets in (["loss.data_eps_mode=level", "loss.data_eps=0.5"], ["data.target=processed"],
-                 ["loss.data_eps_sigmas=0"]):
+    assert data_term.capped_eps(three, 1e-4) == pytest.approx(3e-4)
+    for sets in (["data.target=processed"], ["loss.data_eps_sigmas=0"], ["loss.method=llnerf"]):
         other = cfgmod.override(cfg, sets)
-        assert data_term.with_data_eps_cap(other, 1e-5) is other, sets
-    llnerf = cfgmod.preset("llnerf")
-    assert data_term.with_data_eps_cap(llnerf, 1e-5) is llnerf
+        assert data_term.capped_eps(other, 1e-5) == other.loss.data_eps, sets
     for sigma in (0.0, float("nan")):
-        assert data_term.with_data_eps_cap(cfg, sigma) is cfg
+        assert data_term.capped_eps(cfg, sigma) == cfg.loss.data_eps
 
 
 def test_capped_data_term_is_the_same_at_every_gamma():
@@ -657,7 +538,7 @@ def test_capped_data_term_is_the_same_at_every_gamma():
     cfg = cfgmod.Config()
 
     def loss(gamma, c):
-        eps = data_term.with_data_eps_cap(c, gamma * sigma).loss.data_eps
+        eps = data_term.capped_eps(c, gamma * sigma)
         return float(losses.data_loss(gamma * render, gamma * target, mask, eps))
 
     assert loss(0.1, cfg) == pytest.approx(loss(0.3, cfg), rel=1e-4)  # both capped
