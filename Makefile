@@ -60,19 +60,19 @@ render: $(STAMP)
 # every scene unless SCENE is given on the command line (make ablate SCENE=bucket)
 ABLATE_SCENES = $(if $(filter command line,$(origin SCENE)),$(SCENE),all)
 ablate: $(STAMP)
-	$(RUN)python experiments/ablate.py --scenes "$(ABLATE_SCENES)"
+	$(RUN)python -m experiments.ablate --scenes "$(ABLATE_SCENES)"
 
 # QUICK=1: the whole report small (160x90 scenes, shrunk presets) under reports/quick/
 report: $(STAMP)
-	$(RUN)python experiments/report.py $(if $(QUICK),--quick)
+	$(RUN)python -m experiments.report $(if $(QUICK),--quick)
 
 recon: $(STAMP)
-	$(RUN)python experiments/recon.py --scenes all --oracle heldout
+	$(RUN)python -m experiments.recon --scenes all --oracle heldout
 
-# speed and scale benchmark (issue 10): bench/results.json + bench/results.md, cached per item
+# speed and scale benchmark: bench/results.json + bench/results.md, cached per item
 # in bench/cache (delete it, or BENCH_ARGS=--fresh, to measure again); docs/speed.md
 bench: $(STAMP)
-	$(RUN)python experiments/bench.py --scene "$(SCENE)" $(BENCH_ARGS)
+	$(RUN)python -m experiments.bench --scene "$(SCENE)" $(BENCH_ARGS)
 
 lint: $(STAMP)
 	$(BIN)/ruff check gridnerf experiments tests

@@ -13,27 +13,30 @@ scene (its `global_grey_world` output), which is what "no gains" vs "gains" shou
 Writes <out>.md and <out>.json: per scene, then the mean over each report group the scenes
 cover (nine built-in, tuning, held out, mixed light, held-out mixed light), each apart.
 
-    python experiments/ablate.py [--scenes all|nine|heldout|a,b]
-                                 [--study parts|colour|smoothness|eps|gain_model|tv_fraction]
-                                 [--quick]
+Other studies (--study) compare the gains' smoothness weight, one gain against the field
+and the grid regularisers' row sample on the same footing, each in reports/ablation_<study>.
+The parts' means (nine built-in, held out) written to reports/ablation also go into
+docs/results.md between its ablation markers.
+
+    python -m experiments.ablate [--scenes all|nine|heldout|a,b]
+                                 [--study parts|smoothness|gain_model|tv_fraction] [--quick]
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
-from common import (
-    LEVEL_EPS,
+from experiments.common import (
     REPORT_GROUPS,
+    RESULTS_DOC,
     fmt,
     markdown_table,
     run_variant,
     scene_names,
     study_parser,
-    update_readme,
+    update_doc,
     write_report,
 )
 
@@ -44,53 +47,18 @@ VARIANTS = [
     ("full_tv", "full, smoothness as grid TV (default)", "default", "default", []),
     ("full_patch", "full, smoothness as eq. 15 on ray patches", "patch", "patch", []),
 ]
-# --study colour (issue 8's rows): no white balance, one global grey-world gain (both the
-# no-gain run), the default (the illuminant map, anchored by region) with each L_ca
-# illuminant estimate, the map anchored to the capture's estimate, one target for the
-# capture (no map), the default with the black offsets fitted from the noise, and both
-# the no-gain run and the default with the black level measured from the scene's
-# lens-cap frames (data.black_offset=dark: a capture that includes dark frames)
-COLOUR_VARIANTS = [
-    ("no_cr", "no white balance / one grey-world gain (no gains)", "nogain", "nogain", []),
-    ("grey_world", "field, estimator grey world", "ca_grey_world", "default",
-     ["loss.ca_illuminant=grey_world"]),
-    ("shades_of_grey", "field, estimator shades of grey (p = 6)", "ca_shades_of_grey",
-     "default", ["loss.ca_illuminant=shades_of_grey"]),
-    ("grey_edge", "field, estimator grey edge", "ca_grey_edge", "default",
-     ["loss.ca_illuminant=grey_edge"]),
-    ("scene", "field, one target for the capture (no map)", "ca_scene", "default",
-     ["loss.ca_target=scene"]),
-    ("map_capture", "field, illuminant map anchored to the capture's estimate", "ca_map",
-     "default", ["loss.ca_map_anchor=capture"]),
-    ("map_regions", "field, illuminant map anchored by region (default)",
-     "default", "default", []),
-    ("black_fit", "default + black offsets fitted from the noise", "black_fit", "default",
-     ["data.black_offset=fit"]),
-    ("no_cr_dark", "no gains, black level from lens-cap frames", "nogain_dark", "nogain",
-     ["data.black_offset=dark"]),
-    ("black_dark", "default + black level from lens-cap frames", "dark_black", "default",
-     ["data.black_offset=dark"]),
-]
 # --study smoothness: the gains' grid TV weight loss.w_smooth at a tenth of the default's
-# (session 21: does the field follow its illuminant map closer, and at what cost where
-# one light?). Tuned on mixed_lamp_window and mixed_desk_daylight, tested on the rest
+# (does the field follow its illuminant map closer, and at what cost where one light?).
+# Tuned on mixed_lamp_window and mixed_desk_daylight, tested on the rest
 SMOOTHNESS_VARIANTS = [
     ("map_regions", "field, loss.w_smooth = 0.1 (default)", "default", "default", []),
     ("smooth_0.01", "field, loss.w_smooth = 0.01", "ws0.01", "default",
      ["loss.w_smooth=0.01"]),
 ]
-# --study eps: the data term's epsilon, RawNeRF's absolute 1e-3 (default) against
-# loss.data_eps_mode=level, eps = 0.5 x the training data's mean level (the darkness sweep:
-# the absolute eps makes the fit depend on the raw's scale; bucket's best gammas, 0.6-0.8,
-# put it at 0.54-0.72 of the level). Chosen on the nine, tuning and mixed-light scenes
-EPS_VARIANTS = [
-    ("eps_absolute", "data eps 1e-3, absolute (default)", "default", "default", []),
-    ("eps_level0.5", "data eps 0.5 x the mean level", "eps_level0.5", "default", LEVEL_EPS),
-]
 # --study gain_model: what carries the colour. The field (default) against
 # loss.gain_model=auto: one gain for the capture (the L_ca target's anchor) where its
 # illuminant maps show one light, the field where lights mix; with one gain the steps
-# train no gains. Each with the file's black level and with the lens-cap one (session 29)
+# train no gains. Each with the file's black level and with the lens-cap one
 GAIN_MODEL_VARIANTS = [
     ("field", "gain field (default)", "default", "default", []),
     ("auto", "one gain where one light, the field where lights mix", "gain_auto", "default",
@@ -102,17 +70,16 @@ GAIN_MODEL_VARIANTS = [
 ]
 # --study tv_fraction: the share of the grid's rows the four grid regularisers (TV of
 # density, of colour, of the gains; sparsity) sample per step. Their backward scatters are
-# about 30 % of the last stage's step (docs/speed.md, session 26); at a tenth of the rows
-# the step is ~16 % faster (session 30). Is it free? Nothing was chosen on these runs
+# about 30 % of the last stage's step (docs/speed.md); at a tenth of the rows the step is
+# ~16 % faster. Is it free? Nothing was chosen on these runs
 TV_FRACTION_VARIANTS = [
     ("tv_0.25", "grid regularisers on 25 % of the rows per step (default)", "default",
      "default", []),
     ("tv_0.1", "grid regularisers on 10 % of the rows per step", "tv0.1", "default",
      ["loss.tv_fraction=0.1"]),
 ]
-STUDIES = {"parts": VARIANTS, "colour": COLOUR_VARIANTS, "smoothness": SMOOTHNESS_VARIANTS,
-           "eps": EPS_VARIANTS, "gain_model": GAIN_MODEL_VARIANTS,
-           "tv_fraction": TV_FRACTION_VARIANTS}
+STUDIES = {"parts": VARIANTS, "smoothness": SMOOTHNESS_VARIANTS,
+           "gain_model": GAIN_MODEL_VARIANTS, "tv_fraction": TV_FRACTION_VARIANTS}
 # (column, eval summary key) shown for every variant; the no-gain run adds its global gain
 OUTPUTS = [("matrix", "gridnerf"), ("matrix_free", "gridnerf_matrix_free"),
            ("global_gain", "global_grey_world")]
@@ -174,8 +141,8 @@ def markdown(record: dict, groups: dict, variants=VARIANTS, command: str = "") -
 
 
 def means_table(mean_nine: dict, mean_held: dict, variants=VARIANTS) -> str:
-    """The shown output's (`matrix`) mean per variant, nine and held out (the README's
-    table), each cell saying over how many scenes."""
+    """The shown output's (`matrix`) mean per variant, nine and held out (the table in
+    docs/results.md), each cell saying over how many scenes."""
     def cell(outs):
         m = outs.get("matrix") if outs else None
         return "-" if not m else (f"{fmt(m['psnr'])} / {fmt(m['ssim'], 3)} / "
@@ -190,25 +157,10 @@ def means_table(mean_nine: dict, mean_held: dict, variants=VARIANTS) -> str:
     return markdown_table(["variant", "nine built-in", "held out"], rows)
 
 
-def levels_table(scenes: list[str], runs: Path, absolute: float = 1e-3) -> str:
-    """Each scene's training-data mean level (the level run's summary.json, "-" when that
-    run is only cached) and what the absolute eps is relative to it."""
-    rows = []
-    for scene in scenes:
-        summary = Path(runs) / scene / EPS_VARIANTS[1][2] / "summary.json"  # the level run
-        level = json.loads(summary.read_text()).get("data_level") if summary.is_file() else None
-        rows.append([scene, "-" if level is None else f"{level:.5f}",
-                     "-" if level is None else fmt(absolute / level)])
-    return ("\nMean level of the training data (normalised raw) and the absolute eps's "
-            "ratio to it:\n\n" + markdown_table(["scene", "mean level", "1e-3 / level"], rows)
-            + "\n")
-
-
 def main() -> None:
     ap = study_parser(__doc__, None, runs=True, quick=True)
     ap.add_argument("--study", default="parts", choices=list(STUDIES),
-                    help="parts: Bright-NeRF's parts; colour: white balance and estimators; "
-                    "smoothness: the gains' TV weight; eps: the data term's epsilon; "
+                    help="parts: Bright-NeRF's parts; smoothness: the gains' TV weight; "
                     "gain_model: one gain where one light against the field; tv_fraction: the "
                     "grid regularisers' row sample")
     args = ap.parse_args()
@@ -223,18 +175,16 @@ def build(scenes: list[str], runs: Path, out, quick: bool, variants=VARIANTS,
     """Train what is missing, write <out>.md and <out>.json; returns the markdown. The
     command shown defaults to this script's call for these scenes and variants."""
     study = next((k for k, v in STUDIES.items() if v is variants), "parts")
-    command = command or (f"python experiments/ablate.py --scenes {','.join(scenes)}"
+    command = command or (f"python -m experiments.ablate --scenes {','.join(scenes)}"
                           + (f" --study {study}" if study != "parts" else "")
                           + (" --quick" if quick else ""))
     record = ablate(scenes, runs, quick, variants)
     groups = group_means(record, variants)
     text = markdown(record, groups, variants, command)
-    if variants is EPS_VARIANTS:
-        text += levels_table(scenes, runs)
     write_report(out, text, {"quick": quick, "scenes": record, "means": groups})
     if not quick and variants is VARIANTS and Path(out) == Path("reports/ablation"):
-        update_readme("ablation", means_table(groups.get("nine", {}),
-                                              groups.get("held out", {})))
+        update_doc("ablation", means_table(groups.get("nine", {}), groups.get("held out", {})),
+                   RESULTS_DOC)
     return text
 
 

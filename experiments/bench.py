@@ -1,4 +1,4 @@
-"""Speed and scale benchmark (issue 10): writes <out>/results.json and <out>/results.md.
+"""Speed and scale benchmark: writes <out>/results.json and <out>/results.md.
 
 Every figure is measured on the package's own code, in its own process, and cached:
 
@@ -12,8 +12,9 @@ Every figure is measured on the package's own code, in its own process, and cach
 - JIT compile time of the training step (jax's lower + compile of that step);
 - time to reach within 0.5 dB of the preset's final test PSNR: one `gridnerf train` process
   checkpointing every `snapshot_every` steps (train.checkpoint_every; training is otherwise
-  identical), each checkpoint hard-linked as it appears and scored afterwards on the test
-  views exactly as `gridnerf eval` scores a run (eval_run.outputs, eval_run.render_view,
+  identical, so it also checkpoints every gridnerf.train.CHECKPOINT_SECONDS), each
+  checkpoint hard-linked as it appears and scored afterwards on the test
+  views exactly as `gridnerf eval` scores a run (eval_run.run_outputs, eval_run.render_view,
   exposure.to_display, evaluate.image_metrics PSNR); the time is the checkpoint file's
   mtime since the process started (imports, bounds estimation, compiles, carving and the
   extra checkpoint writes included);
@@ -31,9 +32,11 @@ keyed by the item and its configuration (a training's by the fingerprint of the 
 trains, so a changed preset or default measures again); a re-run reuses them (`--fresh`
 measures again).
 Timings taken while other processes use the CPU are not comparable: check load_average.
+The full run (`--out bench`) also writes its tables into docs/speed.md between the bench
+markers and its markdown as reports/bench.md (appended by experiments.report).
 
     LD_PRELOAD=/usr/lib/x86_64-linux-gnu/libtcmalloc_minimal.so.4 \\
-        .venv/bin/python experiments/bench.py [--quick] [--out bench] [--scene bucket]
+        .venv/bin/python -m experiments.bench [--quick] [--out bench] [--scene bucket]
 """
 
 from __future__ import annotations
@@ -53,7 +56,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from common import fingerprint, fmt, markdown_table, update_readme, write_report
+from experiments.common import SPEED_DOC, fingerprint, fmt, markdown_table, update_doc, write_report
+from gridnerf import atomic
 from gridnerf import config as cfgmod
 
 HERE = Path(__file__).resolve()
@@ -74,7 +78,7 @@ QUICK = {
     "warmup": 1, "steps": 2, "render_repeats": 1, "snapshot_every": 4, "psnr_window_db": 0.5,
     "jobs": 2,
 }
-# Targets of issue 10 on a 2-core CPU: (label, summary field, comparison, goal, unit)
+# Targets on a 2-core CPU: (label, summary field, comparison, goal, unit)
 TARGETS = [
     ("training throughput, default preset, final grid", "train_rays_per_s", ">=", 150_000,
      "rays/s"),
@@ -158,10 +162,11 @@ def run_measured(cmd: list[str], log: Path, stdout=None, on_poll=None) -> dict:
 
 
 def run_worker(kind: str, args: dict, log: Path) -> dict:
-    """One measurement in a fresh process (this script with --worker): its JSON result, plus
-    the process's wall time and peak RSS."""
+    """One measurement in a fresh process (this module with --worker, run from the
+    repository): its JSON result, plus the process's wall time and peak RSS."""
     out = log.with_suffix(".out.json")
-    cmd = [sys.executable, str(HERE), "--worker", kind, json.dumps(args), str(out)]
+    cmd = [sys.executable, "-m", "experiments.bench", "--worker", kind, json.dumps(args),
+           str(out)]
     proc = run_measured(cmd, log)
     result = json.loads(out.read_text())
     out.unlink()
@@ -171,38 +176,45 @@ def run_worker(kind: str, args: dict, log: Path) -> dict:
 
 
 # ---------------------------------------------------------------------------------------
-# workers: each runs in its own process (python experiments/bench.py --worker KIND ...)
+# workers: each runs in its own process (python -m experiments.bench --worker KIND ...)
 
 
 def _training_setup(run: str, scale: float, dense: bool, sets: list[str]):
-    """The final stage of a finished run as train.py runs it: (cfg, structure, params,
-    opt_state, step function, data, near_t, far_t). scale != 1 resamples the grid
+    """The final stage of a finished run as train.py runs it: (cfg, step plan, structure,
+    params, opt_state, step function, data, near_t, far_t). The step is rebuilt from the
+    run's plan (plan.json: its eps, opacity, colour and candidate count; the method's
+    training data and L_ca inputs as training made them). scale != 1 resamples the grid
     (grid.resample) to round(scale * resolution) vertices per axis; dense replaces it by a
-    full grid of that resolution and box (grid.init_grid) and turns off empty skipping."""
+    full grid of that resolution and box (grid.init_grid) and turns off empty skipping;
+    either way the step's candidate count is fitted to the new grid (stages.fitted_candidates)."""
 
-    from gridnerf import colour_target, dataset, eval_run, grid, optim, stages
     from gridnerf import config as cfgmod
+    from gridnerf import dataset, eval_run, grid, methods, optim, stages
 
-    cfg, scene, structure, params, _ = eval_run.load_run(Path(run))
+    cfg, plan, scene, structure, params, _ = eval_run.load_run(Path(run))
     cfg = cfgmod.override(cfg, sets)
-    data = dataset.training_data(scene, cfg.data)
+    method = methods.get(cfg.loss.method)
+    data = method.training_data(scene, cfg)
+    data, _ = method.plan_colour(data, scene, cfg, plan.colour)  # the L_ca inputs
     near_t, far_t = dataset.grid_box(scene)[2:]
-    data, extra = colour_target.colour_inputs(data, scene, cfg)  # the L_ca inputs, as training has
     res = tuple(max(2, int(round(r * scale))) for r in structure.resolution)
+    changed = dense or res != tuple(structure.resolution)
     if dense:
         structure, params = grid.init_grid(
             res, structure.bbox_min, structure.bbox_max, sh_degree=structure.sh_degree,
             color_scale=structure.color_scale)
-        cfg = dataclasses.replace(cfg, render=dataclasses.replace(cfg.render, skip_empty=False))
-    elif res != tuple(structure.resolution):
+        cfg = cfgmod.override(cfg, ["render.skip_empty=false"])
+    elif changed:
         structure, params = grid.resample(structure, params, res)
-    structure = grid.update_occupancy(structure, params, cfg.grid.occupancy_threshold)
+    structure = grid.update_occupancy(structure, params)
     stage = len(cfg.train.steps_per_stage) - 1
-    tx = optim.make_optimizer(cfg, cfg.train.steps_per_stage[-1], stage)
-    cfg = stages.with_fitted_candidates(optim.stage_config(cfg, stage), structure, data,
-                                       near_t, far_t)  # the last stage's step config
-    step = optim.make_step(cfg, tx, near_t, far_t, **extra)
-    return cfg, structure, params, tx.init(params), step, data, near_t, far_t
+    tx = optim.make_optimizer(cfg, cfg.train.steps_per_stage[-1])
+    step = optim.step_plan(cfg, plan, stage, scene)  # the last stage's
+    if changed:
+        step = dataclasses.replace(step, n_candidates=stages.fitted_candidates(
+            structure, data, near_t, far_t, cfg.render))
+    step_fn = optim.make_step(cfg, step, tx, near_t, far_t)
+    return cfg, step, structure, params, tx.init(params), step_fn, data, near_t, far_t
 
 
 def worker_step(a: dict) -> dict:
@@ -213,7 +225,7 @@ def worker_step(a: dict) -> dict:
 
     from gridnerf import dataset, render
 
-    cfg, structure, params, opt_state, step, data, near_t, far_t = _training_setup(
+    cfg, step_plan, structure, params, opt_state, step, data, near_t, far_t = _training_setup(
         a["run"], a["scale"], a["dense"], a["sets"])
     key = jax.random.PRNGKey(0)
     t0 = time.perf_counter()
@@ -235,17 +247,17 @@ def worker_step(a: dict) -> dict:
     # n_occupied of the step's own batches and sample offsets (optim.make_step: kb, kl =
     # split(key); loss_fn renders with k0 = split(kl)[0]; render.render_rays marches with
     # it), on the last parameters' occupancy: render.march alone, as render_rays calls it
-    march = jax.jit(render.march, static_argnames="cfg")
+    march = jax.jit(render.march, static_argnames=("cfg", "n_cand"))
     n_occ = []
     for k in keys:
         kb, kl = jax.random.split(k)
         rays = dataset.batch(data, kb, cfg.train.batch_patches, cfg.train.patch_size)
         out = march(structure, rays["origins"].reshape(-1, 3),
                     rays["directions"].reshape(-1, 3), near_t, far_t, cfg=cfg.render,
-                    key=jax.random.split(kl)[0])
+                    key=jax.random.split(kl)[0], n_cand=step_plan.n_candidates)
         n_occ.append(np.asarray(out[3]))
     n_occ = np.concatenate(n_occ)
-    n_cand = render.n_candidates(structure, cfg.render)
+    n_cand = render.n_candidates(structure, cfg.render, step_plan.n_candidates)
     slots = min(cfg.render.max_samples, n_cand) if cfg.render.skip_empty else n_cand
     shaded = np.minimum(n_occ, slots)
     sec = float(np.median(times))
@@ -273,7 +285,7 @@ def worker_render(a: dict) -> dict:
 
     from gridnerf import eval_run
 
-    cfg, scene, structure, params, _ = eval_run.load_run(Path(a["run"]))
+    cfg, _, scene, structure, params, _ = eval_run.load_run(Path(a["run"]))
     cams, i = scene.cameras, int(scene.test_idx[0])
     out = {}
     for w, h in a["sizes"]:
@@ -297,14 +309,15 @@ def worker_psnr(a: dict) -> dict:
 
     from gridnerf import eval_run, evaluate, runfolder
 
-    cfg, scene, *_ = eval_run.load_run(Path(a["run"]))
+    cfg, plan, scene, *_ = eval_run.load_run(Path(a["run"]))
     cams, ds = scene.cameras, cfg.data.eval_downscale
     h, w = cams.height // ds, cams.width // ds
     gts = {i: eval_run.reference_linear(scene, scene.names[i], h, w) for i in scene.test_idx}
     scores = []
     for snap in a["snapshots"]:
         structure, params, _, header = runfolder.load_state(Path(snap))
-        main = eval_run.run_outputs(Path(a["run"]), structure, params, scene, cfg)["gridnerf"]
+        main = eval_run.run_outputs(cfg, plan, scene, structure, params)[
+            eval_run.main_output(cfg)]
         psnr = []
         for i, gt in gts.items():
             intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]]) / ds
@@ -337,7 +350,7 @@ def train_spec(scene: Path, preset: str, sets: list[str], run: Path) -> dict:
 class Bench:
     def __init__(self, out: Path, cfg: dict, fresh: bool, quick: bool, scene: str,
                  folder: Path | None = None):
-        """folder: an existing scene folder to train on at any size (experiments/speed.py);
+        """folder: an existing scene folder to train on at any size (experiments.speed);
         None: the built-in `scene`, simulated at the sizes of cfg."""
         self.out, self.cfg, self.fresh, self.quick, self.scene = out, cfg, fresh, quick, scene
         self.folder = folder
@@ -370,8 +383,6 @@ class Bench:
                           item_wall_s=time.time() - t0)
             path = self._path(name, spec)
             path.parent.mkdir(parents=True, exist_ok=True)
-            from gridnerf import atomic
-
             atomic.write_text(path, json.dumps(result, indent=2) + "\n")
             print(f"[bench] {name}: done in {result['item_wall_s']:.0f} s", flush=True)
         else:
@@ -424,8 +435,7 @@ class Bench:
         run = self.out / "runs" / f"{self.scene}_{size[0]}x{size[1]}"
         sets = list(self.cfg["sets"])
         if snapshots:
-            sets += [f"train.checkpoint_every={self.cfg['snapshot_every']}",
-                     "train.checkpoint_seconds=0"]
+            sets += [f"train.checkpoint_every={self.cfg['snapshot_every']}"]
         spec = train_spec(scene, self.cfg["preset"], sets, run)
 
         def measure():
@@ -533,8 +543,7 @@ class Bench:
         run = self.out / "runs" / f"{self.scene}_{size[0]}x{size[1]}"
         sets = list(c["sets"])
         if tag == "small":
-            sets += [f"train.checkpoint_every={c['snapshot_every']}",
-                     "train.checkpoint_seconds=0"]
+            sets += [f"train.checkpoint_every={c['snapshot_every']}"]
         r = self.cached(f"train_{tag}", {"scene": str(folder), "preset": c["preset"],
                                          "sets": sets, "run": str(run)})
         if r is None:
@@ -634,7 +643,7 @@ def markdown(record: dict) -> str:
         "when each item was measured is in results.json (items[*].machine.load_average): "
         "timings taken beside other jobs are not comparable.",
         "",
-        "## Targets (issue 10, 2-core CPU)",
+        "## Targets (2-core CPU)",
         "",
         markdown_table(["target", "goal", "measured", "met", "x of goal"],
                        [[t["target"], t["goal"], f"{fmt(t['measured'], 2)} {t['unit']}",
@@ -684,7 +693,8 @@ def markdown(record: dict) -> str:
         "",
         f"{fmt(s['time_to_psnr_window_s'], 0)} s since the training process started "
         f"({fmt(s['time_to_psnr_window_train_s'], 0)} s of training loop); checkpoints every "
-        f"{c['snapshot_every']} steps, so this is the first checkpoint inside the window.",
+        f"{c['snapshot_every']} steps (and every 30 s of training), so this is the first "
+        "checkpoint inside the window.",
         "",
         markdown_table(["stage", "step", "wall s", "training loop s", "test PSNR"],
                        [[str(p["stage"]), str(p["step"]), fmt(p["wall_s"], 0),
@@ -716,17 +726,18 @@ def main(argv=None) -> None:
     bench = Bench(out, cfg, args.fresh, args.quick, args.scene)
     results = bench.run_all()
     record = {
-        "command": " ".join(["python", "experiments/bench.py", *(argv or sys.argv[1:])]),
+        "command": " ".join(["python", "-m", "experiments.bench", *(argv or sys.argv[1:])]),
         "machine": machine(), "config": {k: list(v) if isinstance(v, tuple) else v
                                          for k, v in cfg.items()},
         **results, "items": bench.items,
     }
     record["markdown"] = markdown(record)
     write_report(out / "results", record["markdown"], record)
-    if not args.quick and out == REPO / "bench":  # the README shows the full run's tables
+    if not args.quick and out == REPO / "bench":  # docs/speed.md shows the full run's tables
         md = record["markdown"]
-        update_readme("bench", md[md.index("## Targets"):md.index("## Time to within")]
-                      .replace("## ", "### ").rstrip("\n"), REPO / "README.md")
+        update_doc("bench", md[md.index("## Targets"):md.index("## Time to within")]
+                   .replace("## ", "### ").rstrip("\n"), REPO / SPEED_DOC)
+        atomic.write_text(REPO / "reports" / "bench.md", md)
     print(record["markdown"])
     bad = [k for k, v in record["summary"].items() if not (math.isfinite(v) and v > 0)]
     if bad:

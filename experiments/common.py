@@ -60,15 +60,9 @@ def preset_config(preset: str, quick: bool = False) -> cfgmod.Config:
 
 
 def fingerprint(cfg: cfgmod.Config) -> str:
-    """A short hash of what a config trains (config.effective): two runs with the same
-    fingerprint were trained alike. RESULTS stores it beside each run's numbers. Fields at
-    the value a config without them was trained with (config.LEGACY) are left out, so a
-    field added later does not change the fingerprints of runs that do not use it."""
-    fields = cfgmod.to_dict(cfgmod.effective(cfg))
-    for (section, name), value in cfgmod.LEGACY.items():
-        if fields[section].get(name) == value:
-            del fields[section][name]
-    blob = json.dumps(fields, sort_keys=True, default=str)
+    """A short hash of the config a run trains (every field, cfgmod.to_dict): two runs with
+    the same fingerprint were trained alike. RESULTS stores it beside each run's numbers."""
+    blob = json.dumps(cfgmod.to_dict(cfg), sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
@@ -79,7 +73,7 @@ def stale_run(run: Path, preset: str, quick: bool = False) -> bool:
     path = Path(run) / "config.json"
     if not path.is_file():
         return False
-    return cfgmod.effective(cfgmod.load(path)) != cfgmod.effective(preset_config(preset, quick))
+    return cfgmod.load(path) != preset_config(preset, quick)
 
 
 # the scene groups a study's --scenes may name
@@ -137,9 +131,12 @@ def simulated_folders(spec: str):
 # its config of today reuses them instead of training again. Keyed by config only: a change
 # of the simulator or of the metrics calls for deleting the entries it touches.
 RESULTS = Path("reports/results.json")
-# the data term's eps at 0.5 x the training data's mean level instead of RawNeRF's absolute
-# 1e-3 (ablate.py --study eps, sweep.py's eps_level0.5 method: one run folder, one config)
-LEVEL_EPS = ["loss.data_eps_mode=level", "loss.data_eps=0.5"]
+# where the studies' tables are shown (update_doc): the report's in the README, the
+# reconstruction, ablation and consistency tables in docs/results.md, the benchmark's in
+# docs/speed.md
+README = Path("README.md")
+RESULTS_DOC = Path("docs/results.md")
+SPEED_DOC = Path("docs/speed.md")
 
 
 def load_results(path: Path = RESULTS) -> dict:
@@ -181,8 +178,7 @@ def run_variant(scene: str, name: str, preset: str, overrides: list[str],
     cfg = cfgmod.override(cfgmod.preset(preset), overrides)
     if quick:
         cfg = cfgmod.override(cfg, quick_sets(cfg))
-    if (run / "config.json").exists() and (cfgmod.effective(cfgmod.load(run / "config.json"))
-                                           != cfgmod.effective(cfg)):
+    if (run / "config.json").exists() and cfgmod.load(run / "config.json") != cfg:
         raise SystemExit(f"{run} holds a different config; delete it to re-run this variant")
     if not (run / "summary.json").exists():
         hit = None if quick or need_run else cached_result(scene_name, name, cfg)
@@ -204,18 +200,25 @@ def write_report(out, markdown: str, record) -> None:
     atomic.write_text(out.with_suffix(".json"), json.dumps(record, indent=2) + "\n")
 
 
-def update_readme(name: str, text: str, path: Path = Path("README.md")) -> None:
-    """Replace the README section between `<!-- NAME:begin ... -->` and `<!-- NAME:end -->`
-    (the tables an experiment writes; kept as it is when the markers are absent)."""
+def update_doc(name: str, text: str, path: Path) -> None:
+    """Replace the section of the markdown file `path` between `<!-- NAME:begin ... -->` and
+    `<!-- NAME:end -->` by `text` (the tables a study writes; the file is kept as it is when
+    it or the markers are absent)."""
+    path = Path(path)
     if not path.is_file():
         return
-    readme = path.read_text()
+    doc = path.read_text()
     begin, end = f"<!-- {name}:begin", f"<!-- {name}:end -->"
-    if begin not in readme or end not in readme:
+    if begin not in doc or end not in doc:
         return
-    head, rest = readme.split(begin, 1)
+    head, rest = doc.split(begin, 1)
     marker, rest = rest.split("-->", 1)
     atomic.write_text(path, f"{head}{begin}{marker}-->\n{text}\n{end}{rest.split(end, 1)[1]}")
+
+
+def update_readme(text: str, path: Path = README) -> None:
+    """The report's table in README.md (update_doc's `report` section)."""
+    update_doc("report", text, path)
 
 
 def pyplot():

@@ -1,4 +1,4 @@
-"""Multi-view consistency of each method's output, measured (issue 9).
+"""Multi-view consistency of each method's output, measured.
 
 For every test view i of a scene and its neighbouring frame j (i + 1, else i - 1), each
 method's image of view i is moved into view j along the surface points the trained grid
@@ -18,9 +18,10 @@ Reads (or trains, with the default preset) runs/<scene>/default. The table can b
 parts: a call scores the scenes it names and keeps the other scenes of <out>.json whose
 runs were trained by today's presets (their config fingerprints), so scenes scored on an
 earlier machine (run folders are not in git) stay in the table with the command that
-scored them.
+scored them. Written to reports/consistency, the means also go into docs/results.md
+between its consistency markers.
 
-    python experiments/consistency.py [--scenes all|nine|heldout|a,b] [--out PATH]
+    python -m experiments.consistency [--scenes all|nine|heldout|a,b] [--out PATH]
 """
 
 from __future__ import annotations
@@ -30,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from common import (
+from experiments.common import (
+    RESULTS_DOC,
     fingerprint,
     markdown_table,
     preset_config,
@@ -39,14 +41,14 @@ from common import (
     scene_names,
     stale_run,
     study_parser,
-    update_readme,
+    update_doc,
     write_report,
 )
 from gridnerf import baseline, color, consistency, raw
 from gridnerf.eval_run import load_run, reference_linear, render_view, run_outputs
 from gridnerf.sim import HELDOUT, SCENES
 
-# the report's other 3D rows: row -> (run folder, shown output of eval_run.outputs)
+# the report's other 3D rows: row -> (run folder, shown output of eval_run.run_outputs)
 RUN_ROWS = {"rawnerf_isp": ("nogain", "global_grey_world"), "2d_nerf": ("processed", "gridnerf"),
             "llnerf": ("llnerf", "llnerf")}
 ROWS = ("gridnerf", *RUN_ROWS, "baseline_denoised", "baseline_dark_frame", "reference")
@@ -57,9 +59,9 @@ ROW_LABELS = {"gridnerf": "ours", "rawnerf_isp": "RawNeRF + ISP", "2d_nerf": "2D
 
 
 def _views(scene, cfg, structure, params, shown, others, i: int) -> dict:
-    """The shown images (sRGB) of frame i per row (ours through `shown`, the run's
-    eval_run.Output; `others`: {row: (cfg, structure, params, output)} of the other runs),
-    and the grid's render with points."""
+    """The shown images (sRGB) of frame i per row (ours through `shown`, the run's shown
+    output, gridnerf.outputs; `others`: {row: (cfg, structure, params, output)} of the
+    other runs), and the grid's render with points."""
     cams = scene.cameras
     ds = cfg.data.eval_downscale
     h, w = cams.height // ds, cams.width // ds
@@ -85,15 +87,15 @@ def scene_rows(scene_name: str, runs: Path = Path("runs"), quick: bool = False) 
     small scene's runs, common.run_variant)."""
     run_variant(scene_name, "default", "default", [], runs, quick, need_run=True)
     folder = Path(runs) / scene_dir(scene_name, quick).name
-    cfg, scene, structure, params, _ = load_run(folder / "default")
+    cfg, plan, scene, structure, params, _ = load_run(folder / "default")
     n = len(scene.names)
-    shown = run_outputs(folder / "default", structure, params, scene, cfg)["gridnerf"]
+    shown = run_outputs(cfg, plan, scene, structure, params)["gridnerf"]
     others = {}
     for row, (run_folder, key) in RUN_ROWS.items():
         run = folder / run_folder
         if (run / "summary.json").is_file() and not stale_run(run, run_folder, quick):
-            o_cfg, o_scene, o_structure, o_params, _ = load_run(run)
-            o_shown = run_outputs(run, o_structure, o_params, o_scene, o_cfg)[key]
+            o_cfg, o_plan, o_scene, o_structure, o_params, _ = load_run(run)
+            o_shown = run_outputs(o_cfg, o_plan, o_scene, o_structure, o_params)[key]
             others[row] = (o_cfg, o_structure, o_params, o_shown)
     per_row: dict[str, list] = {r: [] for r in ROWS}
     for i in scene.test_idx:
@@ -125,7 +127,7 @@ def group_means(record: dict) -> dict:
 
 
 def means_table(record: dict) -> str:
-    """The README's table: each row's mean disagreement (x255) over the nine and the
+    """The table in docs/results.md: each row's mean disagreement (x255) over the nine and the
     held-out scenes, with the number of scenes."""
     def cell(v):
         return "-" if v is None else f"{v[0]:.2f} (n={v[1]})"
@@ -204,7 +206,7 @@ def build(scenes: list[str], runs: Path, out, quick: bool, command: str) -> str:
     text = markdown(record)
     write_report(out, text, {"quick": quick, "scenes": record})
     if not quick and Path(out) == Path("reports/consistency"):
-        update_readme("consistency", means_table(record))
+        update_doc("consistency", means_table(record), RESULTS_DOC)
     return text
 
 
@@ -212,7 +214,7 @@ def main() -> None:
     ap = study_parser(__doc__, "reports/consistency")
     args = ap.parse_args()
     print(build(scene_names(args.scenes), Path("runs"), args.out, False,
-                f"python experiments/consistency.py --scenes {args.scenes}"))
+                f"python -m experiments.consistency --scenes {args.scenes}"))
 
 
 if __name__ == "__main__":

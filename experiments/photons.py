@@ -1,6 +1,6 @@
 """Physical darkness sweep: the same scene captured with fewer photons, not a scaled raw.
 
-The paper's sweep (experiments/sweep.py) scales the raw after capture: signal and every
+The paper's sweep (experiments.sweep) scales the raw after capture: signal and every
 noise shrink alike, so the data term sees the same fit at another scale. A darker scene
 shot with the same camera settings is another fit: the mean green signal drops by
 `light`, shot noise by sqrt(light), and the read noise, row noise and the hidden per-CFA
@@ -11,15 +11,14 @@ black-level offsets stay as they are in DN, so they grow against the signal (at 
 Each scene is simulated at every `light` (`gridnerf simulate <scene> --light f`, folder
 data/sim/<scene>_light<f>; light 1 is the scene itself) and trained by the default preset
 with the file's black level (`default`) and, where asked, with the lens-cap black level
-(`dark_black`, `data.black_offset=dark`), and where asked without the two low-light
-gates (`no_gates`: the default before them); every run estimates its own bounds. Scored as
+(`dark_black`, `data.black_offset=dark`); every run estimates its own bounds. Scored as
 `gridnerf eval` scores a run, on the test views: ours, one grey-world gain on the same
 field, the paper's 2D row (one frame, non-local means) and the generous per-frame
 pipeline (2x2 binning, exposure matched to the reference). The training summary's noise
-sigma and data eps (data_term.data_noise, data_term.data_eps: the 2-sigma cap) are shown where
+sigma and data eps (data_term.data_noise, data_term.capped_eps: the 2-sigma cap) are shown where
 the run folder is here. Held-out scenes choose nothing; they are reported apart.
 
-    python experiments/photons.py [--scenes bucket,held_deep_hall,held_mixed_toys]
+    python -m experiments.photons [--scenes bucket,held_deep_hall,held_mixed_toys]
                                   [--lights 0.1,0.25,0.5,1] [--variants default,dark_black]
 
 Writes reports/photons.md, .json and .png.
@@ -32,14 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
-import common
+from experiments import common
 from gridnerf.sim import HELDOUT, HELDOUT_MIXED
 
 LIGHTS = (0.1, 0.25, 0.5, 1.0)
-# `no_gates`: the default without the two low-light gates (data.lens_cap_share,
-# loss.ca_noise_ratio): what the default trained before them
-VARIANTS = {"default": [], "dark_black": ["data.black_offset=dark"],
-            "no_gates": ["data.lens_cap_share=0", "loss.ca_noise_ratio=0"]}
+# run folder -> overrides of the default preset: the file's black level, the lens-cap one
+VARIANTS = {"default": [], "dark_black": ["data.black_offset=dark"]}
 # (label, eval summary key) of the outputs compared at each light level
 OUTPUTS = (("ours", "gridnerf"), ("global_gw", "global_grey_world"),
            ("denoised_2d", "baseline_denoised"), ("binned", "baseline_binned_matched"))
@@ -164,7 +161,7 @@ def main() -> None:
         raise SystemExit("--lights: positive numbers, e.g. 0.1,0.25,1")
     scenes = common.scene_names(args.scenes)
     record = measure(scenes, lights, variants, Path(args.runs), args.quick)
-    command = (f"python experiments/photons.py --scenes {','.join(scenes)} --lights "
+    command = (f"python -m experiments.photons --scenes {','.join(scenes)} --lights "
                f"{','.join(f'{g:g}' for g in lights)} --variants {','.join(variants)}"
                + (" --quick" if args.quick else "")
                + ("" if Path(args.out) == Path(DEFAULT_OUT) else f" --out {args.out}"))

@@ -8,9 +8,9 @@ scenes, the tuning scenes with an arc and a slide rig (gridnerf.sim.DEV: default
 chosen on them) and the held-out scenes (gridnerf.sim.HELDOUT, which no default is tuned
 on) are reported in separate tables. Runs are cached in runs/<scene>/<preset>/ (re-running
 reuses finished runs). Writes reports/recon.md and reports/recon.json and, with --scenes
-all, the tables in README.md between the recon markers.
+all, the tables in docs/results.md between the recon markers.
 
-    python experiments/recon.py [--scenes all|nine|dev|heldout|name,name]
+    python -m experiments.recon [--scenes all|nine|dev|heldout|name,name]
                                 [--oracle all|heldout|none]
 """
 
@@ -25,14 +25,15 @@ from pathlib import Path
 
 import numpy as np
 
-from common import (
+from experiments.common import (
+    RESULTS_DOC,
     cached_result,
     fmt,
     markdown_table,
     preset_config,
     run_variant,
     scene_names,
-    update_readme,
+    update_doc,
     write_report,
 )
 from gridnerf.sim import DEV, HELDOUT
@@ -124,7 +125,7 @@ def main() -> None:
             for s in scene_names(args.scenes, ("nine", "dev", "heldout"))]
     machine = f"{platform.machine()}, {os.cpu_count()} cores, python {sys.version.split()[0]}"
     text = ["# Reconstruction: trained from transforms.json without bounds\n",
-            f"Command: `python experiments/recon.py --scenes {args.scenes} --oracle "
+            f"Command: `python -m experiments.recon --scenes {args.scenes} --oracle "
             f"{args.oracle}`; machine: "
             f"{machine}. Metrics on the test views (sRGB, 16-pixel border crop).\n",
             "## Built-in scenes\n", table([r for r in rows if r["group"] == "nine"]), "",
@@ -137,7 +138,8 @@ def main() -> None:
     write_report(Path("reports") / "recon", "\n".join(text + colour),
                  {"machine": machine, "rows": rows})
     if args.scenes == "all":
-        update_readme("recon", "\n".join(text[2:]).replace("## ", "### ").rstrip("\n"))
+        update_doc("recon", "\n".join(text[2:]).replace("## ", "### ").rstrip("\n"),
+                   RESULTS_DOC)
     print("\n".join(text + colour))
 
 

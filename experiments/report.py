@@ -1,4 +1,4 @@
-"""The per-scene report in the paper's layout, from every evaluated run (issue 9).
+"""The per-scene report in the paper's layout, from every evaluated run.
 
 Reads <runs>/<scene>/<variant>/eval/metrics.json and writes <out>.md and <out>.json: for
 each method row and each scene PSNR / SSIM / CIEDE2000, raw and aligned (per-channel
@@ -6,10 +6,10 @@ affine fit in linear space first), then the mean over the nine built-in scenes a
 separately, over the held-out ones (no default was tuned on those). Rows whose runs are
 missing say so; the paper's CNN rows need pretrained weights that are not available
 offline and are n/a. The studies' tables are appended when their files exist beside the
-report (ablation, sweep, speed, consistency, recon and the colour studies: STUDIES,
-each from experiments/<script>.py), with their plots,
-and a figure of one test view per scene side by side (dark input, each method,
-reference) is written as <out>_views.png.
+report (ablation, sweep, photons, speed, consistency, recon, bench: STUDIES, each from
+`python -m experiments.<study>`), with their plots, and a figure of one test view per
+scene side by side (dark input, each method, reference) is written as <out>_views.png.
+The rows' means go into README.md between its report markers.
 
 Run folders are not in git: a cell whose run is not on this machine is taken from
 reports/results.json (common.RESULTS: every evaluated run's summary under the fingerprint
@@ -22,8 +22,8 @@ scenes first. --quick builds the whole report small (160x90 scenes, presets shru
 common.quick_sets, runs under runs_quick/, report under reports/quick/): every run and
 study it needs, in minutes, to check that every figure comes out.
 
-    python experiments/report.py [--runs runs] [--out reports/report] [--run-missing a,b|all]
-    python experiments/report.py --quick
+    python -m experiments.report [--runs runs] [--out reports/report] [--run-missing a,b|all]
+    python -m experiments.report --quick
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import (
+from experiments.common import (
     cached_result,
     fmt,
     load_results,
@@ -75,24 +75,24 @@ NOT_AVAILABLE = {
 # run folder -> preset of the rows' runs (--run-missing, --quick)
 RUN_PRESETS = {"default": "default", "nogain": "nogain", "processed": "processed",
                "llnerf": "llnerf", "oracle": "oracle"}
-# the studies appended to the report, in order: (file stem, title, experiments/ script);
-# the colour studies are issue 8's tables (illuminant error, sensor fit), over every scene
-STUDIES = [("ablation", "Ablation", "ablate"), ("sweep", "Darkness sweep", "sweep"),
+# the studies appended to the report, in order: (file stem in the report's folder, title,
+# the command that writes it: `python -m experiments.<command>`)
+STUDIES = [("ablation", "Ablation", "ablate"),
+           ("sweep", "Darkness sweep", "sweep"),
+           ("sweep_heldout", "Darkness sweep, held-out scenes",
+            "sweep --scenes held_deep_hall,held_mixed_toys --methods default "
+            "--out reports/sweep_heldout"),
            ("photons", "Physical darkness sweep (fewer photons)", "photons"),
            ("speed", "Speed against error", "speed"),
            ("consistency", "Multi-view consistency", "consistency"),
            ("recon", "Reconstruction against the per-frame pipeline and the oracle", "recon"),
-           ("illuminants", "Illuminant estimation (angular error)", "illuminants"),
-           ("illuminant_maps", "Illuminant maps where lights mix", "illuminant_maps"),
-           ("retinex_edges", "Retinex edge rules for the maps (not adopted)", "retinex_edges"),
-           ("colour_ceiling", "Colour ceiling (the true white)", "colour_ceiling"),
-           ("noise", "Sensor fit (fitted against true)", "noise_table"),
-           ("black_level", "The black level from lens-cap frames", "black_level"),
-           ("dark_gates", "Low-light gates (where they bind)", "dark_gates"),
-           ("ablation_gain_model", "One gain where one light (loss.gain_model)", "ablate"),
-           ("offset_cast", "A partial white balance against the black level", "offset_cast"),
+           ("ablation_smoothness", "The gains' smoothness weight (loss.w_smooth)",
+            "ablate --study smoothness"),
+           ("ablation_gain_model", "One gain where one light (loss.gain_model)",
+            "ablate --study gain_model"),
            ("ablation_tv_fraction", "The grid regularisers' row sample (loss.tv_fraction)",
-            "ablate")]
+            "ablate --study tv_fraction"),
+           ("bench", "Speed and memory benchmark", "bench")]
 QUICK_SCENES = ["bucket", "held_arc_brick"]
 METRICS = ("psnr", "ssim", "delta_e", "psnr_aligned", "ssim_aligned", "delta_e_aligned")
 
@@ -200,10 +200,10 @@ def markdown(record: dict, scenes: list[str], folder: Path, views: str | None) -
     if views:
         text += (f"\n## One test view per scene\n\n![test views]({views})\n\nColumns: "
                  + ", ".join(label for _, label in FIGURE_COLUMNS) + ".\n")
-    for stem, title, script in STUDIES:
+    for stem, title, command in STUDIES:
         md = folder / f"{stem}.md"
         if not md.is_file():
-            text += f"\n## {title}\n\nNot built yet: `python experiments/{script}.py`.\n"
+            text += f"\n## {title}\n\nNot built yet: `python -m experiments.{command}`.\n"
             continue
         body = md.read_text()
         body = body.split("\n", 1)[1] if body.startswith("# ") else body  # its own title
@@ -255,20 +255,20 @@ def figure(runs: Path, scenes: list[str], path: Path, quick: bool = False,
             img = None
             parts = source.split(":")
             if parts[0] == "denoised":
-                sc = eval_run.load_run(ours)[1]
+                sc = eval_run.load_run(ours)[2]
                 i = sc.names.index(name)
                 img = color.srgb_encode(np.clip(baseline.process_denoised_frame(
                     sc.raw_normalized(i), sc.cfa, sc.xyz_to_cam), 0, 1))
             elif parts[0] == "render":
                 run = runs / scene / parts[1]
                 if (run / "summary.json").is_file() and not stale(run, parts[1], quick):
-                    cfg, sc, structure, params, _ = eval_run.load_run(run)
+                    cfg, plan, sc, structure, params, _ = eval_run.load_run(run)
                     i, cams = sc.names.index(name), sc.cameras
                     intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]])
                     out = eval_run.render_view(structure, params, sc, cfg, cams.c2w[i], intr,
                                                cams.height, cams.width)
-                    img = eval_run.run_outputs(run, structure, params, sc,
-                                               cfg)[parts[2]].show(out)[1]
+                    shown = eval_run.run_outputs(cfg, plan, sc, structure, params)
+                    img = shown[parts[2]].show(out)[1]
             else:
                 png = runs / scene / parts[0] / "eval" / f"{name}_{parts[1]}.png"
                 if png.is_file() and not stale(runs / scene / parts[0], parts[0], quick):
@@ -304,10 +304,7 @@ def figure(runs: Path, scenes: list[str], path: Path, quick: bool = False,
 
 def build_quick(runs: Path, folder: Path) -> None:
     """Every run and study of the report, small (module docstring)."""
-    import ablate
-    import consistency
-    import speed
-    import sweep
+    from experiments import ablate, consistency, speed, sweep
 
     for scene in QUICK_SCENES:
         for variant, preset in RUN_PRESETS.items():
@@ -318,7 +315,7 @@ def build_quick(runs: Path, folder: Path) -> None:
     speed.build(QUICK_SCENES[:1], ["fast", "default"], 200, runs, folder / "speed",
                 quick=True)
     consistency.build(QUICK_SCENES[:1], runs, folder / "consistency", True,
-                      "python experiments/report.py --quick")
+                      "python -m experiments.report --quick")
 
 
 def main() -> None:
@@ -350,7 +347,7 @@ def main() -> None:
     text = markdown(record, scenes, out.parent, views.name if has_views else None)
     write_report(out, text, record)
     if not args.quick and out == Path("reports/report"):
-        update_readme("report", means_table(record))
+        update_readme(means_table(record))
     print(text)
 
 

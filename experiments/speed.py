@@ -2,14 +2,14 @@
 
 For each scene and preset in PRESETS, one `gridnerf train` process checkpoints every
 `--every` steps and each checkpoint is scored on the test views as `gridnerf eval` scores a
-run: the benchmark's own machinery (experiments/bench.py: Bench.train with snapshots, the
+run: the benchmark's own machinery (experiments.bench: Bench.train with snapshots, the
 "psnr" worker), so a point's time is the checkpoint file's time since the process started
 (imports, bounds, compiles and carving included). The curves run alone on the machine only
 when nothing else uses the CPU: the load average is kept with every item. Cached per item
 in <runs>/speed/<preset>/cache. Writes <out>.md (time-to-quality table), <out>.json and
 <out>.png (one curve per preset, one panel per scene).
 
-    python experiments/speed.py [--scenes bucket] [--presets fast,default,fine] [--quick]
+    python -m experiments.speed [--scenes bucket] [--presets fast,default,fine] [--quick]
 
 A preset may carry overrides after "+": `--presets default,default+loss.tv_fraction=0.1`.
 """
@@ -20,8 +20,8 @@ import json
 import os
 from pathlib import Path
 
-import bench
-from common import (
+from experiments import bench
+from experiments.common import (
     fmt,
     markdown_table,
     pyplot,

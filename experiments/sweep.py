@@ -9,10 +9,7 @@ extreme EXTREME) every method in METHODS is trained and scored on the test views
 <out>.md, <out>.json and <out>.png (PSNR and CIEDE2000 against gamma, one line per method
 and scene).
 
-    python experiments/sweep.py [--scenes bucket] [--methods default,llnerf] [--quick]
-
-`eps_level0.5` (the default with loss.data_eps_mode=level, data_eps 0.5) is a method too:
-the data term's eps follows the raw's scale, so its curve should be flat in gamma.
+    python -m experiments.sweep [--scenes bucket] [--methods default,llnerf] [--quick]
 """
 
 from __future__ import annotations
@@ -21,8 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import (
-    LEVEL_EPS,
+from experiments.common import (
     fmt,
     markdown_table,
     pyplot,
@@ -36,9 +32,8 @@ from common import (
 GAMMAS = (0.3, 0.4, 0.6, 0.8, 1.0, 1.2, 1.5, 1.8)  # the paper's sweep
 EXTREME = 0.1
 # method -> (preset, eval summary key of its shown output, overrides); the method's name is
-# its gamma-1 run folder, so `eps_level0.5` shares ablate.py's eps study run
-METHODS = {"default": ("default", "gridnerf", []), "llnerf": ("llnerf", "llnerf", []),
-           "eps_level0.5": ("default", "gridnerf", LEVEL_EPS)}
+# its gamma-1 run folder (the report's run of that preset)
+METHODS = {"default": ("default", "gridnerf", []), "llnerf": ("llnerf", "llnerf", [])}
 SWEPT = ("default", "llnerf")  # the report's sweep (--methods' default)
 DEFAULT_OUT = "reports/sweep"
 
@@ -117,7 +112,7 @@ def build(scenes: list[str], methods: list[str], gammas: list[float], runs: Path
           quick: bool) -> str:
     """Train what is missing, write <out>.md, .json and .png; returns the markdown."""
     record = sweep(scenes, methods, gammas, runs, quick)
-    command = (f"python experiments/sweep.py --scenes {','.join(scenes)} --methods "
+    command = (f"python -m experiments.sweep --scenes {','.join(scenes)} --methods "
                f"{','.join(methods)} --gammas {','.join(f'{g:g}' for g in gammas)}"
                + (" --quick" if quick else "")
                + ("" if Path(out) == Path(DEFAULT_OUT) else f" --out {out}"))

@@ -176,6 +176,14 @@ def consistent_estimator(scene, cfg: Config, frames, downscale: int = 1,
     return name
 
 
+def one_gain(gain_model: str, spread: float | None) -> bool:
+    """Whether the colour is one gain for the capture rather than the gain field:
+    loss.gain_model "global", or "auto" with the capture lit by one light (light_spread's
+    spread, deg, below ONE_LIGHT_DEG)."""
+    return gain_model == "global" or (gain_model == "auto" and spread is not None
+                                      and spread < ONE_LIGHT_DEG)
+
+
 def plan_colour(data: dataset.RayData, scene, cfg: Config, saved: ColourPlan | None = None
                 ) -> tuple[dataset.RayData, ColourPlan]:
     """The colour decisions of a Bright-NeRF run: (data, ColourPlan).
@@ -215,8 +223,7 @@ def plan_colour(data: dataset.RayData, scene, cfg: Config, saved: ColourPlan | N
     elif anchor is None:
         anchor = scene_illuminant(scene, cfg, frames, estimator, d)
     anchor = np.asarray(anchor, np.float64)
-    one = lc.gain_model == "global" or (lc.gain_model == "auto" and spread is not None
-                                        and spread < ONE_LIGHT_DEG)
+    one = one_gain(lc.gain_model, spread)
     if saved is None and one:
         why = ("loss.gain_model=global" if lc.gain_model == "global" else
                f"one light: the maps stray {spread:.2f} deg, under {ONE_LIGHT_DEG:g}")

@@ -1,6 +1,6 @@
-"""experiments/bench.py --quick writes every figure, finite and positive, with the machine and
-the command, and a re-run reads its cache; the multi-host options of `gridnerf train` are
-checked before anything starts (one line, status 2)."""
+"""python -m experiments.bench --quick writes every figure, finite and positive, with the
+machine and the command, and a re-run reads its cache; the multi-host options of
+`gridnerf train` are checked before anything starts (one line, status 2)."""
 
 from __future__ import annotations
 
@@ -26,8 +26,8 @@ SUMMARY_FIELDS = {
 
 
 def _bench(out: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "experiments/bench.py", "--quick", "--out", str(out)],
-                          cwd=REPO, capture_output=True, text=True, timeout=600,
+    return subprocess.run([sys.executable, "-m", "experiments.bench", "--quick", "--out",
+                           str(out)], cwd=REPO, capture_output=True, text=True, timeout=600,
                           env=dict(os.environ))
 
 
@@ -39,8 +39,11 @@ def test_quick_bench_writes_every_figure(tmp_path):
     out = tmp_path / "bench"
     proc = _bench(out)
     assert proc.returncode == 0, proc.stderr[-3000:]
+    speed_doc = (REPO / "docs" / "speed.md").read_text()
     record = json.loads((out / "results.json").read_text())
-    assert (out / "results.md").read_text().startswith("# gridnerf benchmark")
+    md = (out / "results.md").read_text()
+    assert md.startswith("# gridnerf benchmark")
+    assert "\n## Targets (2-core CPU)\n" in md and "issue" not in md.lower()
     assert set(record["summary"]) == SUMMARY_FIELDS
     bad = {k: v for k, v in record["summary"].items() if not _positive(v)}
     assert not bad, bad
@@ -56,7 +59,12 @@ def test_quick_bench_writes_every_figure(tmp_path):
     assert len(record["psnr_curve"]) >= 2
     m = record["machine"]
     assert m["cores"] >= 1 and m["jax_version"] and m["platform"] and m["cpu_model"]
-    assert record["command"].startswith("python experiments/bench.py --quick")
+    assert record["command"].startswith("python -m experiments.bench --quick")
+    # the training steps were rebuilt from the runs' plans: the dense reference shades every
+    # candidate, the sparse grid no more than max_samples
+    dense, base = record["items"]["step_dense"], record["items"]["step_grid_1x"]
+    assert dense["skip_empty"] is False and dense["slots_per_ray"] == dense["candidates_per_ray"]
+    assert base["skip_empty"] is True and base["slots_per_ray"] <= 24  # the tiny preset's
     for name, item in record["items"].items():
         assert item["command"], name
         assert item["machine"]["jax_version"] == m["jax_version"], name
@@ -68,6 +76,8 @@ def test_quick_bench_writes_every_figure(tmp_path):
     record2 = json.loads((out / "results.json").read_text())
     assert all(item["cached"] for item in record2["items"].values())
     assert record2["summary"] == record["summary"]
+    # a quick run writes no tables into the docs
+    assert (REPO / "docs" / "speed.md").read_text() == speed_doc
 
 
 @pytest.mark.parametrize("args, message", [

@@ -1,6 +1,7 @@
-"""The Makefile (issue 7): SCENE with spaces and '#' stays one quoted argument, a missing
-scene folder is one error line with status 2, and the first `make train` on a fresh
-machine installs tcmalloc before it decides (when the recipe runs) to preload it."""
+"""The Makefile: SCENE with spaces and '#' stays one quoted argument, a missing scene
+folder is one error line with status 2, the first `make train` on a fresh machine installs
+tcmalloc before it decides (when the recipe runs) to preload it, and the study targets run
+the experiments package's modules."""
 
 from __future__ import annotations
 
@@ -52,3 +53,22 @@ def test_first_train_installs_then_preloads_tcmalloc(tmp_path):
     train = text.index(".venv/bin/gridnerf train")
     preload = text.rindex(f"$(test -e {TCMALLOC} && echo LD_PRELOAD={TCMALLOC})", 0, train)
     assert install < venv < preload < train  # decided when the train recipe runs
+
+
+@pytest.mark.parametrize("target, args, command", [
+    ("ablate", [], '.venv/bin/python -m experiments.ablate --scenes "all"'),
+    ("ablate", ["SCENE=bucket"], '.venv/bin/python -m experiments.ablate --scenes "bucket"'),
+    ("report", [], ".venv/bin/python -m experiments.report"),
+    ("report", ["QUICK=1"], ".venv/bin/python -m experiments.report --quick"),
+    ("recon", [], ".venv/bin/python -m experiments.recon --scenes all --oracle heldout"),
+    ("bench", ["BENCH_ARGS=--fresh"],
+     '.venv/bin/python -m experiments.bench --scene "bucket" --fresh'),
+])
+def test_study_targets_run_the_experiments_modules(target, args, command):
+    out = _make("-n", "-o", ".venv/.installed", target, *args)
+    assert out.returncode == 0, out.stderr
+    lines = [ln for ln in out.stdout.splitlines() if "experiments" in ln]
+    assert len(lines) == 1 and lines[0].rstrip().endswith(command), out.stdout
+    assert f"$(test -e {TCMALLOC} && echo LD_PRELOAD={TCMALLOC})" in lines[0]
+    module = command.split("-m experiments.")[1].split()[0]
+    assert (ROOT / "experiments" / f"{module}.py").is_file()

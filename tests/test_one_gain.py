@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import json
-from dataclasses import replace
-
 import numpy as np
 import pytest
 
@@ -13,50 +10,31 @@ from gridnerf import data_term, optim
 from gridnerf.errors import ConfigError
 
 
-def _cfg(model: str, **loss):
-    cfg = cfgmod.preset("tiny")
-    return replace(cfg, loss=replace(cfg.loss, gain_model=model, **loss))
+def _cfg(model: str):
+    return cfgmod.override(cfgmod.preset("tiny"), [f"loss.gain_model={model}"])
 
 
 def test_the_decision_is_the_data_s_under_auto():
     """colour_target.one_gain: "global" always, "field" never, "auto" exactly where the
-    maps' spread is under loss.ca_one_light_deg (and not without a spread)."""
+    maps stray less than the one-light limit."""
+    from gridnerf.colour_target import ONE_LIGHT_DEG as limit
     from gridnerf.colour_target import one_gain
 
-    limit = cfgmod.preset("tiny").loss.ca_one_light_deg
-    assert one_gain(_cfg("global"), None) and one_gain(_cfg("global"), 10 * limit)
-    assert not one_gain(_cfg("field"), 0.0)
-    assert one_gain(_cfg("auto"), 0.5 * limit)
-    assert not one_gain(_cfg("auto"), limit) and not one_gain(_cfg("auto"), 2 * limit)
-    assert not one_gain(_cfg("auto"), None)
+    assert one_gain("global", None) and one_gain("global", 10 * limit)
+    assert not one_gain("field", 0.0) and not one_gain("none", 0.0)
+    assert one_gain("auto", 0.5 * limit)
+    assert not one_gain("auto", limit) and not one_gain("auto", 2 * limit)
+    assert not one_gain("auto", None)
 
 
 def test_config_refuses_one_gain_without_a_capture_target():
     with pytest.raises(ConfigError, match="loss.gain_model"):
-        _cfg("auto", ca_target="batch", ca_illuminant="grey_world")
+        cfgmod.override(_cfg("auto"), ["loss.ca_illuminant=grey_world", "loss.ca_target=batch"])
     with pytest.raises(ConfigError, match="loss.gain_model"):
-        _cfg("global", method="llnerf")
-    # a saved config without the field was trained with the field; no gains: inert
+        cfgmod.override(_cfg("global"), ["loss.method=llnerf"])
     saved = cfgmod.to_dict(cfgmod.preset("tiny"))
     del saved["loss"]["gain_model"]
     assert cfgmod.from_dict(saved).loss.gain_model == "field"
-    nogain = replace(_cfg("auto"), loss=replace(_cfg("auto").loss, use_gains=False))
-    assert cfgmod.effective(nogain) == cfgmod.effective(
-        replace(nogain, loss=replace(nogain.loss, gain_model="field")))
-
-
-def test_one_gain_file_round_trip_and_bad_files(tmp_path):
-    from gridnerf import colour_target, illuminant
-
-    ill = np.array([0.5, 1.0, 0.4])
-    colour_target.save_one_gain(tmp_path, ill)
-    got = colour_target.load_one_gain(tmp_path, _cfg("auto"))
-    assert got == pytest.approx(illuminant.gains_from_illuminant(ill / np.linalg.norm(ill)))
-    assert colour_target.load_one_gain(tmp_path, _cfg("field")) is None  # the field's run
-    for bad in ('{"gains": [1.0, -2.0, 1.0]}', '{"gains": [1.0, NaN, 1.0]}', "[]", "{",
-                '{"gains": [1, 2]}'):
-        (tmp_path / colour_target.ONE_GAIN).write_text(bad)
-        assert colour_target.load_one_gain(tmp_path, _cfg("auto")) is None
 
 
 @pytest.fixture(scope="module")
@@ -74,25 +52,29 @@ def step_setup(small_scene):
     color_scale, log_gain, _ = data_term.data_statistics(data, jax.random.PRNGKey(1))
     structure, params = grid.init_grid((16, 16, 8), lo, hi, init_log_gain=log_gain,
                                        color_scale=color_scale, key=jax.random.PRNGKey(3))
-    data, colour = colour_target.colour_inputs(data, scene, cfg)
-    return cfg, structure, params, data, colour, near_t, far_t
+    data, colour = colour_target.plan_colour(data, scene, cfg)
+    return cfg, structure, params, data, colour, near_t, far_t, scene
 
 
 def test_one_gain_steps_leave_the_gains_and_train_the_same_field(step_setup):
     """With one gain the steps have no gain terms: the gains do not move, and density and
     colour take the steps the field's training gives them (the data term gives the gains
     no gradient, and L_ca on the normalised map none to density or colour)."""
+    from dataclasses import replace
+
     import jax
 
+    from gridnerf.plan import StepPlan
 
-    cfg, structure, params, data, colour, near_t, far_t = step_setup
-    assert colour.get("one_gain") is True  # "global"
-    field = {k: v for k, v in colour.items() if k != "one_gain"}
+    cfg, structure, params, data, colour, near_t, far_t, scene = step_setup
+    assert colour.model == "one_gain"  # "global"
+    one = StepPlan(data_eps=1e-3, opacity=0.1, n_candidates=0, train_gains=False,
+                   anchor=np.asarray(colour.anchor, np.float32))
     results = {}
-    for name, kwargs in (("one", colour), ("field", field)):
+    for name, plan in (("one", one), ("field", replace(one, train_gains=True))):
         tx = optim.make_optimizer(cfg, 5)
         p, s = params, tx.init(params)
-        step = optim.make_step(cfg, tx, near_t, far_t, **kwargs)
+        step = optim.make_step(cfg, plan, tx, near_t, far_t)
         for k in range(3):
             p, s, total, terms = step(p, s, structure, data, jax.random.PRNGKey(k))
         assert np.isfinite(float(total))
@@ -110,24 +92,28 @@ def test_one_gain_steps_leave_the_gains_and_train_the_same_field(step_setup):
 
 
 def test_auto_trains_one_gain_on_one_light_and_eval_shows_it(small_scene, tmp_path):
-    """The tiny bucket (one light) under "auto": one_gain.json holds the anchor's gains,
+    """The tiny bucket (one light) under "auto": the run plan holds the anchor's gains,
     the summary and eval/metrics.json name them, and the shown output is the low-light
     colour times them (not the field's gains)."""
-    from gridnerf import colour_target, eval_run
+    from dataclasses import replace
+
+    from gridnerf import eval_run, illuminant, plan
     from gridnerf.train import train
 
     run = tmp_path / "auto"
     cfg = _cfg("auto")
     summary = train(small_scene, run, cfg)
-    gains = colour_target.load_one_gain(run, cfg)
-    assert gains is not None and summary["one_gain"] == pytest.approx(gains.tolist())
-    record = json.loads((run / colour_target.ONE_GAIN).read_text())
-    ill = np.asarray(record["illuminant"])
-    assert gains == pytest.approx(colour_target.illuminant.gains_from_illuminant(ill))
-    _, scene, structure, params, _ = eval_run.load_run(run)
-    shown = eval_run.run_outputs(run, structure, params, scene, cfg)["gridnerf"]
+    saved = plan.load(run)
+    assert saved.colour.model == "one_gain" and saved.colour.light_spread_deg < 3.0
+    gains = np.asarray(saved.one_gain)
+    assert summary["one_gain"] == pytest.approx(gains.tolist())
+    ill = np.asarray(saved.colour.anchor, np.float32).astype(np.float64)
+    assert gains == pytest.approx(illuminant.gains_from_illuminant(illuminant.unit(ill)))
+    _, run_plan, scene, structure, params, _ = eval_run.load_run(run)
+    shown = eval_run.run_outputs(cfg, run_plan, scene, structure, params)["gridnerf"]
     assert shown.source == "rgb_low" and np.allclose(shown.gains, gains)
-    field = eval_run.outputs(structure, params, scene, cfg)["gridnerf"]  # without the gain
+    as_field = replace(run_plan, colour=replace(run_plan.colour, model="field"))
+    field = eval_run.run_outputs(cfg, as_field, scene, structure, params)["gridnerf"]
     assert field.source == "rgb_restored"
     metrics = eval_run.evaluate_run(run)
     assert metrics["colour"] == {"one_gain": pytest.approx(gains.tolist())}

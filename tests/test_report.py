@@ -1,13 +1,20 @@
-"""make report's assembly: rows from the evaluated runs, nine and held-out means apart."""
+"""make report's assembly (python -m experiments.report): rows from the evaluated runs, nine
+and held-out means apart; the result cache (reports/results.json) and the tables the
+studies write into README.md and docs/."""
 
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parent.parent
+if str(REPO) not in sys.path:  # the experiments package sits at the repository root
+    sys.path.insert(0, str(REPO))
 
 
 def _metrics(psnr: float) -> dict:
@@ -24,9 +31,11 @@ def _write(runs: Path, scene: str, variant: str, metrics: dict) -> None:
 
 
 def _report(cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(REPO / "experiments" / "report.py"),
+    """python -m experiments.report in `cwd` (its runs/ and reports/ are cwd's)."""
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    return subprocess.run([sys.executable, "-m", "experiments.report",
                            "--runs", "runs", "--out", "out/report"],
-                          cwd=cwd, capture_output=True, text=True, timeout=300)
+                          cwd=cwd, capture_output=True, text=True, timeout=300, env=env)
 
 
 def test_report_rows_and_separate_means(tmp_path):
@@ -74,8 +83,7 @@ def test_report_leaves_out_runs_of_another_config(tmp_path):
 def test_report_reuses_results_only_with_todays_fingerprint(tmp_path):
     """A fresh machine has no run folders: reports/results.json gives their numbers back
     when the config fingerprint beside them is the preset's today, and never otherwise."""
-    sys.path.insert(0, str(REPO / "experiments"))
-    from common import fingerprint, preset_config
+    from experiments.common import fingerprint, preset_config
 
     runs = tmp_path / "runs"
     _write(runs, "deer", "default", _metrics(18.0))
@@ -99,8 +107,7 @@ def test_report_reuses_results_only_with_todays_fingerprint(tmp_path):
 def test_run_variant_keeps_and_reuses_results(tmp_path, monkeypatch):
     """run_variant returns a result of the same config without training, and trains (not
     reuses) when the config differs or the caller needs the run folder."""
-    sys.path.insert(0, str(REPO / "experiments"))
-    import common
+    from experiments import common
 
     monkeypatch.chdir(tmp_path)
     trained = []
@@ -121,8 +128,7 @@ def test_run_variant_keeps_and_reuses_results(tmp_path, monkeypatch):
 
 
 def test_readme_means_table_names_every_row_and_count():
-    sys.path.insert(0, str(REPO / "experiments"))
-    import report
+    from experiments import report
 
     m = {"psnr": 20.0, "ssim": 0.5, "delta_e": 10.0, "n": 3}
     record = {r: {"mean_nine": m if r == "ours" else None, "mean_heldout": None}
@@ -135,9 +141,7 @@ def test_readme_means_table_names_every_row_and_count():
 def test_consistency_table_keeps_earlier_scenes_of_todays_runs(tmp_path, monkeypatch):
     """consistency.build scores the scenes it is given and keeps the earlier ones whose runs
     were trained by today's presets (and only those), saying each command."""
-    sys.path.insert(0, str(REPO / "experiments"))
-    import common
-    import consistency
+    from experiments import common, consistency
 
     row = {"mae": 2.0 / 255, "coverage": 0.9}
     monkeypatch.setattr(consistency, "scene_rows", lambda name, runs, quick: {
@@ -159,20 +163,90 @@ def test_consistency_table_keeps_earlier_scenes_of_todays_runs(tmp_path, monkeyp
     assert "**mean, nine** (2 of 9)" in text
 
 
-def test_committed_results_of_colour_free_presets_keep_their_fingerprints():
-    """The kept results of the presets that read no colour default (oracle, nogain,
-    processed, llnerf) carry today's fingerprint of their preset: a config field added
-    without its config.LEGACY value (or an inert field not reset by config.effective)
-    would change every fingerprint and throw away every cached result."""
-    sys.path.insert(0, str(REPO / "experiments"))
-    from common import fingerprint, load_results, preset_config
+def _cached_variants() -> dict:
+    """{run folder: config} of every variant the studies keep in reports/results.json (the
+    report's rows, the ablation studies, the darkness and photon sweeps, recon's oracle)."""
+    from experiments import ablate, photons, report, sweep
+    from gridnerf import config as cfgmod
+
+    variants = {f: (p, []) for f, p in report.RUN_PRESETS.items()}
+    variants |= {f: (p, s) for study in ablate.STUDIES.values() for _, _, f, p, s in study}
+    variants |= {f: ("default", s) for f, s in photons.VARIANTS.items()}
+    for method, (preset, _, sets) in sweep.METHODS.items():
+        for g in (sweep.EXTREME, *sweep.GAMMAS):
+            extra = [] if g == 1.0 else [f"data.exposure_ratio={g:g}"]
+            variants[sweep.variant(method, g)] = (preset, sets + extra)
+    return {f: cfgmod.override(cfgmod.preset(p), s) for f, (p, s) in variants.items()}
+
+
+def test_committed_results_carry_todays_fingerprints():
+    """Every kept result is a variant of a study today, under the fingerprint of the config
+    that variant trains today: a result no study can look up (a removed study or config
+    field) is dead weight, and a stale fingerprint means it is never reused."""
+    from experiments.common import fingerprint, load_results
 
     results = load_results(REPO / "reports" / "results.json")
-    stale = []
-    for preset in ("oracle", "nogain", "processed", "llnerf"):
-        today = fingerprint(preset_config(preset))
-        keys = [k for k in results if k.split("/")[1] == preset]
-        stale += [k for k in keys if results[k]["fingerprint"] != today]
-    assert not stale, (f"{len(stale)} kept results no longer match their preset (e.g. "
-                       f"{stale[:3]}): give a new config field its LEGACY value, or delete "
-                       "the entries a deliberate change of the preset made stale")
+    variants = _cached_variants()
+    today = {f: fingerprint(cfg) for f, cfg in variants.items()}
+    assert len(set(today.values())) == len(today)  # one config, one fingerprint
+    orphans = sorted(k for k in results if k.split("/", 1)[1] not in variants)
+    assert not orphans, f"results of no study today: {orphans[:5]}"
+    stale = sorted(k for k, e in results.items()
+                   if e["fingerprint"] != today[k.split("/", 1)[1]])
+    assert not stale, (f"{len(stale)} kept results no longer match their variant's config "
+                       f"(e.g. {stale[:3]}): re-key them if the change trains alike, else "
+                       "delete them")
+
+
+def test_committed_report_rebuilds_from_the_kept_results():
+    """Each cell of the committed report (reports/report.json) is in the kept results under
+    its row's preset of today: a fresh machine without run folders rebuilds the report."""
+    from experiments.common import cached_result, load_results, preset_config
+    from experiments.report import RUN_PRESETS
+
+    results = load_results(REPO / "reports" / "results.json")
+    record = json.loads((REPO / "reports" / "report.json").read_text())
+    missing = []
+    for row, entry in record.items():
+        cfg = preset_config(RUN_PRESETS[entry["variant"]])
+        for scene, metrics in entry["scenes"].items():
+            hit = cached_result(scene, entry["variant"], cfg, results)
+            if hit is None or float(hit["summary"][entry["key"]]["psnr"]) != metrics["psnr"]:
+                missing.append(f"{row}: {scene}")
+    assert not missing, missing[:5]
+    assert sum(len(e["scenes"]) for e in record.values()) > 50
+
+
+def test_update_doc_replaces_only_its_section(tmp_path):
+    """update_doc rewrites the text between one name's markers (keeping the marker's note)
+    and leaves a file without them as it is; update_readme writes the report's section."""
+    from experiments.common import update_doc, update_readme
+
+    doc = tmp_path / "doc.md"
+    doc.write_text("# Doc\n\n<!-- recon:begin (written by python -m experiments.recon) -->\n"
+                   "old\n<!-- recon:end -->\n\ntail\n<!-- report:begin -->\nr\n"
+                   "<!-- report:end -->\n")
+    update_doc("recon", "| new |", doc)
+    assert doc.read_text() == ("# Doc\n\n<!-- recon:begin (written by python -m "
+                               "experiments.recon) -->\n| new |\n<!-- recon:end -->\n\ntail\n"
+                               "<!-- report:begin -->\nr\n<!-- report:end -->\n")
+    before = doc.read_text()
+    update_doc("bench", "x", doc)  # no bench markers here
+    update_doc("bench", "x", tmp_path / "missing.md")
+    assert doc.read_text() == before and not (tmp_path / "missing.md").exists()
+    update_readme("| means |", doc)
+    assert "<!-- report:begin -->\n| means |\n<!-- report:end -->" in doc.read_text()
+    assert "| new |" in doc.read_text()
+
+
+@pytest.mark.parametrize("name, module, path", [
+    ("report", "report", "README.md"), ("recon", "recon", "docs/results.md"),
+    ("ablation", "ablate", "docs/results.md"), ("consistency", "consistency", "docs/results.md"),
+    ("bench", "bench", "docs/speed.md")])
+def test_every_generated_table_has_its_markers(name, module, path):
+    """The files the studies write their tables into hold those tables' markers, naming the
+    module that writes them (else update_doc keeps the file and the table goes stale)."""
+    text = (REPO / path).read_text()
+    assert f"<!-- {name}:begin (written by python -m experiments.{module}) -->" in text
+    assert f"<!-- {name}:end -->" in text
+    assert (REPO / "experiments" / f"{module}.py").is_file()
