@@ -10,14 +10,15 @@ made from the frames. Astrophotographers measure it the standard way, with a few
 shot with the lens cap on at the capture's ISO and exposure time: their mean per CFA
 position, less the file's black level, is the offset (2 frames of 480x270 photosites with
 ~7 DN of read noise and row noise: within 0.13 DN of the simulator's offsets on all 21
-simulated scenes, `python experiments/noise_table.py`).
+simulated scenes; docs/results.md).
 
 `data.black_offset = "dark"` reads `<scene>/dark/*` (any RAW format `raw/` takes),
 measures the offsets once (`measure`), keeps them in `<run>/black_level.json` and every
 later load of the run's scene under that config (training, resume, evaluation:
 runfolder.open_scene) adds them to the scene's black level (`apply`), so the data term,
-the illuminant estimates and the noise fit all see the corrected frames. Without dark frames the
-offsets can only be fitted from the noise (gridnerf.sensorfit, `data.black_offset=fit`).
+the illuminant estimates and the noise fit all see the corrected frames. Without dark frames
+the offsets could only be fitted from the noise against a render, which takes model error
+for shot noise (a rejected alternative; docs/results.md).
 """
 
 from __future__ import annotations
@@ -127,7 +128,7 @@ def offset_share(signal) -> float:
 
 def too_weak(signal, share_max: float) -> bool:
     """Whether the file's black level cannot be trusted for this signal ((3,) of
-    signal_dn): its offset_share is above share_max (data.lens_cap_share; 0: never)."""
+    signal_dn): its offset_share is above share_max (data_term.LENS_CAP_SHARE; 0: never)."""
     return share_max > 0 and offset_share(signal) > share_max
 
 

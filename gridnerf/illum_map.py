@@ -27,13 +27,13 @@ the other need a different one on each side. This module finds out which, from t
   light with the capture's own estimator on its pixels alone, takes off each half's mean
   map value and averages the two anchors so found (weighted by signal). One light leaves
   both halves with the same light up to noise: the anchor stays the capture's estimate.
-- Its limit (measured on the six mixed-light scenes, `python experiments/illuminant_maps.py`,
-  second table): the light often changes in steps (shadows, faces turned to different
+- Its limit (measured on the six mixed-light scenes against their true maps;
+  docs/results.md): the light often changes in steps (shadows, faces turned to different
   lights), and 58-74 % of the true change lies on edges whose step exceeds tau, which this
   rule takes for paint; integrating the true steps over the edges it keeps leaves 1.2-4.1
   deg, over every edge 0.6-1.6. Rules that keep larger steps along the locus, shaped like
   one light's shadow, or on the true geometry's creases were tried and hurt more than they
-  help (`experiments/retinex_edges.py`).
+  help (docs/results.md).
 
 Shapes: rgb_cam (h, w, 3) linear camera RGB, mask (h, w) or (h, w, 3); maps (hb, wb, ...)
 with hb = h // block, wb = w // block (edge pixels that do not fill a block are dropped).
@@ -228,8 +228,8 @@ def frame_maps(images, masks, anchor, locus=None, block: int = 16, tau: float = 
 def map_spread_deg(maps: np.ndarray, anchor) -> float:
     """How far a capture's maps stray from one light: the mean over the frames of the 90th
     percentile of their blocks' angle (deg) from `anchor` (3,); maps (N, hb, wb, 3) of
-    frame_maps anchored to it. Measured with the capture's consensus as the anchor (`python
-    experiments/illuminant_maps.py`, "map spread p90"): 1.2-2.4 deg on the 15 single-light
+    frame_maps anchored to it. Measured with the capture's consensus as the anchor
+    (docs/results.md, "map spread p90"): 1.2-2.4 deg on the 15 single-light
     scenes (noise and paint under tau), 2.6-5.4 on the six mixed-light ones."""
     return float(np.mean([np.percentile(illuminant.angular_error_deg(m, anchor), 90)
                           for m in np.asarray(maps)]))

@@ -312,7 +312,7 @@ def quadrant_spreads(images, masks, locus=None, p: float | None = None,
     different parts of a scene lit by one light: its spread is the mean angle of its
     estimates on the frames' four quadrants (pooled over the frames) from its estimate on
     the whole capture. Under two lights the quadrants see different lights too, so the
-    spread measures both (docs/colour.md, session 19). wholes: the three capture_estimates
+    spread measures both (docs/results.md). wholes: the three capture_estimates
     when the caller has them already."""
     parts = quadrants(images, masks)
     out = {}

@@ -51,7 +51,7 @@ def ca_loss(rgb_low: jax.Array, gain: jax.Array, eps: float = 1e-6,
 
     Each ray's composited gain is compared with the target, not each sample's: a per-sample
     form (sum_i w_i |t - s_i|^2 / acc, the per-ray loss plus the gains' variance along the
-    ray) was tried in session 16 and changed nothing measurable (dev_arc_shop,
+    ray) was tried and changed nothing measurable (dev_arc_shop,
     dev_slide_bench, mixed_lamp_window, mixed_desk_daylight: +0.00 to +0.01 dB,
     CIEDE2000 -0.01 to -0.08).
     """

@@ -12,7 +12,7 @@
                           (the kernel drops the flock when its process dies, even by
                           kill -9: a killed training never blocks the next one)
 
-`Session` holds the lock while a training runs, removes the `.tmp` files a killed
+`RunLock` holds the lock while a training runs, removes the `.tmp` files a killed
 training left mid-write (gridnerf.atomic) and, if the start fails (bad scene,
 corrupt checkpoint, refused config, Ctrl-C), removes what the start created, so a
 failed start leaves no run folder (or no new file in an existing one) behind.
@@ -43,8 +43,8 @@ SUMMARY = "summary.json"
 SHAPE_FIELDS = ("grid.resolutions", "grid.sh_degree", "loss.gain_model", "loss.method")
 
 
-class Session:
-    """`with Session(run) as s:` one training in `run`: takes <run>/.lock (RunLockedError if
+class RunLock:
+    """`with RunLock(run) as s:` one training in `run`: takes <run>/.lock (RunLockedError if
     another process holds it); call `s.started()` once training really starts. Leaving the
     block with an exception before that removes every file the start created in `run` (and
     `run` itself if it was created). The lock is released on exit."""
@@ -54,7 +54,7 @@ class Session:
         self._fd: int | None = None
         self._started = False
 
-    def __enter__(self) -> Session:
+    def __enter__(self) -> RunLock:
         self._made_dir = not self.run.exists()
         try:
             self.run.mkdir(parents=True, exist_ok=True)

@@ -4,7 +4,7 @@ rays that decide it.
 Training starts from a dense first-stage grid on the scene's box (initial_grid) and runs
 one stage per resolution in grid.resolutions. Between stages the grid is
 carved to what the training rays see, its box optionally refitted to the content, and
-resampled to the next resolution (next_stage_grid; docs/reconstruction.md). Each stage's
+resampled to the next resolution (next_stage_grid; docs/method.md). Each stage's
 step then tests only as many candidate voxels per ray as its training rays cross
 (fitted_candidates). All of this walks the training rays in chunks (training_rays).
 """

@@ -102,13 +102,13 @@ def train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool = Fals
     the scene and the checkpoint have loaded; a failed start leaves no new file behind.
     """
     run = Path(run)
-    with runfolder.Session(run) as session:
-        return _train(scene_dir, run, cfg, overwrite_config, session)
+    with runfolder.RunLock(run) as lock:
+        return _train(scene_dir, run, cfg, overwrite_config, lock)
 
 
 
 def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
-           session: runfolder.Session) -> dict:
+           lock: runfolder.RunLock) -> dict:
     cfg = runfolder.resolve_config(run, cfg, overwrite_config)
     method = methods.get(cfg.loss.method)
     method.check(cfg)
@@ -143,7 +143,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         _check_resume(run / CHECKPOINT, cfg, structure, params, opt_leaves, stage, schedule)
         if stage >= len(schedule) and (run / "summary.json").exists():
             print(f"{run} is already trained; delete its checkpoint.npz to train again")
-            session.started()
+            lock.started()
             return json.loads((run / "summary.json").read_text())
         print(f"resuming {run} at stage {stage}, step {start}")
         plan = saved
@@ -176,7 +176,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     cfgmod.save(cfg, run / runfolder.CONFIG)
     planmod.save(run, plan)
     runfolder.trim_metrics(run, stage, start)
-    session.started()
+    lock.started()
     log = open(run / runfolder.METRICS, "a")  # noqa: SIM115
     rays_per_step = cfg.train.batch_patches * cfg.train.patch_size**2
     total_steps = sum(s for _, s in schedule)

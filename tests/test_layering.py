@@ -65,3 +65,39 @@ def test_the_package_has_no_import_cycle():
     assert {"gridnerf.train", "gridnerf.grid", "gridnerf.cli"} <= set(graph)
     assert "gridnerf.grid" in graph["gridnerf.train"]  # the parser sees `from gridnerf import`
     assert find_cycle(graph) is None, " -> ".join(find_cycle(graph))
+
+
+# what a training run imports must not reach evaluation or the simulator: a capture is
+# trained from its files alone, and what eval measures cannot steer the fit
+TRAINING_ROOTS = ("gridnerf.train",)
+FORBIDDEN_IN_TRAINING = ("gridnerf.eval_run", "gridnerf.evaluate", "gridnerf.sim")
+
+
+def reachable(graph: dict[str, set[str]], roots) -> set[str]:
+    """Every module the roots import, directly or through others (the roots included)."""
+    seen, todo = set(), list(roots)
+    while todo:
+        node = todo.pop()
+        if node not in seen:
+            seen.add(node)
+            todo += sorted(graph.get(node, ()))
+    return seen
+
+
+def forbidden(modules: set[str]) -> list[str]:
+    return sorted(m for m in modules
+                  if any(m == f or m.startswith(f + ".") for f in FORBIDDEN_IN_TRAINING))
+
+
+def test_reachable_and_forbidden_see_an_indirect_import():
+    graph = {"gridnerf.train": {"gridnerf.a"}, "gridnerf.a": {"gridnerf.sim.sensor"},
+             "gridnerf.sim.sensor": set()}
+    assert forbidden(reachable(graph, TRAINING_ROOTS)) == ["gridnerf.sim.sensor"]
+    assert forbidden({"gridnerf.simple", "gridnerf.eval_runner"}) == []
+
+
+def test_the_training_path_imports_neither_evaluation_nor_the_simulator():
+    graph = import_graph()
+    path = reachable(graph, TRAINING_ROOTS)
+    assert {"gridnerf.optim", "gridnerf.methods.brightnerf", "gridnerf.plan"} <= path
+    assert forbidden(path) == [], forbidden(path)

@@ -13,8 +13,6 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:  # the experiments package sits at the repository root
-    sys.path.insert(0, str(REPO))
 
 
 def _metrics(psnr: float) -> dict:

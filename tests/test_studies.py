@@ -17,8 +17,6 @@ from gridnerf import config as cfgmod
 from gridnerf.sim import DEV, HELDOUT, MIXED, SCENES
 
 REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:  # the experiments package sits at the repository root
-    sys.path.insert(0, str(REPO))
 
 from experiments import ablate, common, consistency, photons, report, speed, sweep  # noqa: E402
 

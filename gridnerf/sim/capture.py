@@ -283,8 +283,7 @@ def render_normals(spec: SceneSpec, c2w: np.ndarray, intr: Intrinsics, ssaa: int
                    tile: int = 64) -> np.ndarray:
     """(H, W, 3) float32: the mean of the unit surface normals (facing the camera) of each
     pixel's sub-rays, 0 where they miss: its length is below 1 where a pixel straddles a
-    crease or an outline. For scoring only (experiments/retinex_edges.py); no trainer sees
-    it."""
+    crease or an outline. For scoring only; no trainer sees it."""
     return _render(spec, c2w, intr, ssaa, tile, lambda p, n, a: n, 3)[0]
 
 

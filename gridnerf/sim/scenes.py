@@ -48,7 +48,7 @@ DEV: tuple[str, ...] = ("dev_arc_shop", "dev_slide_bench")
 MIXED: tuple[str, ...] = ("mixed_lamp_window", "mixed_desk_daylight")
 # Mixed light, held out: other rigs (a converging arc, a slider), lights, sensors and
 # content (warm, cool) than MIXED; no default of the mixed-light path is chosen on them.
-# held_mixed_hall and held_mixed_toys (session 19) add two lamps whose light changes with
+# held_mixed_hall and held_mixed_toys add two lamps whose light changes with
 # depth, and two lights only 1500 K apart on saturated content.
 HELDOUT_MIXED: tuple[str, ...] = ("held_mixed_arc", "held_mixed_slide", "held_mixed_hall",
                                    "held_mixed_toys")
@@ -768,7 +768,7 @@ def _held_mixed_arc() -> SceneSpec:
 
 
 def _held_mixed_slide() -> SceneSpec:
-    """Held out, mixed light (nothing is tuned on it; added in session 17 so that the
+    """Held out, mixed light (nothing is tuned on it; added so that the
     held-out mixed-light result is not one scene). Cool content where held_mixed_arc is
     warm: a workbench of blue-grey metal before a teal wall, on slate tiles, with a blue
     toolbox, a green bottle, a white jug, a greyscale print and a blue-and-white rug,
@@ -801,7 +801,7 @@ def _held_mixed_slide() -> SceneSpec:
 
 
 def _held_mixed_hall() -> SceneSpec:
-    """Held out, mixed light (added in session 19, before anything ran on it): two lamps
+    """Held out, mixed light (added before anything ran on it): two lamps
     and no daylight, the light changing with depth. A slider capture down a 7 m room: a
     2850 K pendant low over a small table near the cameras (a white mug, a green book),
     white chairs and a potted plant midway, a blue cabinet and a poster at the back under
@@ -849,7 +849,7 @@ def _held_mixed_hall() -> SceneSpec:
 
 
 def _held_mixed_toys() -> SceneSpec:
-    """Held out, mixed light (added in session 19, before anything ran on it): two lights
+    """Held out, mixed light (added before anything ran on it): two lights
     only 1500 K apart (the closest pair: a field has the least to add) on saturated
     content. A converging handheld arc ~1.2 m around toys on a pale table: a red cube,
     a yellow cylinder, a blue ball, a green box, an orange cone, a magenta-and-cyan
