@@ -86,12 +86,11 @@ def grey_world_gains(rgb_cam, mask=None) -> np.ndarray:
     return gains_from_illuminant(grey_world(rgb, mask)).astype(np.float32)
 
 
-def process_dark_frame(raw_bayer, cfa, xyz_to_cam, use_matrix: bool = True,
-                       adapted: bool = False) -> np.ndarray:
+def process_dark_frame(raw_bayer, cfa, xyz_to_cam, use_matrix: bool = True) -> np.ndarray:
     """Brighten one dark RAW frame: the 2D baseline.
 
     demosaic_bilinear -> grey_world_gains -> (exposure.display_matrix when use_matrix:
-    row-normalised D65, or for the grey world's white when `adapted`) ->
+    row-normalised D65) ->
     exposure.alpha_for_luminance (mean luminance 0.18) -> clip negatives to 0.
 
     Args:
@@ -108,7 +107,6 @@ def process_dark_frame(raw_bayer, cfa, xyz_to_cam, use_matrix: bool = True,
     if not np.all(np.isfinite(raw_bayer)):
         raise RawError(None, "raw frame contains NaN/Inf", "re-read the RAW file; it is corrupt")
     rgb = demosaic_bilinear(raw_bayer, cfa).astype(np.float64)
-    neutral = grey_world(rgb)
     rgb = rgb * grey_world_gains(rgb).astype(np.float64)
     if use_matrix:
         matrix = np.asarray(xyz_to_cam, np.float64) if xyz_to_cam is not None else None
@@ -118,16 +116,15 @@ def process_dark_frame(raw_bayer, cfa, xyz_to_cam, use_matrix: bool = True,
                 "a finite (3, 3) XYZ->camera colour matrix is needed",
                 "pass the DNG ColorMatrix, or use_matrix=False",
             )
-        rgb = rgb @ display_matrix(matrix, True, neutral if adapted else None).T
+        rgb = rgb @ display_matrix(matrix, True).T
     rgb = rgb * alpha_for_luminance(rgb)
     return np.maximum(rgb, 0.0).astype(np.float32)
 
 
-def process_binned_frame(raw_bayer, cfa, xyz_to_cam, gt_linear,
-                         adapted: bool = False) -> np.ndarray:
+def process_binned_frame(raw_bayer, cfa, xyz_to_cam, gt_linear) -> np.ndarray:
     """The per-frame pipeline the 3D model must beat, made generous: 2x2 binning (4 raw
     samples per output pixel, a denoiser for free), grey world, the colour matrix
-    (exposure.display_matrix; for the grey world's white when `adapted`), an exposure
+    (exposure.display_matrix, row-normalised D65), an exposure
     matched to the reference (mean luminance equal to gt's, which a real pipeline cannot
     know), bilinear upsampling back to the frame size, negatives clipped.
 
@@ -135,10 +132,8 @@ def process_binned_frame(raw_bayer, cfa, xyz_to_cam, gt_linear,
     Returns rgb_linear (H, W, 3) float32.
     """
     rgb = bin2x2(np.asarray(raw_bayer, np.float32), check_cfa(cfa)).astype(np.float64)
-    neutral = grey_world(rgb)
     rgb = rgb * grey_world_gains(rgb).astype(np.float64)
-    rgb = rgb @ display_matrix(np.asarray(xyz_to_cam, np.float64), True,
-                               neutral if adapted else None).T
+    rgb = rgb @ display_matrix(np.asarray(xyz_to_cam, np.float64), True).T
     rgb = resize(rgb, np.asarray(gt_linear).shape[:2], order=1, anti_aliasing=False)
     target = float(np.mean(luminance(np.asarray(gt_linear, np.float64))))
     rgb = rgb * alpha_for_luminance(rgb, target)
@@ -170,13 +165,13 @@ def noise_sigma(rgb, demosaicked: bool = False) -> float:
                           for c in range(x.shape[-1])]))
 
 
-def process_denoised_frame(raw_bayer, cfa, xyz_to_cam, adapted: bool = False) -> np.ndarray:
+def process_denoised_frame(raw_bayer, cfa, xyz_to_cam) -> np.ndarray:
     """The paper's 2D per-image row: process_dark_frame (demosaic, grey world, colour
     matrix, auto exposure), then the sRGB gamma and a classical denoiser, non-local means
     (Buades et al. 2005; scikit-image, 5x5 patches searched within 6 pixels, fast mode, h =
     0.8 x the noise sigma of the gamma-encoded image, noise_sigma), decoded
     back to linear for scoring. Returns rgb_linear (H, W, 3) float32, >= 0."""
-    rgb_linear = process_dark_frame(raw_bayer, cfa, xyz_to_cam, adapted=adapted)
+    rgb_linear = process_dark_frame(raw_bayer, cfa, xyz_to_cam)
     rgb_srgb = srgb_encode(np.clip(rgb_linear, 0.0, 1.0).astype(np.float64))
     sigma = noise_sigma(rgb_srgb, demosaicked=True)
     if sigma > 0:

@@ -204,10 +204,10 @@ class LossConfig(_Section):
                       or self.ca_target != "batch", "one of 'grey_world', 'shades_of_grey', "
                       "'grey_edge', 'weighted_grey' with loss.ca_target=batch ('consensus' "
                       "and 'consistent' need loss.ca_target=scene or map)")
-        self._require("gain_model", self.gain_model in ("field", "none") or (
-            self.ca_target != "batch" and self.method == "brightnerf"),
-            "'field' or 'none' with loss.ca_target=batch or loss.method=llnerf (one gain is "
-            "the capture's L_ca target: loss.ca_target=scene or map)")
+        self._require("gain_model", self.gain_model in ("field", "none")
+                      or self.ca_target != "batch",
+                      "'field' or 'none' with loss.ca_target=batch (one gain is the capture's "
+                      "L_ca target: loss.ca_target=scene or map)")
 
 
 @dataclass(frozen=True)

@@ -68,7 +68,8 @@ def black_level(scene_dir, run: Path, cfg: Config, scene) -> str:
     light's colour), and where the scene has lens-cap frames their offsets are taken;
     without them, or with frames that cannot serve, training warns and keeps the file's.
     One line either way; a note naming data.black_offset=dark where the gate does not
-    bind but the scene has lens-cap frames. scene: the scene with the file's black level.
+    bind but the scene has lens-cap frames. scene: the scene with the file's black level
+    (not read under "dark", which measures before the scene loads).
     """
     if cfg.data.black_offset == "dark":
         measured = darkframes.measure(scene_dir)
@@ -109,17 +110,11 @@ def data_noise(data: dataset.RayData, key, n_patches: int = 256) -> float:
     return noisefit.neighbour_sigma(*_sample_targets(data, key, n_patches))
 
 
-def eps_follows_noise(cfg: Config) -> bool:
-    """Whether the data term weighs raw frames with the absolute eps (Bright-NeRF on
-    data.target "raw"): the runs whose fit depends on the raw's scale, where
-    loss.data_eps_sigmas caps the eps."""
-    return cfg.loss.method == "brightnerf" and cfg.data.target == "raw"
-
-
-def capped_eps(cfg: Config, sigma: float) -> float:
+def capped_eps(cfg: Config, sigma: float, raw: bool = True) -> float:
     """The data term's eps: loss.data_eps, lowered to loss.data_eps_sigmas x sigma (the
-    training frames' noise, data_noise) where it is above that and the targets are raw
-    (eps_follows_noise); unchanged where sigma is 0 or nan, or data_eps_sigmas is 0.
+    training frames' noise, data_noise) where it is above that and the data term weighs
+    raw frames with it (`raw`: the method's fits_raw, the runs whose fit depends on the
+    raw's scale); unchanged where sigma is 0 or nan, or data_eps_sigmas is 0.
 
     The data term (C - y)^2 / (sg(C) + eps)^2 depends on eps / sigma alone: a raw scaled by
     gamma (data.exposure_ratio) scales C, y and sigma alike, so at a fixed ratio it is the
@@ -130,12 +125,12 @@ def capped_eps(cfg: Config, sigma: float) -> float:
     """
     lc = cfg.loss
     cap = lc.data_eps_sigmas * sigma
-    if not (eps_follows_noise(cfg) and cap > 0 and lc.data_eps > cap):  # nan: False
+    if not (raw and cap > 0 and lc.data_eps > cap):  # nan: False
         return lc.data_eps
     return float(cap)
 
 
-def data_eps_note(cfg: Config, eps: float, sigma: float) -> str | None:
+def data_eps_note(eps: float, sigma: float, raw: bool = True) -> str | None:
     """A note where the eps the steps use (capped_eps) is above EPS_NOTE_SIGMAS x the
     training frames' noise sigma (data_noise), else None (also where sigma is 0 or nan).
     With the default cap (2 sigmas) it is silent; it speaks where loss.data_eps_sigmas is
@@ -146,7 +141,7 @@ def data_eps_note(cfg: Config, eps: float, sigma: float) -> str | None:
     mean levels differ 2.3x but whose noise is alike: gamma 0.4 (eps 2.7-3.2 sigma) -0.18 /
     -0.47 / -0.39 dB on bucket / held_deep_hall / held_mixed_toys, gamma 0.1 4.0-5.4 dB.
     """
-    if (not eps_follows_noise(cfg) or not sigma > 0  # noiseless or unmeasured: no note
+    if (not raw or not sigma > 0  # noiseless or unmeasured: no note
             or not eps > EPS_NOTE_SIGMAS * sigma):
         return None
     return (f"note: the data eps {eps:g} is {eps / sigma:.1f}x the noise sigma "

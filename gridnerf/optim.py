@@ -42,8 +42,7 @@ def step_plan(cfg: Config, plan: RunPlan, stage: int, scene) -> StepPlan:
     with loss.ca_locus."""
     anchor = None if plan.colour.anchor is None else np.asarray(plan.colour.anchor, np.float32)
     locus = None
-    if (cfg.loss.ca_target == "batch" and cfg.loss.ca_locus and plan.colour.model == "field"
-            and plan.method == "brightnerf"):
+    if cfg.loss.ca_target == "batch" and cfg.loss.ca_locus and plan.colour.model == "field":
         locus = np.asarray(illuminant.planckian_locus(scene.xyz_to_cam), np.float32)
     return StepPlan(data_eps=plan.data_eps, opacity=plan.opacity[stage],
                     n_candidates=plan.n_candidates[stage],
@@ -89,8 +88,7 @@ def make_step(cfg: Config, step: StepPlan, tx, near_t: float, far_t: float):
     multiple of the device count.
     """
     devices.check_divisible(cfg.train.batch_patches, "train.batch_patches")
-    if (step.train_gains and cfg.loss.method == "brightnerf"
-            and cfg.loss.ca_target == "scene" and step.anchor is None):
+    if step.train_gains and cfg.loss.ca_target == "scene" and step.anchor is None:
         raise ValueError("loss.ca_target = 'scene' needs the capture's illuminant: build the "
                          "step from the run plan (optim.step_plan)")
 

@@ -295,10 +295,11 @@ def render_image(structure: GridStructure, params, origins, directions, near_t, 
 
 
 def render_rays_reference(structure: GridStructure, params, origins, directions, near_t, far_t,
-                          cfg) -> dict:
+                          cfg, n_cand: int = 0) -> dict:
     """Slow float64 reference: every candidate shaded (no skipping), own trilinear, loops.
 
-    Same candidate placement as render_rays with key=None. For tests on small inputs.
+    Same candidate placement as render_rays with key=None and the same n_cand. For tests
+    on small inputs.
     """
     res = np.asarray(structure.resolution)
     index = np.asarray(structure.index)
@@ -307,7 +308,7 @@ def render_rays_reference(structure: GridStructure, params, origins, directions,
     rgb = np.asarray(params["rgb"], np.float64).reshape(m, 3, -1)
     lg = np.asarray(params["log_gain"], np.float64)
     lo, hi = np.asarray(structure.bbox_min, np.float64), np.asarray(structure.bbox_max, np.float64)
-    n_cand = n_candidates(structure, cfg)
+    n_cand = n_candidates(structure, cfg, n_cand)
     spv = float(cfg.samples_per_voxel)
     origins, directions = np.asarray(origins, np.float64), np.asarray(directions, np.float64)
     n = origins.shape[0]

@@ -114,11 +114,12 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     method.check(cfg)
     resuming = (run / CHECKPOINT).exists()
     saved = planmod.load(run) if resuming else None
+    black = None if saved is None else saved.black_level
+    if black is None and cfg.data.black_offset == "dark":  # before the scene loads: a fast refusal
+        black = data_term.black_level(scene_dir, run, cfg, None)
     scene = runfolder.open_scene(scene_dir, run)
-    if saved is None:
+    if black is None:
         black = data_term.black_level(scene_dir, run, cfg, scene)
-    else:
-        black = saved.black_level
     if black == "lens_cap":
         scene = darkframes.apply(scene, darkframes.load(run))
     data = method.training_data(scene, cfg)
@@ -155,12 +156,13 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         # the frames' noise (the seed's key) and the data term's eps capped against it
         sigma = data_term.data_noise(data,
                                      jax.random.fold_in(jax.random.PRNGKey(cfg.train.seed), 7))
-        eps = data_term.capped_eps(cfg, sigma)
+        raw = method.fits_raw(cfg)
+        eps = data_term.capped_eps(cfg, sigma, raw)
         if eps != cfg.loss.data_eps:
             print(f"data eps: {cfg.loss.data_eps:g} is {cfg.loss.data_eps / sigma:.1f}x the "
                   f"noise sigma {sigma:.2g} of the training frames, capped at "
                   f"{cfg.loss.data_eps_sigmas:g} sigma: {eps:.3g} (loss.data_eps_sigmas)")
-        if note := data_term.data_eps_note(cfg, eps, sigma):
+        if note := data_term.data_eps_note(eps, sigma, raw):
             print(note)
         n_stages = len(schedule)
         plan = planmod.RunPlan(

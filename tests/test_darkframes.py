@@ -96,7 +96,7 @@ def test_a_runs_measured_black_level_reaches_its_scene(small_scene, tmp_path):
     darkframes.save(run, {"offset_dn": [[2.0, 2.0], [2.0, 2.0]], "files": []})
     shifted = runfolder.open_scene(small_scene, run, dark=True)
     np.testing.assert_allclose(shifted.black_level, plain.black_level + 2.0)
-    # a run whose config says data.black_offset=file ignores a left-over measurement
+    # a run whose plan says black_level = file ignores a left-over measurement
     np.testing.assert_array_equal(runfolder.open_scene(small_scene, run).black_level,
                                   plain.black_level)
     (run / darkframes.BLACK_LEVEL).write_text("{}")
@@ -135,68 +135,76 @@ def test_signal_per_colour_and_the_offsets_share_of_it():
     assert share == float("inf")  # blue at the black level
 
 
-def _gate(folder, run, capsys, **data):
+def _gate(folder, run, capsys, *overrides):
+    """data_term.black_level on a fresh run: (its decision, the scene with the black level
+    the decision gives, what it printed)."""
     from gridnerf import config as cfgmod
 
-    cfg = cfgmod.override(cfgmod.preset("default"),
-                          [f"data.{k}={v}" for k, v in data.items()])
-    scene = data_term.with_weak_signal_black_level(_loaded(folder), folder, run, cfg)
-    return scene, capsys.readouterr().out
+    cfg = cfgmod.override(cfgmod.preset("default"), list(overrides))
+    plain = _loaded(folder)
+    what = data_term.black_level(folder, run, cfg, plain)
+    assert what in ("file", "lens_cap")
+    scene = darkframes.apply(plain, darkframes.load(run)) if what == "lens_cap" else plain
+    return what, scene, capsys.readouterr().out
 
 
-def test_a_weak_signal_takes_the_lens_cap_black_level(tmp_path, capsys):
+def test_a_weak_signal_takes_the_lens_cap_black_level(tmp_path, capsys, monkeypatch):
     from gridnerf.sim import simulate_scene
 
     folder = simulate_scene("bucket", tmp_path / "dim", width=128, height=72, n_frames=3,
                             light=0.05)
     truth = np.array(json.loads((folder / "sim.json").read_text())
                      ["noise"]["black_bias_dn_per_cfa_position"])
-    assert darkframes.offset_share(darkframes.signal_dn(_loaded(folder))) > 0.5
+    share = darkframes.offset_share(darkframes.signal_dn(_loaded(folder)))
+    assert share > data_term.LENS_CAP_SHARE
     run = tmp_path / "run"
     run.mkdir()
-    scene, out = _gate(folder, run, capsys)
+    what, scene, out = _gate(folder, run, capsys)
+    assert what == "lens_cap"
     assert "black level from the lens-cap frames" in out and len(out.splitlines()) == 1
-    offset = darkframes.load(run)  # kept for resume and eval
+    offset = darkframes.load(run)  # kept for training, resume and eval
     np.testing.assert_allclose(scene.black_level - _loaded(folder).black_level,
                                np.broadcast_to(offset, scene.black_level.shape), atol=1e-3)
     np.testing.assert_allclose(offset, truth, atol=1.0)
-    from gridnerf import config as cfgmod
-    assert runfolder.lens_cap_black(cfgmod.preset("default"), run)
-    # decided once: a second start keeps what the run holds and says nothing
-    assert _gate(folder, run, capsys)[1] == ""
-    # the gate off, another black-level mode, or a run that started without it: unchanged
-    for data, where in (({"lens_cap_share": 0}, "off"), ({"black_offset": "fit"}, "fit")):
-        other = tmp_path / where
-        other.mkdir()
-        scene, _ = _gate(folder, other, capsys, **data)
-        assert np.array_equal(scene.black_level, _loaded(folder).black_level)
-        assert darkframes.load(other) is None
-    resumed = tmp_path / "resumed"
-    resumed.mkdir()
-    (resumed / runfolder.CHECKPOINT).write_bytes(b"")
-    assert np.array_equal(_gate(folder, resumed, capsys)[0].black_level,
-                          _loaded(folder).black_level)
+    # data.black_offset = dark: the lens-cap frames whatever the signal
+    dark = tmp_path / "dark"
+    dark.mkdir()
+    what, _, out = _gate(folder, dark, capsys, "data.black_offset=dark")
+    assert what == "lens_cap" and out.startswith("black level from the dark frames")
+    np.testing.assert_allclose(darkframes.load(dark), offset, atol=1e-9)
     # lens-cap frames that cannot serve: one warning naming the frame, the file's level
     like = next((folder / "raw").iterdir())
     _write_dark(folder, "dark_000.dng", np.full((36, 64), 512, np.uint16), like)
     odd = tmp_path / "odd"
     odd.mkdir()
-    scene, out = _gate(folder, odd, capsys)
+    what, scene, out = _gate(folder, odd, capsys)
+    assert what == "file"
     assert out.startswith("warning:") and "dark_000.dng" in out and "cannot serve" in out
     assert len(out.splitlines()) == 1 and darkframes.load(odd) is None
-    assert np.array_equal(scene.black_level, _loaded(folder).black_level)
+    # with data.black_offset = dark such frames stop the run
+    with pytest.raises(SceneError, match="dark_000.dng"):
+        _gate(folder, tmp_path / "odd", capsys, "data.black_offset=dark")
     # no lens-cap frames: one warning naming the folder to shoot them into
     shutil.rmtree(folder / "dark")
     bare = tmp_path / "bare"
     bare.mkdir()
-    scene, out = _gate(folder, bare, capsys)
+    what, scene, out = _gate(folder, bare, capsys)
+    assert what == "file"
     assert out.startswith("warning:") and str(folder / "dark") in out
     assert darkframes.load(bare) is None
+    # the gate off (a share of 0: never): the file's black level, nothing said or kept
+    monkeypatch.setattr(data_term, "LENS_CAP_SHARE", 0.0)
+    off = tmp_path / "off"
+    off.mkdir()
+    what, scene, out = _gate(folder, off, capsys)
+    assert what == "file" and out == "" and darkframes.load(off) is None
+    assert np.array_equal(scene.black_level, _loaded(folder).black_level)
 
 
 def test_the_gate_does_not_bind_at_a_scenes_own_light(small_scene, tmp_path, capsys):
     assert darkframes.offset_share(darkframes.signal_dn(_loaded(small_scene))) < 0.5
-    scene, out = _gate(small_scene, tmp_path, capsys)
+    what, scene, out = _gate(small_scene, tmp_path, capsys)
+    assert what == "file"
     assert out.startswith("note:") and "data.black_offset=dark" in out
     assert np.array_equal(scene.black_level, _loaded(small_scene).black_level)
     assert darkframes.load(tmp_path) is None
@@ -220,7 +228,8 @@ def test_a_dim_capture_trains_and_evaluates_with_its_lens_cap_black_level(tmp_pa
     truth = np.array(json.loads((folder / "sim.json").read_text())
                      ["noise"]["black_bias_dn_per_cfa_position"])
     np.testing.assert_allclose(summary["black_offset_dn"], truth, atol=1.0)
-    _, scene, *_ = load_run(run)
+    _, plan, scene, *_ = load_run(run)
+    assert plan.black_level == "lens_cap"  # kept in the run plan: resume and eval read it
     np.testing.assert_allclose(scene.black_level - _loaded(folder).black_level,
                                np.broadcast_to(darkframes.load(run), scene.black_level.shape),
                                atol=1e-3)

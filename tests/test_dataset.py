@@ -97,58 +97,31 @@ def test_oracle_data_are_the_downscaled_references(small_scene):
     assert bool(jnp.all(data.valid)) and np.allclose(np.asarray(data.inv_exposure), 1.0)
 
 
-def test_frustum_box_covers_every_camera(small_scene):
-    """The reference camera's frustum is NDC x, y in [-1, 1]; a camera turned by 17 degrees
-    reaches further, and the union of the training frustums holds both."""
-    import dataclasses
-
-    from scipy.spatial.transform import Rotation
-
-    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
-    cams = scene.cameras
-    c2w = cams.c2w.copy()
-    c2w[0] = np.eye(3, 4)
-    c2w[1] = np.concatenate([Rotation.from_euler("y", 17, degrees=True).as_matrix(),
-                             np.zeros((3, 1))], 1)
-    n = len(cams.names)
-    centred = dataclasses.replace(cams.with_c2w(c2w), cx=np.full(n, cams.width / 2.0),
-                                  cy=np.full(n, cams.height / 2.0))
-    scene = dataclasses.replace(scene, cameras=centred)
-    lo, hi, near_t, _ = dataset.grid_box(scene)
-    ref_lo, ref_hi = dataset.frustum_xy(scene, [0], lo, hi, near_t, margin=0.0)
-    np.testing.assert_allclose(ref_lo, [-1.0, -1.0], atol=0.02)
-    np.testing.assert_allclose(ref_hi, [1.0, 1.0], atol=0.02)
-    both_lo, both_hi = dataset.frustum_xy(scene, [0, 1], lo, hi, near_t, margin=0.0)
-    assert both_lo[0] < -1.5 and both_hi[0] >= ref_hi[0] - 1e-6  # turned left: sees -x
-    assert both_lo[1] <= ref_lo[1] + 1e-6 and both_hi[1] >= ref_hi[1] - 1e-6
-
-
-def test_fitted_black_offsets_come_off_the_targets(small_scene):
-    """data.black_offset = "fit": the mosaic target loses its photosite's offset, the binned
-    one R's, the mean of the greens' and B's (the offsets are in normalised raw)."""
-    import dataclasses
+def test_a_target_function_gives_the_pixels_and_binned_rays(small_scene):
+    """dataset.build takes a target by name (TARGETS) or as a function of its own (the
+    LLNeRF row's dark_srgb_frames): the function's pixels, validity and exposures are the
+    data's, with binned intrinsics (half the full frame's)."""
+    from gridnerf.methods import llnerf
 
     scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
-    b = jnp.asarray([[0.01, 0.02], [0.04, 0.08]], jnp.float32)
-    v, u = jnp.asarray([[0, 0], [1, 1]]), jnp.asarray([[0, 1], [0, 1]])
-    frame = jnp.zeros_like(v)
-    inv_e = 1.0 / scene.exposure[scene.train_idx[0]]
-    for binning in (False, True):
-        data = dataset.build(scene, scene.train_idx[:1], binning=binning)
-        y0, m0 = dataset.targets(data, frame, v, u)
-        y1, m1 = dataset.targets(dataclasses.replace(data, black_offset=b), frame, v, u)
-        np.testing.assert_array_equal(np.asarray(m0), np.asarray(m1))
-        if binning:
-            off = np.zeros(3)
-            for dy in range(2):
-                for dx in range(2):
-                    off[scene.cfa[dy, dx]] += float(b[dy, dx]) / (2 if scene.cfa[dy, dx] == 1
-                                                                  else 1)
-            np.testing.assert_allclose(np.asarray(y0 - y1), np.broadcast_to(off * inv_e,
-                                                                            y0.shape), rtol=1e-4)
-        else:
-            expected = np.asarray(b)[np.asarray(v) % 2, np.asarray(u) % 2] * inv_e
-            np.testing.assert_allclose(np.asarray((y0 - y1).sum(-1)), expected, rtol=1e-4)
+    frames = scene.train_idx[:2]
+    assert set(dataset.TARGETS) == {"raw", "reference", "processed"}
+    by_name = dataset.build(scene, frames, binning=True, target="raw")
+    by_fn = dataset.build(scene, frames, binning=True, target=dataset.raw_frames)
+    np.testing.assert_array_equal(np.asarray(by_name.pixels), np.asarray(by_fn.pixels))
+    dark = dataset.build(scene, frames, binning=True, target=llnerf.dark_srgb_frames)
+    pixels, valid, inv_exposure = llnerf.dark_srgb_frames(scene, frames, True, 1, 1.0)
+    np.testing.assert_array_equal(np.asarray(dark.pixels), pixels)
+    np.testing.assert_array_equal(np.asarray(dark.valid), valid)
+    np.testing.assert_array_equal(np.asarray(dark.inv_exposure), inv_exposure)
+    assert not dark.mosaic and 0.0 <= pixels.min() and pixels.max() <= 1.0
+    np.testing.assert_allclose(np.asarray(dark.intrinsics), np.asarray(by_name.intrinsics))
+    np.testing.assert_allclose(np.asarray(dark.intrinsics[:, 0]),
+                               scene.cameras.fx[frames] / 2, rtol=1e-6)
+    mosaic = dataset.build(scene, frames, binning=False)
+    assert mosaic.mosaic and not by_name.mosaic
+    np.testing.assert_allclose(np.asarray(mosaic.intrinsics[:, 0]), scene.cameras.fx[frames],
+                               rtol=1e-6)
 
 
 def test_processed_target_is_the_2d_pipeline_binned(small_scene):

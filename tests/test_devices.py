@@ -15,6 +15,7 @@ _SCRIPT = textwrap.dedent("""
     import jax, numpy as np
     from gridnerf import colour_target, data_term, dataset, devices, grid, optim, render
     from gridnerf import config as cfgmod
+    from gridnerf import plan as planmod
     from gridnerf.scene import load_scene
     scene_dir, near, far = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
     cfg = cfgmod.preset("tiny")
@@ -26,8 +27,14 @@ _SCRIPT = textwrap.dedent("""
                                        color_scale=color_scale)
     tx = optim.make_optimizer(cfg, 5)
     opt_state = tx.init(params)
-    data, colour = colour_target.colour_inputs(data, scene, cfg)
-    step = optim.make_step(cfg, tx, near_t, far_t, **colour)
+    data, colour = colour_target.plan_colour(data, scene, cfg)
+    n_stages = len(cfg.grid.resolutions)
+    plan = planmod.RunPlan(
+        method="brightnerf", black_level="file", data_noise=None,
+        data_eps=cfg.loss.data_eps, colour=colour,
+        opacity=planmod.opacity_schedule(cfg.loss.opacity, n_stages, cfg.loss.opacity_stages),
+        n_candidates=(0,) * n_stages)
+    step = optim.make_step(cfg, optim.step_plan(cfg, plan, 0, scene), tx, near_t, far_t)
     losses = []
     for k in range(3):
         params, opt_state, total, _ = step(params, opt_state, structure, data,

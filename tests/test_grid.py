@@ -150,17 +150,6 @@ def test_upsample_after_prune_keeps_only_vertices_near_kept_parents():
                                linear_truth(pts, coef), atol=1e-4)
 
 
-def test_density_keep_mask_dilates_around_hot_vertices():
-    structure, params = make((9, 9, 9), init_density=-20.0)
-    hot = int(np.asarray(structure.index)[4, 4, 4])
-    params["density"] = params["density"].at[hot].set(5.0)
-    for dilate, count in ((0, 1), (1, 27), (2, 125)):
-        keep = grid.density_keep_mask(structure, params, threshold=0.01, dilate=dilate)
-        assert keep.sum() == count
-        assert keep[hot]
-    assert grid.density_keep_mask(structure, params, threshold=0.999, dilate=1).sum() == 0
-
-
 @pytest.mark.parametrize("occ_factor", [1, 2])
 def test_update_occupancy_marks_cells_around_dense_vertices(occ_factor):
     structure, params = make((9, 9, 9), init_density=-20.0, occ_factor=occ_factor)
@@ -175,6 +164,16 @@ def test_update_occupancy_marks_cells_around_dense_vertices(occ_factor):
     np.testing.assert_array_equal(occ, expect)
     none = grid.update_occupancy(structure, params, threshold=0.9999)
     assert not np.asarray(none.occupancy).any()
+    # the default threshold is grid.OCCUPANCY_THRESHOLD: a vertex just below it marks
+    # nothing, one just above marks its cells
+    step_alpha = 1.0 - np.exp(-np.logaddexp(0.0, np.array([-6.0, -4.0])) * 0.5)
+    assert step_alpha[0] < grid.OCCUPANCY_THRESHOLD < step_alpha[1]
+    for raw, marked in ((-6.0, False), (-4.0, True)):
+        p = {**params, "density": params["density"].at[hot].set(raw)}
+        occ = np.asarray(grid.update_occupancy(structure, p).occupancy)
+        assert occ.any() == marked
+        if marked:
+            np.testing.assert_array_equal(occ, expect)
 
 
 def _occupancy_reference(structure, params, threshold, step_size=0.5) -> np.ndarray:

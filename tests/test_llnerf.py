@@ -114,9 +114,9 @@ def test_the_method_checks_its_config():
                  ["data.binning=false"]):
         with pytest.raises(ConfigError):
             llnerf.check(cfgmod.override(cfg, sets))
-    # one gain is Bright-NeRF's L_ca target: the config refuses it for this method
+    # one gain is Bright-NeRF's L_ca target: the method refuses it
     with pytest.raises(ConfigError, match="gain_model"):
-        cfgmod.override(cfg, ["loss.gain_model=global"])
+        llnerf.check(cfgmod.override(cfg, ["loss.gain_model=global"]))
 
 
 def test_dark_srgb_target(small_scene):

@@ -195,13 +195,6 @@ def test_sparsity_loss_prefers_empty_space():
     assert float(losses.sparsity_loss(jnp.zeros((0,)))) == 0.0
 
 
-def test_l1_sparsity_pulls_thin_fog_harder_than_cauchy():
-    fog = jnp.full((10,), -4.0)  # sigma 0.018 per voxel
-    g_l1 = jax.grad(lambda d: losses.sparsity_loss(d, mode="l1"))(fog)
-    g_cauchy = jax.grad(lambda d: losses.sparsity_loss(d, mode="cauchy"))(fog)
-    assert np.all(np.asarray(g_l1) > 10 * np.asarray(g_cauchy)) and np.all(g_cauchy > 0)
-
-
 def _foggy_scene():
     """A small grid with semi-transparent density and gains that vary along the rays."""
     structure, params = grid.init_grid((8, 8, 8), -np.ones(3), np.ones(3), color_scale=5e-3)
@@ -221,34 +214,43 @@ def _foggy_scene():
     return structure, params, rays
 
 
-def _colour_prior_grads(gain_map: str, smooth_mode: str, illuminant: str = "grey_world"):
-    from dataclasses import replace
+def _step(**kw):
+    """The StepPlan of a test step: RawNeRF's eps, no opacity prior, the box diagonal's
+    candidate count, the gain terms on; kw overrides (anchor, locus, data_eps, ...)."""
+    from gridnerf.plan import StepPlan
 
+    return StepPlan(**{"data_eps": 1e-3, "opacity": 0.0, "n_candidates": 0,
+                       "train_gains": True, **kw})
+
+
+def _colour_prior_grads(smooth_mode: str, illuminant: str = "grey_world", w_data=0.0):
     from gridnerf import config as cfgmod
 
-    c = cfgmod.preset("tiny")
-    c = replace(c, render=replace(c.render, max_samples=16),
-                loss=replace(c.loss, w_data=0.0, tv_density=0.0, tv_rgb=0.0, sparsity=0.0,
-                             opacity=0.0,
-                             w_ca=1.0, w_smooth=1.0, smooth_mode=smooth_mode,
-                             gain_map=gain_map, ca_illuminant=illuminant,
-                             ca_target="batch"))  # each batch's own estimate: no frames
+    c = cfgmod.override(cfgmod.preset("tiny"), [
+        "render.max_samples=16", f"loss.w_data={w_data}", "loss.tv_density=0",
+        "loss.tv_rgb=0", "loss.sparsity=0", "loss.opacity=0", "loss.w_ca=1",
+        "loss.w_smooth=1", f"loss.smooth_mode={smooth_mode}",
+        f"loss.ca_illuminant={illuminant}",
+        "loss.ca_target=batch"])  # each batch's own estimate: no frames
     structure, params, rays = _foggy_scene()
     loss = jax.jit(lambda p: optim.loss_fn(p, structure, rays, jax.random.PRNGKey(0), c,
-                                           -1.0, 1.0)[0])
+                                           _step(), -1.0, 1.0)[0])
     return jax.grad(loss)(params)
 
 
+@pytest.mark.parametrize("smooth_mode", ["tv", "patch"])
 @pytest.mark.parametrize("illuminant", ["grey_world", "weighted_grey", "grey_edge"])
-def test_normalized_gain_map_sends_no_gradient_to_density(illuminant):
-    g = _colour_prior_grads("normalized", "both", illuminant)
+def test_normalized_gain_map_sends_no_gradient_to_density(illuminant, smooth_mode):
+    g = _colour_prior_grads(smooth_mode, illuminant)
     assert finite(g)
     assert np.all(np.asarray(g["density"]) == 0.0)  # exactly: the prior never moves density
     assert np.all(np.asarray(g["rgb"]) == 0.0)
     assert np.abs(np.asarray(g["log_gain"])).max() > 0.0
-    # the rendered gain as it was (S, not divided by acc) leaks into density
-    g_raw = _colour_prior_grads("raw", "patch", illuminant)
-    assert np.abs(np.asarray(g_raw["density"])).max() > 0.0
+    # the data term on the same scene does reach density and colour (the zeros above are
+    # the colour prior's, not a dead render)
+    g_data = _colour_prior_grads(smooth_mode, illuminant, w_data=1.0)
+    assert np.abs(np.asarray(g_data["density"])).max() > 0.0
+    assert np.abs(np.asarray(g_data["rgb"])).max() > 0.0
 
 
 def test_normalized_gain_is_the_surface_gain_of_a_thin_ray():
@@ -278,74 +280,88 @@ def test_ca_loss_takes_any_illuminant_estimate():
 def test_ca_locus_puts_the_target_on_the_locus():
     """With loss.ca_locus, L_ca's target is the locus entry nearest the batch estimate: a
     one-entry locus makes that entry the target whatever the batch looks like."""
-    from dataclasses import replace
-
     from gridnerf import config as cfgmod
     from gridnerf.illuminant import gains_from_illuminant
 
-    c = cfgmod.preset("tiny")
-    c = replace(c, render=replace(c.render, max_samples=16),
-                loss=replace(c.loss, ca_locus=True, ca_target="batch",
-                             ca_illuminant="grey_edge"))
+    c = cfgmod.override(cfgmod.preset("tiny"), [
+        "render.max_samples=16", "loss.ca_locus=true", "loss.ca_illuminant=grey_edge",
+        "loss.ca_target=batch"])
     structure, params, rays = _foggy_scene()
     light = jnp.asarray([[0.6, 1.0, 0.3]]) / jnp.linalg.norm(jnp.asarray([0.6, 1.0, 0.3]))
     target = gains_from_illuminant(light[0])
     params = {**params, "log_gain": jnp.broadcast_to(jnp.log(target), params["log_gain"].shape)}
 
     def ca(locus):
-        return float(optim.loss_fn(params, structure, rays, jax.random.PRNGKey(0), c, -1.0,
-                                   1.0, locus)[1]["ca"])
+        return float(optim.loss_fn(params, structure, rays, jax.random.PRNGKey(0), c,
+                                   _step(locus=locus), -1.0, 1.0)[1]["ca"])
 
     assert ca(light) < 1e-6  # the gains already equal the locus target
     assert ca(None) > 1e-3  # the batch's own estimate is another colour
 
 
 def test_scene_target_replaces_the_batch_estimate():
-    """loss.ca_target = "scene": the L_ca target is the capture's illuminant for every
-    batch (no per-batch estimate, no locus projection at step time)."""
-    from dataclasses import replace
-
+    """loss.ca_target = "scene": the L_ca target is the capture's illuminant (the step
+    plan's anchor) for every batch (no per-batch estimate, no locus projection at step
+    time)."""
     from gridnerf import config as cfgmod
     from gridnerf.illuminant import gains_from_illuminant
 
-    c = cfgmod.preset("tiny")
-    c = replace(c, render=replace(c.render, max_samples=16),
-                loss=replace(c.loss, ca_target="scene", ca_locus=True))
+    c = cfgmod.override(cfgmod.preset("tiny"), [
+        "render.max_samples=16", "loss.ca_target=scene", "loss.ca_locus=true"])
     structure, params, rays = _foggy_scene()
     light = jnp.asarray([0.6, 1.0, 0.3])
     params = {**params, "log_gain": jnp.broadcast_to(jnp.log(gains_from_illuminant(light)),
                                                      params["log_gain"].shape)}
 
-    def ca(scene_ill):
-        return float(optim.loss_fn(params, structure, rays, jax.random.PRNGKey(0), c, -1.0,
-                                   1.0, None, scene_ill)[1]["ca"])
+    def ca(anchor):
+        return float(optim.loss_fn(params, structure, rays, jax.random.PRNGKey(0), c,
+                                   _step(anchor=anchor), -1.0, 1.0)[1]["ca"])
 
     assert ca(light) < 1e-6 and ca(3.0 * light) < 1e-6  # the gains equal its target
     assert ca(jnp.asarray([1.0, 1.0, 1.0])) > 1e-3  # another light: another target
 
 
-@pytest.mark.parametrize("mode", ["absolute", "level"])
-def test_level_eps_makes_the_data_term_free_of_the_raw_scale(mode):
-    """The darkness sweep scales the raw by gamma (signal and noise alike). With
-    loss.data_eps_mode = "level" the data term is the same at every gamma (eps follows
-    the data's mean level, grid.color_scale); with RawNeRF's absolute eps it is not."""
+def test_one_gain_step_has_no_gain_terms():
+    """A step whose colour is not the gain field (one gain, no gains: train_gains off)
+    has the data term but neither L_ca nor the smoothness."""
+    from gridnerf import config as cfgmod
+
+    c = cfgmod.override(cfgmod.preset("tiny"), ["render.max_samples=16",
+                                                "loss.ca_target=scene"])
+    structure, params, rays = _foggy_scene()
+    on = optim.loss_fn(params, structure, rays, jax.random.PRNGKey(0), c,
+                       _step(anchor=jnp.asarray([0.6, 1.0, 0.3])), -1.0, 1.0)[1]
+    off = optim.loss_fn(params, structure, rays, jax.random.PRNGKey(0), c,
+                        _step(train_gains=False), -1.0, 1.0)[1]
+    assert {"data", "ca", "smooth"} <= set(on) and "data" in off
+    assert "ca" not in off and "smooth" not in off
+    assert float(off["data"]) == pytest.approx(float(on["data"]), rel=1e-6)
+
+
+@pytest.mark.parametrize("follow", [True, False])
+def test_eps_scaled_with_the_raw_makes_the_data_term_free_of_its_scale(follow):
+    """The darkness sweep scales the raw by gamma (signal and noise alike). With the eps
+    scaled alike (the noise-sigma cap, data_term.capped_eps, scales it with the noise) the
+    data term is the same at every gamma; with a fixed absolute eps it is not."""
     from dataclasses import replace
 
     from gridnerf import config as cfgmod
 
     c = cfgmod.override(cfgmod.preset("tiny"), ["render.max_samples=16",
-                                                f"loss.data_eps_mode={mode}",
-                                                "loss.data_eps=0.4", "loss.use_gains=false"])
+                                                "loss.gain_model=none"])
     structure, params, rays = _foggy_scene()
     rays["target"] = rays["target"] * jnp.linspace(0.5, 1.5, 32).reshape(2, 4, 4, 1)
+    eps = 0.4 * structure.color_scale
 
     def data_term(gamma):
         s = replace(structure, color_scale=structure.color_scale * gamma)
         r = {**rays, "target": rays["target"] * gamma}
-        return float(optim.loss_fn(params, s, r, jax.random.PRNGKey(0), c, -1.0, 1.0)[1]["data"])
+        step = _step(data_eps=eps * gamma if follow else eps, train_gains=False)
+        return float(optim.loss_fn(params, s, r, jax.random.PRNGKey(0), c, step, -1.0,
+                                   1.0)[1]["data"])
 
     ratio = data_term(0.1) / data_term(1.0)
-    if mode == "level":
+    if follow:
         assert ratio == pytest.approx(1.0, rel=1e-4)
     else:
         assert not 0.9 < ratio < 1.1

@@ -9,6 +9,7 @@ import pytest
 
 from gridnerf import noisefit
 from gridnerf.sim import sensor
+from gridnerf.sim.truth import clean_mean, noise_truth
 
 SCALE = sensor.WHITE_LEVEL - sensor.BLACK_LEVEL
 BIAS = ((3.0, -1.5), (0.5, 2.2))
@@ -22,7 +23,7 @@ def _frames(h, w, n, k_gain=5.0, bias=BIAS, max_e=30.0, seed=0):
     params = sensor.SensorParams(k_gain=k_gain, bias=bias)
     raw = np.stack([sensor.expose(e, params, rng) for _ in range(n)])
     y = (raw.astype(np.float64) - sensor.BLACK_LEVEL) / SCALE
-    truth = noisefit.sim_truth({
+    truth = noise_truth({
         "K_dn_per_electron": k_gain, "white_level": sensor.WHITE_LEVEL,
         "black_level": sensor.BLACK_LEVEL,
         "noise": {"read_tukey_sigma_dn": params.read_sigma, "read_tukey_lambda":
@@ -97,8 +98,8 @@ def test_a_missing_cfa_position_keeps_the_others():
 
 
 def test_fit_on_a_simulated_scene_folder(small_scene):
-    fit, scale = noisefit.fit_scene(small_scene, noisefit.sim_clean_mean(small_scene))
-    truth = noisefit.sim_truth(small_scene)
+    fit, scale = noisefit.fit_scene(small_scene, clean_mean(small_scene))
+    truth = noise_truth(small_scene)
     got = fit.in_dn(scale)
     assert scale == truth["scale"] and fit.converged
     assert got["K_dn_per_electron"] == pytest.approx(truth["K_dn_per_electron"], rel=0.1)

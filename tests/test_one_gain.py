@@ -30,8 +30,10 @@ def test_the_decision_is_the_data_s_under_auto():
 def test_config_refuses_one_gain_without_a_capture_target():
     with pytest.raises(ConfigError, match="loss.gain_model"):
         cfgmod.override(_cfg("auto"), ["loss.ca_illuminant=grey_world", "loss.ca_target=batch"])
+    from gridnerf.methods import llnerf
+
     with pytest.raises(ConfigError, match="loss.gain_model"):
-        cfgmod.override(_cfg("global"), ["loss.method=llnerf"])
+        llnerf.check(cfgmod.override(_cfg("global"), ["loss.method=llnerf"]))
     saved = cfgmod.to_dict(cfgmod.preset("tiny"))
     del saved["loss"]["gain_model"]
     assert cfgmod.from_dict(saved).loss.gain_model == "field"

@@ -75,13 +75,15 @@ def scene_copy(small_scene, tmp_path):
     (["--set", "bogus.field=1"], ["bogus.field", "train"]),
     (["--set", "train.steps_per_stage=[40]"], ["train.steps_per_stage", "grid.resolutions"]),
     (["--set", "train.batch_patches=abc"], ["train.batch_patches", "abc", "whole number"]),
-    (["--set", "loss.smooth_mode=tvv"], ["loss.smooth_mode", "tvv", "'patch'", "'both'"]),
-    (["--set", "grid.prune_mode=alpha"], ["grid.prune_mode", "'visibility'", "'density'"]),
+    (["--set", "loss.smooth_mode=tvv"], ["loss.smooth_mode", "tvv", "'patch'", "'tv'"]),
+    (["--set", "loss.gain_model=off"], ["loss.gain_model", "'field'", "'none'"]),
     (["--set", "data.target=gt"], ["data.target", "'raw'", "'reference'"]),
     (["--set", "grid.resolutions=[[1,8,8],[16,16,16]]"], ["grid.resolutions", ">= 2"]),
     (["--set", "grid.resolutions=[[8,1,8],[16,0,16]]"], ["grid.resolutions", "may be 0"]),
-    (["--set", "loss.use_gains=maybe"], ["loss.use_gains", "true or false"]),
-    (["--set", "train.checkpoint_seconds=-1"], ["train.checkpoint_seconds", ">= 0"]),
+    (["--set", "grid.fit_box=maybe"], ["grid.fit_box", "true or false"]),
+    # a read-only property, not a field: the message names the field that replaced it
+    (["--set", "loss.use_gains=false"], ["loss.use_gains", "no field", "loss.gain_model"]),
+    (["--set", "train.lr_decay=0"], ["train.lr_decay", "> 0"]),
     (["--set", "grid.prune_threshold=2"], ["grid.prune_threshold", "<= 1"]),
 ])
 def test_bad_config_is_one_line_and_leaves_no_run_folder(small_scene, tmp_path, capsys, args,
@@ -114,42 +116,21 @@ def test_stage_counts_are_checked_after_all_overrides():
     assert cfgmod.from_dict(cfgmod.to_dict(cfg)) == cfg
 
 
-def test_a_saved_config_without_a_newer_field_reads_as_it_was_trained():
-    """Runs saved before grid.background existed composited over black; their config must
-    say so (not the new default), so that a cached run is never mistaken for a new one."""
+def test_a_saved_config_takes_defaults_for_missing_fields_and_ignores_unknown_ones():
+    """A saved config.json without a field reads it at its default; fields the config no
+    longer has (the run plan keeps what training decided) are ignored."""
     from gridnerf import config as cfgmod
 
     saved = cfgmod.to_dict(cfgmod.preset("default"))
-    assert saved["grid"]["background"] == "mean"
+    assert "use_gains" not in saved["loss"] and saved["loss"]["gain_model"] == "field"
     del saved["grid"]["background"]
-    assert cfgmod.from_dict(saved).grid.background == "black"
-    assert cfgmod.from_dict(saved) != cfgmod.preset("default")
-    saved = cfgmod.to_dict(cfgmod.preset("default"))
-    assert saved["loss"]["opacity_stages"] == 1
-    del saved["loss"]["opacity_stages"]  # saved before it existed: the prior in every stage
-    assert cfgmod.from_dict(saved).loss.opacity_stages == 0
-
-
-def test_a_saved_config_with_a_removed_option_does_not_read_as_todays(trained, tmp_path,
-                                                                      capsys):
-    """loss.ca_on=samples was removed: a run trained with it is not today's default (it
-    would be cached and reported as one); the value whose behaviour remains still loads,
-    and evaluating such a run fails with one line naming its config.json."""
-    from gridnerf import config as cfgmod
-    from gridnerf.errors import ConfigError
-
-    saved = cfgmod.to_dict(cfgmod.preset("default"))
-    saved["loss"]["ca_on"] = "rays"
-    assert cfgmod.from_dict(saved) == cfgmod.preset("default")
+    del saved["loss"]["opacity_stages"]
     saved["loss"]["ca_on"] = "samples"
-    with pytest.raises(ConfigError, match="loss.ca_on='samples'.*removed"):
-        cfgmod.from_dict(saved)
-    run = tmp_path / "run"
-    shutil.copytree(trained, run)
-    cfg = json.loads((run / "config.json").read_text())
-    cfg["loss"]["ca_on"] = "samples"
-    (run / "config.json").write_text(json.dumps(cfg))
-    _fails(capsys, ["eval", str(run)], "config.json", "ca_on")
+    saved["grid"]["prune_mode"] = "guarded"
+    assert cfgmod.from_dict(saved) == cfgmod.preset("default")
+    saved["loss"]["gain_model"] = "none"
+    got = cfgmod.from_dict(saved)
+    assert got != cfgmod.preset("default") and not got.loss.use_gains
 
 
 def test_bad_saved_config_names_the_file(tmp_path):
@@ -172,8 +153,15 @@ def test_render_frames_must_be_positive(trained, capsys, frames):
 
 def test_train_saves_the_config_it_ran_with(trained):
     from gridnerf import config as cfgmod
+    from gridnerf import plan as planmod
 
     assert cfgmod.load(trained / "config.json") == cfgmod.preset("tiny")
+    # what training decided from the frames is the run plan beside it
+    plan = planmod.load(trained)
+    assert plan.method == "brightnerf" and plan.black_level == "file"
+    assert len(plan.n_candidates) == len(cfgmod.preset("tiny").grid.resolutions)
+    assert all(n > 0 for n in plan.n_candidates)  # every stage's count was fitted
+    assert not (trained / "one_gain.json").exists() and not (trained / "sensor_fit.json").exists()
 
 
 @pytest.mark.parametrize("args, needles", [
@@ -307,10 +295,12 @@ def test_eval_of_a_scene_without_test_views(run_copy, scene_copy, capsys):
 
 # --- kill -9 ------------------------------------------------------------------------------------
 
-def _cli(args: list[str], jax_cache: Path, **kwargs) -> subprocess.Popen:
+def _cli(args: list[str], jax_cache: Path, checkpoint_seconds: float | None = None,
+         **kwargs) -> subprocess.Popen:
     """`gridnerf <args>` in a child process, importing this checkout's gridnerf. XLA's
     compilations go to the persistent cache `jax_cache`: a second process reuses them
-    (a resume starts in ~3 s instead of ~10 s on 2 cores)."""
+    (a resume starts in ~3 s instead of ~10 s on 2 cores). checkpoint_seconds: training's
+    time-based checkpoint interval (train.CHECKPOINT_SECONDS) in the child."""
     import gridnerf
 
     root = str(Path(gridnerf.__file__).resolve().parents[1])
@@ -318,7 +308,13 @@ def _cli(args: list[str], jax_cache: Path, **kwargs) -> subprocess.Popen:
         p for p in (root, os.environ.get("PYTHONPATH")) if p),
         JAX_COMPILATION_CACHE_DIR=str(jax_cache), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
         JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="-1")
-    return subprocess.Popen([sys.executable, "-m", "gridnerf.cli", *args], env=env, **kwargs)
+    if checkpoint_seconds is None:
+        return subprocess.Popen([sys.executable, "-m", "gridnerf.cli", *args], env=env,
+                                **kwargs)
+    code = ("import sys\nimport gridnerf.train\n"
+            f"gridnerf.train.CHECKPOINT_SECONDS = {float(checkpoint_seconds)!r}\n"
+            "from gridnerf.cli import main\nsys.exit(main(sys.argv[1:]))\n")
+    return subprocess.Popen([sys.executable, "-c", code, *args], env=env, **kwargs)
 
 
 def _logged(run: Path) -> list[dict]:
@@ -335,9 +331,10 @@ def _logged(run: Path) -> list[dict]:
 
 def test_kill_9_loses_at_most_checkpoint_seconds(small_scene, tmp_path):
     """SIGKILL a training mid-stage, after its first time-based checkpoint and one more
-    interval: the checkpoint loads (finite), is at most checkpoint_seconds (+ one save's
-    slack) behind the progress metrics.jsonl logged, the dead process's lock blocks
-    nothing, no `.tmp` survives, and the same command resumes and finishes."""
+    interval (train.CHECKPOINT_SECONDS, shortened in the child): the checkpoint loads
+    (finite), is at most that interval (+ one save's slack) behind the progress
+    metrics.jsonl logged, the dead process's lock blocks nothing, no `.tmp` survives, and
+    the same command resumes and finishes."""
     from gridnerf.runfolder import load_state
 
     # seconds between checkpoints; one stage of `steps`; a save's own time and one step
@@ -345,10 +342,9 @@ def test_kill_9_loses_at_most_checkpoint_seconds(small_scene, tmp_path):
     run = tmp_path / "run"
     argv = ["train", str(small_scene), "--out", str(run), "--preset", "tiny", "--set",
             "grid.resolutions=[[16,16,8]]", f"train.steps_per_stage=[{steps}]",
-            "train.batch_patches=4", "train.log_every=10", "train.checkpoint_every=100000",
-            f"train.checkpoint_seconds={every}"]
+            "train.batch_patches=4", "train.log_every=10", "train.checkpoint_every=100000"]
     with open(tmp_path / "first.log", "w") as log:
-        proc = _cli(argv, tmp_path / "jax-cache", stdout=log, stderr=subprocess.STDOUT)
+        proc = _cli(argv, tmp_path / "jax-cache", every, stdout=log, stderr=subprocess.STDOUT)
     ckpt, first_seen, first_inode = run / "checkpoint.npz", None, None
     deadline = time.monotonic() + 240
     try:
@@ -387,7 +383,8 @@ def test_kill_9_loses_at_most_checkpoint_seconds(small_scene, tmp_path):
 
     (run / "checkpoint.npz.tmp").write_bytes(b"PK\x03\x04 torn")  # as if killed mid-save
     with open(tmp_path / "second.log", "w") as log:
-        resumed = _cli(argv, tmp_path / "jax-cache", stdout=subprocess.PIPE, stderr=log, text=True)
+        resumed = _cli(argv, tmp_path / "jax-cache", every, stdout=subprocess.PIPE, stderr=log,
+                       text=True)
         out, _ = resumed.communicate(timeout=300)
     assert resumed.returncode == 0, (tmp_path / "second.log").read_text()[-2000:]
     assert f"resuming {run} at stage 0, step {header['step']}" in out

@@ -605,7 +605,7 @@ def test_cli_simulates_mixed_group(tmp_path, monkeypatch):
     assert cli.main(["simulate", "mixed", *args]) == 0
     for name in MIXED:
         assert _manifest(tmp_path / "data" / "sim" / name)["scene"] == name
-    from gridnerf.noisefit import sim_clean_mean
+    from gridnerf.sim.truth import clean_mean
 
     with pytest.raises(ValueError, match="several illuminants"):
-        sim_clean_mean(tmp_path / "data" / "sim" / MIXED[0])
+        clean_mean(tmp_path / "data" / "sim" / MIXED[0])

@@ -492,7 +492,8 @@ def test_data_eps_note_only_where_the_absolute_eps_exceeds_the_noise():
     cfg = cfgmod.override(cfgmod.Config(), ["loss.data_eps_sigmas=0"])
 
     def note(c, sigma):
-        return data_term.data_eps_note(c, data_term.capped_eps(c, sigma), sigma)
+        raw = c.data.target == "raw"  # the method's fits_raw
+        return data_term.data_eps_note(data_term.capped_eps(c, sigma, raw), sigma, raw)
 
     assert note(cfg, 0.00074) is None  # bucket at gamma 1: 1.35 sigma
     assert note(cfg, 0.6 * 0.00074) is None  # gamma 0.6: 2.25 sigma
@@ -515,9 +516,12 @@ def test_data_eps_cap_binds_only_on_darker_raw_frames():
     assert data_term.capped_eps(cfg, 0.1 * 0.00074) == pytest.approx(2 * 0.1 * 0.00074)
     three = cfgmod.override(cfg, ["loss.data_eps_sigmas=3"])
     assert data_term.capped_eps(three, 1e-4) == pytest.approx(3e-4)
+    from gridnerf import methods
+
     for sets in (["data.target=processed"], ["loss.data_eps_sigmas=0"], ["loss.method=llnerf"]):
         other = cfgmod.override(cfg, sets)
-        assert data_term.capped_eps(other, 1e-5) == other.loss.data_eps, sets
+        raw = methods.get(other.loss.method).fits_raw(other)
+        assert data_term.capped_eps(other, 1e-5, raw) == other.loss.data_eps, sets
     for sigma in (0.0, float("nan")):
         assert data_term.capped_eps(cfg, sigma) == cfg.loss.data_eps
 

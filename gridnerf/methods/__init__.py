@@ -5,6 +5,7 @@ A method is a module with:
     NAME: str                  the loss.method value
     MAIN_OUTPUT: str           the output written as <view>_pred and along camera paths
     check(cfg)                 ConfigError where the config cannot train this method
+    fits_raw(cfg) -> bool      whether its data term weighs raw frames with loss.data_eps
     training_data(scene, cfg) -> dataset.RayData
                                its training targets
     plan_colour(data, scene, cfg, saved) -> (RayData, plan.ColourPlan)

@@ -26,6 +26,12 @@ def check(cfg: Config) -> None:
     """Every config the config module accepts trains this method."""
 
 
+def fits_raw(cfg: Config) -> bool:
+    """Whether the data term weighs raw frames with the eps (its fit then depends on the
+    raw's scale, and data_term.capped_eps caps the eps at a few noise sigmas)."""
+    return cfg.data.target == "raw"
+
+
 def training_data(scene, cfg: Config) -> dataset.RayData:
     return dataset.training_data(scene, cfg.data)
 

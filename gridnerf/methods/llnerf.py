@@ -180,12 +180,12 @@ def check(cfg: Config) -> None:
     """ConfigError unless the config trains this row: the dark frames come from the raw
     capture, binned, with the gains (its enhancement field) on, and EXPOSURE_POOL divides
     the ray patches."""
-    if cfg.data.target != "raw" or not cfg.data.binning or not cfg.loss.use_gains:
+    if cfg.data.target != "raw" or not cfg.data.binning or cfg.loss.gain_model != "field":
         raise ConfigError(
             None, f"loss.method = 'llnerf' with data.target = {cfg.data.target!r}, "
             f"data.binning = {str(cfg.data.binning).lower()} and loss.gain_model = "
             f"{cfg.loss.gain_model!r}", "use the llnerf preset (data.target=raw, "
-            "data.binning=true, a gain model other than none)")
+            "data.binning=true, loss.gain_model=field: the field holds its enhancement)")
     if cfg.train.patch_size % EXPOSURE_POOL:
         raise ConfigError(None, f"train.patch_size = {cfg.train.patch_size} is not a multiple "
                           f"of the LLNeRF row's exposure pool ({EXPOSURE_POOL})",
@@ -205,6 +205,11 @@ def dark_srgb_frames(scene, frames, binning: bool, downscale: int, exposure_rati
     valid = np.stack([np.broadcast_to(ok.all(axis=-1, keepdims=True), ok.shape)
                       for _, ok in pairs])
     return pixels, valid, np.ones(len(frames), np.float32)
+
+
+def fits_raw(cfg: Config) -> bool:
+    """The data term weighs dark sRGB, not raw frames."""
+    return False
 
 
 def training_data(scene, cfg: Config) -> dataset.RayData:
