@@ -18,12 +18,12 @@ def _simulate(args) -> None:
     from gridnerf import sim
 
     groups = {"all": sim.SCENES, "heldout": sim.HELDOUT, "dev": sim.DEV, "mixed": sim.MIXED,
-              "heldmixed": sim.HELDOUT_MIXED}
+              "heldmixed": sim.HELDOUT_MIXED, "heldcolour": sim.HELDOUT_COLOUR}
     names = groups.get(args.name, (args.name,))
     for name in names:
         if name not in sim.ALL_SCENES:
             fix = (f"choose one of {', '.join(sim.ALL_SCENES)}, 'all', "
-                   "'heldout', 'dev', 'mixed' or 'heldmixed'")
+                   "'heldout', 'dev', 'mixed', 'heldmixed' or 'heldcolour'")
             raise GridNerfError(None, f"unknown scene {name!r}", fix)
         out = (Path(args.out) if args.out and len(names) == 1
                else Path("data/sim") / sim.folder_name(name, args.light))
@@ -134,8 +134,9 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("simulate", help="write a simulated low-light RAW scene")
     s.add_argument("name", help="scene name (bucket, held_arc_brick, mixed_lamp_window, ...), "
                    "'all' (the nine scenes), 'heldout' (the held-out scenes), 'dev' (the tuning "
-                   "scenes with an arc and a slide rig), 'mixed' (the mixed-light scenes) or "
-                   "'heldmixed' (the held-out mixed-light scenes)")
+                   "scenes with an arc and a slide rig), 'mixed' (the mixed-light scenes), "
+                   "'heldmixed' (the held-out mixed-light scenes) or 'heldcolour' (held-out "
+                   "files with a wrong ColorMatrix and lights off the Planckian locus)")
     s.add_argument("--out", help="scene folder (default data/sim/<name>)")
     s.add_argument("--width", type=_positive_int, default=480)
     s.add_argument("--height", type=_positive_int, default=270)

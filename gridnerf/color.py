@@ -69,6 +69,30 @@ def luminance(rgb_linear, xp=np):
     return rgb_linear @ xp.asarray(LUMA, dtype=rgb_linear.dtype)
 
 
+def _uv(xyz: np.ndarray) -> np.ndarray:
+    """CIE 1960 (u, v) of an XYZ colour."""
+    x, y, z = np.asarray(xyz, np.float64)
+    d = x + 15.0 * y + 3.0 * z
+    return np.array([4.0 * x / d, 6.0 * y / d])
+
+
+def tinted_xyz_white(kelvin: float, duv: float) -> np.ndarray:
+    """XYZ (Y = 1) of a light `duv` off the Planckian locus at `kelvin`: the blackbody's
+    CIE 1960 (u, v) moved by duv along the locus's normal (ANSI C78.377's Duv: positive
+    above the locus, towards green, as many fluorescent and LED lights and high-pressure
+    sodium are; negative below, towards magenta). duv = 0 gives blackbody_xyz_white."""
+    if duv == 0:
+        return blackbody_xyz_white(kelvin)
+    uv = _uv(blackbody_xyz_white(kelvin))
+    tangent = _uv(blackbody_xyz_white(kelvin * 1.01)) - _uv(blackbody_xyz_white(kelvin / 1.01))
+    tangent /= np.linalg.norm(tangent)
+    normal = np.array([-tangent[1], tangent[0]])  # the locus runs towards lower v as T rises
+    normal = normal if normal[1] > 0 else -normal  # +v: above the locus
+    u, v = uv + duv * normal
+    x, y = 3.0 * u / (2.0 * u - 8.0 * v + 4.0), 2.0 * v / (2.0 * u - 8.0 * v + 4.0)
+    return np.array([x / y, 1.0, (1.0 - x - y) / y])
+
+
 def blackbody_xyz_white(kelvin: float) -> np.ndarray:
     """XYZ of a Planckian illuminant at `kelvin`, normalised to Y = 1 (shape (3,)).
 

@@ -25,7 +25,7 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from gridnerf import dataset, illum_map, illuminant, noisefit, raw
+from gridnerf import color, dataset, illum_map, illuminant, noisefit, raw
 from gridnerf.config import Config
 from gridnerf.plan import ColourPlan
 
@@ -39,6 +39,16 @@ MAP_TAU = 0.1
 # is lit by one light. Chosen between the single-light scenes' spreads (at most 2.42 deg)
 # and the mixed-light ones' (at least 4.05) of the built-in and tuning scenes
 ONE_LIGHT_DEG = 3.0
+# The Planckian-locus prior is trusted where the frames' own estimate (the consensus without
+# the locus) lies within LOCUS_TRUST_DEG of the file's locus and its nearest locus light is
+# inside LOCUS_END_KELVIN (locus_check); the estimators agree where no two of them are more
+# than ESTIMATORS_AGREE_DEG apart (else "consistent" takes grey world)
+LOCUS_TRUST_DEG = 8.0
+# the file's ColorMatrix is taken as the sensor's where its whites lie within this (deg) of
+# its camera model's reference matrix (matrix_check)
+MATRIX_AGREE_DEG = 2.0
+LOCUS_END_KELVIN = (1600.0, 15000.0)
+ESTIMATORS_AGREE_DEG = 12.0
 # the capture's estimates run on the frames box-downscaled until their noise sigma is under
 # this share of their mean level (estimate_downscale): shades of grey's p-norm and grey
 # edge's gradients measure the noise where it rivals the signal
@@ -96,49 +106,100 @@ def downscaled(frames, d: int) -> tuple[list, list]:
             [raw.downscale(np.asarray(m, np.float32), d) >= 1.0 for m in masks])
 
 
-def _locus(scene, cfg: Config):
-    return illuminant.planckian_locus(scene.xyz_to_cam) if cfg.loss.ca_locus else None
+def reference_matrix(scene) -> tuple[str, np.ndarray] | None:
+    """(model, (3, 3)) the reference XYZ -> camera matrix of the scene's camera model
+    (color.CAMERA_XYZ_TO_CAM, Adobe DNG Converter's D65 ColorMatrix), None where the
+    model is not in that table."""
+    model = getattr(scene, "camera_model", None)
+    return (model, color.CAMERA_XYZ_TO_CAM[model]) if model in color.CAMERA_XYZ_TO_CAM else None
 
 
-def scene_illuminant(scene, cfg: Config, frames, estimator: str, downscale: int = 1
-                     ) -> np.ndarray:
+def matrix_check(scene) -> str | None:
+    """Why the file's ColorMatrix cannot be trusted as the sensor's, or None: it differs by
+    more than MATRIX_AGREE_DEG (illuminant.matrix_disagreement_deg) from the reference
+    matrix of the camera model the file names (reference_matrix). The file's matrix is
+    still the one used for display (the file's tag wins); only the locus prior, which
+    leans on it hardest, is given up."""
+    ref = reference_matrix(scene)
+    if ref is None:
+        return None
+    gap = illuminant.matrix_disagreement_deg(scene.xyz_to_cam, ref[1])
+    if gap <= MATRIX_AGREE_DEG:
+        return None
+    return (f"the file's ColorMatrix differs from {ref[0]}'s reference by {gap:.1f} deg "
+            "(its whites)")
+
+
+def locus_check(scene, frames, downscale: int = 1) -> tuple[bool, float, float, dict]:
+    """Whether the frames agree with the Planckian-locus prior of the file's ColorMatrix:
+    (trusted, angle deg, kelvin, estimates).
+
+    The three estimators of illuminant.CONSENSUS run on the frames (box-downscaled by
+    `downscale`) without the locus; their per-channel median (illuminant.consensus) is
+    compared with the file's locus: the angle to its nearest light, and that light's
+    temperature. The prior is trusted where the angle is at most LOCUS_TRUST_DEG and the
+    temperature lies inside LOCUS_END_KELVIN: a projection onto either end of the locus
+    says that the matrix does not describe the sensor or the light is not a blackbody, and
+    would pin the target there (a generic matrix put a 2600 K capture's grey world 12.8 deg
+    off the locus, projected to 1500 K: a magenta render). estimates: {name: (3,)} the three
+    estimators' capture estimates without the locus.
+    """
+    small, small_masks = downscaled(frames, downscale)
+    free = {n: illuminant.capture_estimate(n, small, small_masks, None, ESTIMATOR_P)
+            for n in illuminant.CONSENSUS}
+    cons = illuminant.consensus(list(free.values()), None)
+    locus = illuminant.planckian_locus(scene.xyz_to_cam)
+    cos = locus @ np.asarray(illuminant.unit(cons), np.float64)
+    i = int(np.argmax(cos))
+    angle = float(np.degrees(np.arccos(np.clip(cos[i], -1.0, 1.0))))
+    kelvin = float(illuminant.LOCUS_KELVIN[i])
+    trusted = angle <= LOCUS_TRUST_DEG and LOCUS_END_KELVIN[0] < kelvin < LOCUS_END_KELVIN[1]
+    return trusted, angle, kelvin, free
+
+
+def estimators_disagree(estimates: dict) -> float:
+    """The largest angle (deg) between two of the estimates {name: (3,)}."""
+    names = list(estimates)
+    return max((float(illuminant.angular_error_deg(estimates[a], estimates[b]))
+                for a in names for b in names if a < b), default=0.0)
+
+
+def scene_illuminant(frames, estimator: str, downscale: int = 1, locus=None) -> np.ndarray:
     """The capture's illuminant (3,) unit camera RGB, estimated once from all training frames.
 
     `estimator` on the 2x2-binned frames divided by their exposure, saturated blocks left
     out (illuminant.frames_estimate: pooled pixels; grey edge per frame), then projected
-    onto the camera's Planckian locus when loss.ca_locus; "consensus" is the per-channel
-    median of illuminant.CONSENSUS's estimates (illuminant.consensus). frames: (images,
-    masks) of estimate_frames; the estimate runs on them box-downscaled by `downscale`
-    (estimate_downscale chooses it for the capture).
+    onto `locus` (the camera's Planckian locus, (n, 3)) when given; "consensus" is the
+    per-channel median of illuminant.CONSENSUS's estimates (illuminant.consensus). frames:
+    (images, masks) of estimate_frames; the estimate runs on them box-downscaled by
+    `downscale` (estimate_downscale chooses it for the capture).
     """
     images, masks = downscaled(frames, downscale)
-    return illuminant.capture_estimate(estimator, images, masks, _locus(scene, cfg),
-                                       ESTIMATOR_P)
+    return illuminant.capture_estimate(estimator, images, masks, locus, ESTIMATOR_P)
 
 
-def with_illuminant_map(data: dataset.RayData, scene, cfg: Config, frames, estimator: str,
-                        downscale: int = 1, anchor: np.ndarray | None = None
+def with_illuminant_map(data: dataset.RayData, frames, estimator: str, downscale: int = 1,
+                        anchor: np.ndarray | None = None, locus=None
                         ) -> tuple[dataset.RayData, np.ndarray]:
     """(data with its per-frame L_ca illuminant map, the maps' anchor (3,)) for
     loss.ca_target = "map": each training frame's Retinex map (gridnerf.illum_map, blocks
     of MAP_BLOCK binned pixels) anchored to `anchor` (3,) where given (a resumed run's),
     else to the lights of the maps' warm and cool halves (illum_map.regional_anchor, each
     by `estimator`: two lights no longer pull one estimate towards the brighter one); on
-    the locus when loss.ca_locus. The maps use the frames at full size (their blocks
-    average the noise); the estimates, the frames downscaled by `downscale`."""
+    `locus` when given. The maps use the frames at full size (their blocks average the
+    noise); the estimates, the frames downscaled by `downscale`."""
     images, masks = frames
-    locus = _locus(scene, cfg)
     rel, weight = illum_map.relative_maps(images, masks, MAP_BLOCK, MAP_TAU)
     if anchor is None:
         anchor = illum_map.regional_anchor(
             images, masks, rel, weight,
-            lambda ims, mks: scene_illuminant(scene, cfg, (ims, mks), estimator, downscale),
+            lambda ims, mks: scene_illuminant((ims, mks), estimator, downscale, locus),
             locus, MAP_BLOCK)
     maps = illum_map.frame_maps(images, masks, anchor, locus, MAP_BLOCK, MAP_TAU, rel=rel)
     return dataclasses.replace(data, illuminant_map=jnp.asarray(maps, jnp.float32)), anchor
 
 
-def light_spread(scene, cfg: Config, frames, downscale: int = 1) -> tuple[float, dict]:
+def light_spread(frames, downscale: int = 1, locus=None) -> tuple[float, dict]:
     """(spread, estimates): how far the capture's illuminant maps, anchored to the
     consensus, stray from it (illum_map.map_spread_deg, deg; under one light less than
     ONE_LIGHT_DEG), and the consensus's three estimates {name: (3,)} of the whole
@@ -146,7 +207,6 @@ def light_spread(scene, cfg: Config, frames, downscale: int = 1) -> tuple[float,
     downscaled by `downscale` (scene_illuminant), the maps at full size."""
     images, masks = frames
     small, small_masks = downscaled(frames, downscale)
-    locus = _locus(scene, cfg)
     wholes = {n: illuminant.capture_estimate(n, small, small_masks, locus, ESTIMATOR_P)
               for n in illuminant.CONSENSUS}
     cons = illuminant.consensus(list(wholes.values()), locus)
@@ -154,22 +214,31 @@ def light_spread(scene, cfg: Config, frames, downscale: int = 1) -> tuple[float,
     return illum_map.map_spread_deg(maps, cons), wholes
 
 
-def consistent_estimator(scene, cfg: Config, frames, downscale: int = 1,
-                         spread: tuple[float, dict] | None = None) -> str:
-    """The estimator loss.ca_illuminant = "consistent" stands for on this capture: under one
-    light (light_spread below ONE_LIGHT_DEG) the one of the consensus's three whose
-    quadrant estimates agree best (illuminant.quadrant_spreads), else "consensus" (under
-    two lights the quadrants see different lights, and the spread would measure them).
-    frames: (images, masks) of estimate_frames; the estimates run on them downscaled by
-    `downscale` (scene_illuminant), the maps at full size; spread: light_spread's result
+def consistent_estimator(frames, downscale: int = 1, spread: tuple[float, dict] | None = None,
+                         locus=None, disagreement: float = 0.0) -> str:
+    """The estimator loss.ca_illuminant = "consistent" stands for on this capture.
+
+    Where the estimators themselves disagree by more than ESTIMATORS_AGREE_DEG
+    (`disagreement`, estimators_disagree of their estimates without the locus), grey
+    world, the most conservative: a quadrant agreement says an estimator is stable, not
+    that it is right. Else, under one light (light_spread below ONE_LIGHT_DEG), the one of
+    the consensus's three whose quadrant estimates agree best (illuminant.quadrant_spreads);
+    else "consensus" (under two lights the quadrants see different lights, and the spread
+    would measure them). frames: (images, masks) of estimate_frames; the estimates run on
+    them downscaled by `downscale`, the maps at full size; spread: light_spread's result
     when the caller has it. Prints the choice."""
+    if disagreement > ESTIMATORS_AGREE_DEG:
+        print("L_ca estimator: grey_world (" + (
+            "the locus prior was given up" if np.isinf(disagreement) else
+            f"the estimators disagree by {disagreement:.1f} deg, over "
+            f"{ESTIMATORS_AGREE_DEG:g}") + ": the most conservative is taken)")
+        return "grey_world"
     small, small_masks = downscaled(frames, downscale)
-    spread, wholes = light_spread(scene, cfg, frames, downscale) if spread is None else spread
+    spread, wholes = light_spread(frames, downscale, locus) if spread is None else spread
     if spread >= ONE_LIGHT_DEG:
         print(f"L_ca estimator: consensus (the maps stray {spread:.2f} deg: lights mix)")
         return "consensus"
-    spreads = illuminant.quadrant_spreads(small, small_masks, _locus(scene, cfg), ESTIMATOR_P,
-                                          wholes)
+    spreads = illuminant.quadrant_spreads(small, small_masks, locus, ESTIMATOR_P, wholes)
     name = illuminant.least_spread(spreads)
     print(f"L_ca estimator: {name} (one light: the maps stray {spread:.2f} deg; quadrant "
           "spreads " + ", ".join(f"{n} {s:.2f}" for n, (_, s) in spreads.items()) + " deg)")
@@ -184,44 +253,75 @@ def one_gain(gain_model: str, spread: float | None) -> bool:
                                       and spread < ONE_LIGHT_DEG)
 
 
+def trusted_locus(scene, cfg: Config, frames, downscale: int) -> tuple[bool, float]:
+    """(use the locus, disagreement deg): loss.ca_locus where the file's matrix agrees with
+    its camera's reference (matrix_check) and the frames agree with its locus
+    (locus_check), and how far the estimators disagree without the locus
+    (estimators_disagree; infinite where the locus was given up, so that "consistent"
+    takes grey world). One printed line naming the file's matrix, the angle and the
+    fallback where the prior is given up."""
+    trusted, angle, kelvin, free = locus_check(scene, frames, downscale)
+    disagreement = estimators_disagree(free)
+    if not cfg.loss.ca_locus:
+        return False, disagreement
+    why = matrix_check(scene)
+    if why is None and not trusted:
+        why = (f"the frames' illuminant lies {angle:.1f} deg from its Planckian locus, nearest "
+               f"{kelvin:.0f} K (trusted within {LOCUS_TRUST_DEG:g} deg and "
+               f"{LOCUS_END_KELVIN[0]:.0f}-{LOCUS_END_KELVIN[1]:.0f} K)")
+    if why is None:
+        return True, disagreement
+    matrix = np.round(np.asarray(scene.xyz_to_cam, np.float64).ravel(), 3).tolist()
+    print(f"colour: the locus prior is given up: {why}; file ColorMatrix {matrix}. The matrix "
+          "does not describe this sensor or the light is not a blackbody: the colour falls "
+          "back to the frames' grey world, not projected onto the locus")
+    return False, float("inf")
+
+
 def plan_colour(data: dataset.RayData, scene, cfg: Config, saved: ColourPlan | None = None
                 ) -> tuple[dataset.RayData, ColourPlan]:
     """The colour decisions of a Bright-NeRF run: (data, ColourPlan).
 
-    No gains (loss.gain_model "none"): nothing to decide. The "batch" target: the gain
-    field, each batch its own estimate. The "scene" and "map" targets: the frames are
-    binned once (estimate_frames), the estimator picked ("consistent"), the capture's
-    illuminant (the anchor) estimated and, for "map", data given its illuminant maps; the
-    colour is one gain (the anchor's von Kries gains) for loss.gain_model "global", or
-    "auto" under one light, else the gain field. saved: a resumed run's ColourPlan, whose
-    estimator, downscale, anchor and light spread are kept (the maps are made again from
-    the frames with its anchor).
+    No gains (loss.gain_model "none"): nothing to decide. Otherwise the frames are binned
+    once (estimate_frames) and the locus prior checked against them (trusted_locus). The
+    "batch" target: the gain field, each batch its own estimate (on the locus where it is
+    trusted). The "scene" and "map" targets: the estimator picked ("consistent"), the
+    capture's illuminant (the anchor) estimated and, for "map", data given its illuminant
+    maps; the colour is one gain (the anchor's von Kries gains) for loss.gain_model
+    "global", or "auto" under one light, else the gain field. saved: a resumed run's
+    ColourPlan, whose decisions are kept (the maps are made again from the frames with its
+    anchor).
     """
     lc = cfg.loss
     if not lc.use_gains:
         return data, ColourPlan(model="none")
-    if lc.ca_target == "batch":
-        return data, ColourPlan(model="field")
     frames = estimate_frames(data, scene)  # binned once for every estimate
-    anchor = None
     if saved is not None:
-        d, estimator, spread = saved.estimate_downscale, saved.estimator, saved.light_spread_deg
-        anchor = None if saved.anchor is None else np.asarray(saved.anchor, np.float64)
+        d, use_locus = saved.estimate_downscale, saved.locus
     else:
         d = estimate_downscale(frames, NOISE_RATIO)
         if d > 1:
             print(f"L_ca estimates on the frames downscaled {d}x: their noise is above "
                   f"{NOISE_RATIO:g} x their level")
+        use_locus, disagreement = trusted_locus(scene, cfg, frames, d)
+    if lc.ca_target == "batch":
+        return data, ColourPlan(model="field", locus=use_locus, estimate_downscale=int(d))
+    locus = illuminant.planckian_locus(scene.xyz_to_cam) if use_locus else None
+    anchor = None
+    if saved is not None:
+        estimator, spread = saved.estimator, saved.light_spread_deg
+        anchor = None if saved.anchor is None else np.asarray(saved.anchor, np.float64)
+    else:
         measured = None
         if lc.ca_illuminant == "consistent" or lc.gain_model == "auto":
-            measured = light_spread(scene, cfg, frames, d)
-        estimator = (consistent_estimator(scene, cfg, frames, d, measured)
+            measured = light_spread(frames, d, locus)
+        estimator = (consistent_estimator(frames, d, measured, locus, disagreement)
                      if lc.ca_illuminant == "consistent" else lc.ca_illuminant)
         spread = None if measured is None else float(measured[0])
     if lc.ca_target == "map":
-        data, anchor = with_illuminant_map(data, scene, cfg, frames, estimator, d, anchor)
+        data, anchor = with_illuminant_map(data, frames, estimator, d, anchor, locus)
     elif anchor is None:
-        anchor = scene_illuminant(scene, cfg, frames, estimator, d)
+        anchor = scene_illuminant(frames, estimator, d, locus)
     anchor = np.asarray(anchor, np.float64)
     one = one_gain(lc.gain_model, spread)
     if saved is None and one:
@@ -237,4 +337,5 @@ def plan_colour(data: dataset.RayData, scene, cfg: Config, saved: ColourPlan | N
     return data, ColourPlan(model="one_gain" if one else "field", estimator=estimator,
                             anchor=tuple(float(v) for v in anchor),
                             gains=tuple(float(v) for v in gains),
-                            light_spread_deg=spread, estimate_downscale=int(d))
+                            light_spread_deg=spread, estimate_downscale=int(d),
+                            locus=use_locus)

@@ -343,6 +343,15 @@ def planckian_locus(xyz_to_cam, kelvin=None) -> np.ndarray:
 LOCUS_KELVIN = np.geomspace(1500.0, 20000.0, 1024)  # planckian_locus's default temperatures
 
 
+def matrix_disagreement_deg(xyz_to_cam_a, xyz_to_cam_b) -> float:
+    """How far two XYZ -> camera matrices disagree about the camera's whites: the largest
+    angle (deg) between their Planckian loci at the same temperature, 2000-10000 K."""
+    kelvin = np.geomspace(2000.0, 10000.0, 24)
+    a = planckian_locus(xyz_to_cam_a, kelvin)
+    b = planckian_locus(xyz_to_cam_b, kelvin)
+    return float(np.max(angular_error_deg(a, b)))
+
+
 def locus_kelvin(illuminant, xyz_to_cam) -> float:
     """The temperature (K) of the Planckian-locus entry nearest in angle to an estimate (3,)."""
     locus = planckian_locus(xyz_to_cam)

@@ -39,10 +39,10 @@ def step_plan(cfg: Config, plan: RunPlan, stage: int, scene) -> StepPlan:
     """The StepPlan of stage `stage` of a run: its plan's eps, opacity weight and candidate
     count; the gain terms where the colour is the gain field; the capture's illuminant
     (float32) where the plan has one; the camera's Planckian locus for the batch target
-    with loss.ca_locus."""
+    where the plan trusts it."""
     anchor = None if plan.colour.anchor is None else np.asarray(plan.colour.anchor, np.float32)
     locus = None
-    if cfg.loss.ca_target == "batch" and cfg.loss.ca_locus and plan.colour.model == "field":
+    if cfg.loss.ca_target == "batch" and plan.colour.locus and plan.colour.model == "field":
         locus = np.asarray(illuminant.planckian_locus(scene.xyz_to_cam), np.float32)
     return StepPlan(data_eps=plan.data_eps, opacity=plan.opacity[stage],
                     n_candidates=plan.n_candidates[stage],

@@ -42,7 +42,9 @@ class ColourPlan:
     capture's illuminant (the "scene" target, the "map" target's anchor), or None.
     light_spread_deg: how far the capture's illuminant maps stray from the consensus (the
     one-light test), None where it was not measured. estimate_downscale: the box
-    downscale the estimates ran at.
+    downscale the estimates ran at. locus: whether the estimates were projected onto the
+    Planckian locus of the file's ColorMatrix (loss.ca_locus where the frames agree with
+    it: colour_target.locus_check).
     """
 
     model: Literal["field", "one_gain", "none"] = "none"
@@ -51,6 +53,7 @@ class ColourPlan:
     gains: tuple[float, float, float] | None = None
     light_spread_deg: float | None = None
     estimate_downscale: int = 1
+    locus: bool = False
 
 
 @dataclass(frozen=True)

@@ -9,9 +9,11 @@ Where the metadata comes from (behaviour of rawpy 0.28 / LibRaw 0.22, checked he
   ordered by colour index (R, G, B, G2), so it is mapped to CFA positions through
   `raw_pattern`. LibRaw truncates rational DNG black levels to integers; when the DNG's
   own BlackLevel tag agrees with LibRaw to within 1 DN, the exact tag values are used.
-- XYZ->camera (D65): LibRaw's `rgb_xyz_matrix` when non-zero (camera in its table), else
-  the DNG ColorMatrix tag calibrated for D65 (ColorMatrix2 when neither is D65), else the
-  documented fallback `inv(color.XYZ_FROM_SRGB)`: a camera whose primaries are sRGB's.
+- XYZ->camera (D65): the file's ColorMatrix tag calibrated for D65 (ColorMatrix2 when
+  neither is D65), else LibRaw's `rgb_xyz_matrix` when non-zero (camera in its table),
+  else the documented fallback `inv(color.XYZ_FROM_SRGB)`: a camera whose primaries are
+  sRGB's. Whether the tag describes the sensor is checked later, against the frames and
+  the camera's reference matrix (gridnerf.colour_target.locus_check).
 - as-shot neutral: the DNG AsShotNeutral tag, else `1 / camera_whitebalance` from LibRaw,
   else (1, 1, 1); always normalised so that G = 1.
 - exposure time and ISO: the TIFF/EXIF tags (exact rationals), else LibRaw, else None.
@@ -48,6 +50,7 @@ class RawFrame:
     xyz_to_cam: (3, 3) float64 XYZ -> camera matrix for D65.
     as_shot_neutral: (3,) float64 camera RGB of a neutral, G normalised to 1.
     has_color_matrix: False when the file gave no colour matrix and sRGB primaries stand in.
+    camera_model: the file's UniqueCameraModel (else Model) tag, None where it has none.
     """
 
     path: str
@@ -60,6 +63,7 @@ class RawFrame:
     exposure_time: float | None
     iso: float | None
     has_color_matrix: bool = True
+    camera_model: str | None = None
 
 
 def check_cfa(cfa) -> np.ndarray:
@@ -133,7 +137,7 @@ def _dng_tags(path: Path) -> dict:
 
     Returns {} for files tifffile cannot parse (CR3, RAF...): those rely on LibRaw.
     Keys present only when found: black (2, 2), color_matrix (9,), neutral (3,),
-    exposure_time, iso.
+    exposure_time, iso, model (UniqueCameraModel, else Model).
     """
     out: dict = {}
     try:
@@ -160,6 +164,10 @@ def _dng_tags(path: Path) -> dict:
                 out["color_matrix"] = d65[0]
             elif matrices:
                 out["color_matrix"] = matrices.get(50722, matrices.get(50721))[0]
+            for code in (50708, 272):  # UniqueCameraModel, Model
+                if code in ifd0.tags and str(ifd0.tags[code].value).strip():
+                    out["model"] = str(ifd0.tags[code].value).strip("\x00 ")
+                    break
             if 50728 in ifd0.tags:
                 neutral = _tag_floats(ifd0.tags[50728])
                 if neutral.size == 3 and np.all(neutral > 0):
@@ -221,10 +229,10 @@ def read_raw(path) -> RawFrame:
             _FIX_CORRUPT,
         )
 
-    if np.any(rgb_xyz != 0):
-        xyz_to_cam = rgb_xyz
-    elif "color_matrix" in tags:
+    if "color_matrix" in tags:  # the file's own tag wins (DNG)
         xyz_to_cam = tags["color_matrix"].reshape(3, 3)
+    elif np.any(rgb_xyz != 0):
+        xyz_to_cam = rgb_xyz
     else:
         xyz_to_cam = np.linalg.inv(color.XYZ_FROM_SRGB)
 
@@ -247,6 +255,7 @@ def read_raw(path) -> RawFrame:
         exposure_time=tags.get("exposure_time", shutter if shutter > 0 else None),
         iso=tags.get("iso", iso if iso > 0 else None),
         has_color_matrix=bool(np.any(rgb_xyz != 0) or "color_matrix" in tags),
+        camera_model=tags.get("model"),
     )
 
 

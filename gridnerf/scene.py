@@ -60,6 +60,7 @@ class Scene:
     gt_srgb_paths: dict[str, pathlib.Path]
     gt_linear_paths: dict[str, pathlib.Path]
     world_from_normalized: np.ndarray | None = None
+    camera_model: str | None = None  # frame 0's UniqueCameraModel / Model tag
 
     def raw_normalized(self, i: int) -> np.ndarray:
         """raw_bayer (H, W) float32: (raw - black) / (white - black), negatives kept."""
@@ -389,4 +390,5 @@ def load_scene(path, near_far: tuple[float, float] | None = None) -> Scene:
         gt_srgb_paths={n: gt / f"{n}.png" for n in names if (gt / f"{n}.png").is_file()},
         gt_linear_paths={n: gt / f"{n}.exr" for n in names if (gt / f"{n}.exr").is_file()},
         world_from_normalized=world_from_norm,
+        camera_model=first.camera_model,
     )

@@ -164,14 +164,12 @@ def test_consistent_estimator_picks_per_light_count():
     (quadrant_spreads' least), under two the consensus; the quadrant spreads do not change
     with the frames' scale."""
     from gridnerf import colour_target
-    from gridnerf.config import Config, LossConfig
 
-    cfg = Config(loss=LossConfig(ca_illuminant="consistent", ca_locus=False))
     masks = [np.ones((H, W))] * 2
     one = [_paint(s) * WARM for s in range(2)]
     spreads = illuminant.quadrant_spreads(one, masks)
     assert set(spreads) == set(illuminant.CONSENSUS)
-    name = colour_target.consistent_estimator(None, cfg, (one, masks))
+    name = colour_target.consistent_estimator((one, masks))
     assert name == illuminant.least_spread(spreads)
     assert spreads[name][1] == min(s for _, s in spreads.values())
     scaled = illuminant.quadrant_spreads([7.0 * x for x in one], masks)
@@ -179,7 +177,7 @@ def test_consistent_estimator_picks_per_light_count():
         np.testing.assert_allclose(scaled[n][0], est, atol=1e-9)
         assert scaled[n][1] == pytest.approx(s, abs=1e-6)
     two = [_paint(s) * _light(WARM, COOL) for s in range(2)]
-    assert colour_target.consistent_estimator(None, cfg, (two, masks)) == "consensus"
+    assert colour_target.consistent_estimator((two, masks)) == "consensus"
 
 
 def test_estimates_run_downscaled_where_the_noise_rivals_the_signal():
@@ -189,7 +187,6 @@ def test_estimates_run_downscaled_where_the_noise_rivals_the_signal():
     their level, the consistent pick on the downscaled frames lands nearer the light than
     on the full frames, where shades of grey and grey edge measure the noise."""
     from gridnerf import colour_target
-    from gridnerf.config import Config, LossConfig
 
     rng = np.random.default_rng(0)
     clean = [_paint(s) * WARM for s in range(3)]
@@ -213,12 +210,11 @@ def test_estimates_run_downscaled_where_the_noise_rivals_the_signal():
     assert small_masks[0][0, 1] and small_masks[0].sum() == H * W // 4 - 1
     np.testing.assert_allclose(small[0][0, 1], clean[0][:2, 2:4].mean(axis=(0, 1)))
 
-    cfg = Config(loss=LossConfig(ca_illuminant="consistent", ca_locus=False))
     frames = (noisy(2.0), masks)
     d = colour_target.estimate_downscale(frames, 0.6)
     errors = {}
     for k in (1, d):
-        name = colour_target.consistent_estimator(None, cfg, frames, k)
+        name = colour_target.consistent_estimator(frames, k)
         small, small_masks = colour_target.downscaled(frames, k)
         est = illuminant.capture_estimate(name, small, small_masks)
         errors[k] = illuminant.angular_error_deg(est, WARM)

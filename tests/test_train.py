@@ -334,8 +334,9 @@ def test_scene_illuminant_from_the_training_frames(small_scene):
                                                   "loss.ca_locus=false"])
 
     def estimate(data, c):
-        return colour_target.scene_illuminant(scene, c, colour_target.estimate_frames(data, scene),
-                                              "grey_world")
+        locus = illuminant.planckian_locus(scene.xyz_to_cam) if c.loss.ca_locus else None
+        return colour_target.scene_illuminant(colour_target.estimate_frames(data, scene),
+                                              "grey_world", 1, locus)
 
     binned = dataset.build(scene, scene.train_idx, True)
     est = estimate(binned, cfg)
@@ -395,14 +396,13 @@ def test_illuminant_map_target_trains(small_scene, tmp_path):
     scene = load_scene(small_scene, near_far=(1.0, 10.0))
     data = dataset.build(scene, scene.train_idx, True)
     frames = colour_target.estimate_frames(data, scene)
-    anchor = colour_target.scene_illuminant(scene, cfg, frames, "grey_edge")
-    mapped, kept = colour_target.with_illuminant_map(data, scene, cfg, frames, "grey_edge",
-                                                     anchor=anchor)
+    anchor = colour_target.scene_illuminant(frames, "grey_edge")
+    mapped, kept = colour_target.with_illuminant_map(data, frames, "grey_edge", anchor=anchor)
     np.testing.assert_array_equal(kept, anchor)  # a resumed run's anchor is kept
     h, w = data.image_hw
     block = colour_target.MAP_BLOCK
     assert mapped.illuminant_map.shape == (len(scene.train_idx), h // block, w // block, 3)
-    _, found = colour_target.with_illuminant_map(data, scene, cfg, frames, "grey_edge")
+    _, found = colour_target.with_illuminant_map(data, frames, "grey_edge")
     assert found.shape == (3,) and np.all(np.isfinite(found))
     rays = dataset.batch(mapped, jax.random.PRNGKey(0), 4, 8)
     assert rays["illuminant"].shape == (4, 8, 8, 3)

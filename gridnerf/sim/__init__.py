@@ -5,11 +5,21 @@
 a wide depth range, high-frequency textures), on which no default is tuned; `DEV` tuning
 scenes with rigs of those kinds (an arc, a slide) but other content; `MIXED` the
 mixed-light scenes (a warm lamp and daylight lighting different parts of the scene);
-`HELDOUT_MIXED` mixed-light scenes held out from the mixed-light path's choices.
+`HELDOUT_MIXED` mixed-light scenes held out from the mixed-light path's choices;
+`HELDOUT_COLOUR` captures that break the colour path's assumptions (a ColorMatrix that does
+not describe the sensor, lights off the Planckian locus), held out.
 """
 
-from gridnerf.sim.scenes import ALL_SCENES, DEV, HELDOUT, HELDOUT_MIXED, MIXED, SCENES
+from gridnerf.sim.scenes import (
+    ALL_SCENES,
+    DEV,
+    HELDOUT,
+    HELDOUT_COLOUR,
+    HELDOUT_MIXED,
+    MIXED,
+    SCENES,
+)
 from gridnerf.sim.writer import folder_name, simulate_scene
 
-__all__ = ["ALL_SCENES", "DEV", "HELDOUT", "HELDOUT_MIXED", "MIXED", "SCENES",
+__all__ = ["ALL_SCENES", "DEV", "HELDOUT", "HELDOUT_COLOUR", "HELDOUT_MIXED", "MIXED", "SCENES",
            "folder_name", "simulate_scene"]

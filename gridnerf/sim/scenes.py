@@ -24,7 +24,7 @@ cameras and draws the noise.
 from __future__ import annotations
 
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -52,8 +52,16 @@ MIXED: tuple[str, ...] = ("mixed_lamp_window", "mixed_desk_daylight")
 # depth, and two lights only 1500 K apart on saturated content.
 HELDOUT_MIXED: tuple[str, ...] = ("held_mixed_arc", "held_mixed_slide", "held_mixed_hall",
                                    "held_mixed_toys")
+# Colour held out: captures that break the colour path's assumptions, no default chosen on
+# them: a file whose ColorMatrix does not describe the sensor (generic, another camera's,
+# rows scaled) and lights off the Planckian locus (a green-tinted sodium-like lamp, a
+# magenta-tinted LED), on the held-out scenes' geometry and rigs.
+HELDOUT_COLOUR: tuple[str, ...] = ("held_colour_generic", "held_colour_other",
+                                   "held_colour_diagonal", "held_colour_sodium",
+                                   "held_colour_led")
 # every scene name the simulator knows
-ALL_SCENES: tuple[str, ...] = SCENES + HELDOUT + DEV + MIXED + HELDOUT_MIXED
+ALL_SCENES: tuple[str, ...] = (SCENES + HELDOUT + DEV + MIXED + HELDOUT_MIXED
+                               + HELDOUT_COLOUR)
 RIGS: tuple[str, ...] = ("tripod", "arc", "slide")
 
 
@@ -883,9 +891,30 @@ _MIX = {"mixed_lamp_window": _mixed_lamp_window, "mixed_desk_daylight": _mixed_d
         "held_mixed_hall": _held_mixed_hall, "held_mixed_toys": _held_mixed_toys}
 
 
+# name: (geometry of, kelvin, camera, file_matrix, tint_duv); the sensor's noise and light
+# level are those of the geometry's own scene
+_COLOUR = {
+    "held_colour_generic": ("held_slide_shelf", 2600.0, "Canon EOS 5D Mark IV", "generic", 0.0),
+    "held_colour_other": ("held_arc_table", 2900.0, "Sony ILCE-7SM2", "other", 0.0),
+    "held_colour_diagonal": ("held_arc_brick", 3200.0, "Nikon D850", "diagonal", 0.0),
+    "held_colour_sodium": ("held_arc_brick", 2100.0, "Sony ILCE-7SM2", "sensor", 0.02),
+    "held_colour_led": ("held_deep_hall", 3500.0, "Canon EOS 5D Mark IV", "sensor", -0.010),
+}
+
+
+def _held_colour(name: str) -> SceneSpec:
+    geometry, kelvin, camera, file_matrix, duv = _COLOUR[name]
+    spec = _HELD[geometry]()
+    sensor = replace(spec.sensor, kelvin=kelvin, camera_model=camera, file_matrix=file_matrix,
+                     tint_duv=duv, bias=_bias(name))
+    return replace(spec, name=name, sensor=sensor)
+
+
 def build_scene(name: str) -> SceneSpec:
-    """The SceneSpec for one of SCENES, HELDOUT, DEV, MIXED or HELDOUT_MIXED (ValueError
-    for other names)."""
+    """The SceneSpec for one of SCENES, HELDOUT, DEV, MIXED, HELDOUT_MIXED or
+    HELDOUT_COLOUR (ValueError for other names)."""
+    if name in _COLOUR:
+        return _held_colour(name)
     if name in _HELD:
         return _HELD[name]()
     if name in _MIX:

@@ -31,12 +31,13 @@ from gridnerf import raw
 from gridnerf.color import (
     CAMERA_XYZ_TO_CAM,
     D65_XYZ,
+    SRGB_FROM_XYZ,
     XYZ_FROM_SRGB,
-    blackbody_xyz_white,
     chromatic_adaptation,
     luminance,
     srgb_encode,
     srgb_from_cam,
+    tinted_xyz_white,
 )
 
 BLACK_LEVEL = 512
@@ -75,6 +76,13 @@ class SensorParams:
     row_sigma: float = 0.7
     bias: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 0.0), (0.0, 0.0))
     exposure_time: float = 1.0 / 30.0
+    # the light's distance from the Planckian locus (CIE 1960 Duv; + green, - magenta)
+    tint_duv: float = 0.0
+    # the ColorMatrix the file records: "sensor" (the camera's own), "generic" (XYZ -> linear
+    # sRGB, what a converter writes for a camera it does not know), "other" (another
+    # camera's), "diagonal" (the camera's with its rows scaled, as a converter that
+    # calibrated under another light)
+    file_matrix: str = "sensor"
 
     @property
     def iso(self) -> float:
@@ -88,13 +96,38 @@ class SensorParams:
 
     @property
     def xyz_to_cam(self) -> np.ndarray:
-        """(3, 3) XYZ -> camera matrix (DNG ColorMatrix1, D65)."""
+        """(3, 3) XYZ -> camera matrix of the sensor (its DNG ColorMatrix1, D65)."""
         return CAMERA_XYZ_TO_CAM[self.camera_model]
+
+    @property
+    def file_xyz_to_cam(self) -> np.ndarray:
+        """(3, 3) the ColorMatrix the file records (file_matrix), which need not describe
+        the sensor."""
+        if self.file_matrix == "sensor":
+            return self.xyz_to_cam
+        if self.file_matrix == "generic":
+            return SRGB_FROM_XYZ.copy()
+        if self.file_matrix == "other":
+            others = [m for m in CAMERA_XYZ_TO_CAM if m != self.camera_model]
+            return CAMERA_XYZ_TO_CAM[others[-1]]
+        if self.file_matrix == "diagonal":
+            return np.diag(FILE_MATRIX_DIAGONAL) @ self.xyz_to_cam
+        raise ValueError(f"unknown file_matrix {self.file_matrix!r}")
+
+
+# the row scales of file_matrix = "diagonal"
+FILE_MATRIX_DIAGONAL = (1.25, 1.0, 0.7)
+
+
+def light_xyz(params: SensorParams) -> np.ndarray:
+    """XYZ (Y = 1) of the scene's light: the blackbody at `kelvin`, tint_duv off the locus."""
+    return tinted_xyz_white(params.kelvin, params.tint_duv)
 
 
 def cam_from_scene(params: SensorParams) -> np.ndarray:
-    """(3, 3) matrix: D65-lit linear sRGB reflectance x shading -> camera RGB under `kelvin`."""
-    adapt = chromatic_adaptation(D65_XYZ, blackbody_xyz_white(params.kelvin))
+    """(3, 3) matrix: D65-lit linear sRGB reflectance x shading -> camera RGB under the
+    scene's light (light_xyz)."""
+    adapt = chromatic_adaptation(D65_XYZ, light_xyz(params))
     return params.xyz_to_cam @ adapt @ XYZ_FROM_SRGB
 
 

@@ -45,7 +45,8 @@ def clean_mean(scene_dir) -> Callable[[str], np.ndarray]:
                          "balanced per light, so the raw signal cannot be rebuilt from it")
     params = sensor.SensorParams(camera_model=sim["camera_model"],
                                  cfa_pattern=sim["cfa_pattern"],
-                                 kelvin=float(sim["illuminant_kelvin"]))
+                                 kelvin=float(sim["illuminant_kelvin"]),
+                                 tint_duv=float(sim.get("light_tint_duv", 0.0)))
     gain = (sim["electrons_per_unit_signal"] * sim["K_dn_per_electron"]
             / (sim["white_level"] - sim["black_level"]) / sim["gt_scale"])
 

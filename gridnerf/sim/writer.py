@@ -223,7 +223,8 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
         electrons = sensor.mosaic(rgb_cam, params.cfa) * e_scale
         raw_bayer = sensor.expose(electrons, params, np.random.default_rng([seed, salt, 1, i]))
         write_dng(folder / "raw" / f"{stem}.dng", raw_bayer, params.cfa, black,
-                  sensor.WHITE_LEVEL, params.xyz_to_cam, sensor.grey_world_neutral(rgb_cam),
+                  sensor.WHITE_LEVEL, params.file_xyz_to_cam,
+                  sensor.grey_world_neutral(rgb_cam),
                   exposure_time=params.exposure_time, iso=params.iso,
                   camera_model=params.camera_model)
         preview = sensor.preview_srgb(raw_bayer, params.cfa, black, sensor.WHITE_LEVEL,
@@ -238,7 +239,7 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
         raw_bayer = sensor.expose(np.zeros((height, width)), params,
                                   np.random.default_rng([seed, salt, 2, j]))
         write_dng(folder / "dark" / f"{stem}.dng", raw_bayer, params.cfa, black,
-                  sensor.WHITE_LEVEL, params.xyz_to_cam, np.ones(3),
+                  sensor.WHITE_LEVEL, params.file_xyz_to_cam, np.ones(3),
                   exposure_time=params.exposure_time, iso=params.iso,
                   camera_model=params.camera_model)
 
@@ -284,6 +285,11 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
         "black_level": sensor.BLACK_LEVEL, "white_level": sensor.WHITE_LEVEL,
         "camera_model": params.camera_model, "cfa_pattern": params.cfa_pattern,
         "cfa": params.cfa.tolist(), "xyz_to_cam": params.xyz_to_cam.tolist(),
+        # where the file's ColorMatrix or the light breaks the colour path's assumptions
+        **({"file_matrix": params.file_matrix,
+            "file_xyz_to_cam": params.file_xyz_to_cam.tolist(),
+            "light_tint_duv": params.tint_duv}
+           if params.file_matrix != "sensor" or params.tint_duv else {}),
         "hfov_deg": HFOV_DEG, "ssaa": SSAA, "near_far": near_far,
         "near_far_note": "true bounds for reference only; not in transforms.json",
         "depth_convention": "z-depth along the camera's -z axis, world units",

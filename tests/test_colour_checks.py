@@ -1,0 +1,117 @@
+"""The colour priors check themselves against the frames: a ColorMatrix that does not
+describe the sensor, or frames far off its Planckian locus, give up the locus prior with one
+printed line and fall back to grey world; estimators that disagree widely likewise."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from gridnerf import colour_target, illuminant
+from gridnerf import config as cfgmod
+from gridnerf.color import CAMERA_XYZ_TO_CAM, _uv, blackbody_xyz_white, tinted_xyz_white
+
+SONY = "Sony ILCE-7SM2"
+
+
+def test_tinted_light_moves_off_the_locus_by_its_duv():
+    np.testing.assert_array_equal(tinted_xyz_white(2800.0, 0.0), blackbody_xyz_white(2800.0))
+    for kelvin in (2100.0, 3500.0, 6500.0):
+        for duv in (-0.01, 0.02):
+            shift = _uv(tinted_xyz_white(kelvin, duv)) - _uv(blackbody_xyz_white(kelvin))
+            assert np.linalg.norm(shift) == pytest.approx(abs(duv), rel=1e-6)
+            assert np.sign(shift[1]) == np.sign(duv)  # + above the locus: towards green
+            assert tinted_xyz_white(kelvin, duv)[1] == pytest.approx(1.0)
+
+
+def test_matrix_disagreement_sees_a_scaled_or_foreign_matrix():
+    m = CAMERA_XYZ_TO_CAM[SONY]
+    assert illuminant.matrix_disagreement_deg(m, m) == pytest.approx(0.0, abs=1e-6)
+    assert illuminant.matrix_disagreement_deg(3.0 * m, m) == pytest.approx(0.0, abs=1e-6)
+    scaled = np.diag([1.25, 1.0, 0.7]) @ m
+    gap = illuminant.matrix_disagreement_deg(scaled, m)
+    assert gap > colour_target.MATRIX_AGREE_DEG
+    assert illuminant.matrix_disagreement_deg(m, scaled) == pytest.approx(gap)
+    for other in CAMERA_XYZ_TO_CAM:
+        if other != SONY:
+            assert illuminant.matrix_disagreement_deg(CAMERA_XYZ_TO_CAM[other], m) > 0.1
+
+
+def test_matrix_check_names_the_camera_only_where_the_file_disagrees():
+    m = CAMERA_XYZ_TO_CAM[SONY]
+    assert colour_target.matrix_check(SimpleNamespace(camera_model=SONY, xyz_to_cam=m)) is None
+    assert colour_target.matrix_check(SimpleNamespace(camera_model="Unknown X1",
+                                                      xyz_to_cam=np.eye(3))) is None
+    why = colour_target.matrix_check(SimpleNamespace(
+        camera_model=SONY, xyz_to_cam=np.diag([1.25, 1.0, 0.7]) @ m))
+    assert why is not None and SONY in why
+
+
+def _uniform_frames(neutral_cam, n=4, shape=(24, 32)):
+    """Frames of a grey-and-coloured checker lit by `neutral_cam` (camera RGB of white)."""
+    rng = np.random.default_rng(0)
+    paint = rng.uniform(0.2, 0.8, (n, *shape, 1)) * np.array([1.0, 1.0, 1.0])
+    images = [0.01 * p * np.asarray(neutral_cam) for p in paint]
+    return images, [np.ones(shape, bool) for _ in images]
+
+
+def test_locus_check_trusts_blackbody_light_and_refuses_far_or_end_points():
+    m = CAMERA_XYZ_TO_CAM[SONY]
+    scene = SimpleNamespace(xyz_to_cam=m, camera_model=SONY)
+    on = m @ blackbody_xyz_white(2800.0)
+    trusted, angle, kelvin, free = colour_target.locus_check(scene, _uniform_frames(on))
+    assert trusted and angle < 0.5 and 2500 < kelvin < 3100
+    assert set(free) == set(illuminant.CONSENSUS)
+    green = on * np.array([1.0, 1.4, 1.0])  # a strong green cast: far off the locus
+    trusted, angle, _, _ = colour_target.locus_check(scene, _uniform_frames(green))
+    assert not trusted and angle > colour_target.LOCUS_TRUST_DEG
+    red = m @ blackbody_xyz_white(1200.0)  # redder than the locus's first entry: its end
+    trusted, _, kelvin, _ = colour_target.locus_check(scene, _uniform_frames(red))
+    assert not trusted and kelvin <= colour_target.LOCUS_END_KELVIN[0]
+
+
+def test_consistent_takes_grey_world_where_the_estimators_disagree(capsys):
+    name = colour_target.consistent_estimator(
+        _uniform_frames(np.ones(3)), disagreement=colour_target.ESTIMATORS_AGREE_DEG + 1)
+    assert name == "grey_world" and "disagree" in capsys.readouterr().out
+
+
+@pytest.fixture(scope="module")
+def colour_scenes(tmp_path_factory):
+    from gridnerf.sim import simulate_scene
+
+    root = tmp_path_factory.mktemp("colour")
+    return {n: simulate_scene(n, root / n, width=160, height=90, n_frames=12, seed=0)
+            for n in ("held_colour_generic", "held_colour_other")}
+
+
+def _plan(scene_dir):
+    from conftest import sim_near_far
+
+    from gridnerf import dataset
+    from gridnerf.scene import load_scene
+
+    scene = load_scene(scene_dir, near_far=sim_near_far(scene_dir))
+    data = dataset.build(scene, scene.train_idx, True)
+    _, colour = colour_target.plan_colour(data, scene, cfgmod.preset("tiny"))
+    frames = colour_target.estimate_frames(data, scene)
+    grey = colour_target.scene_illuminant(frames, "grey_world", colour.estimate_downscale)
+    return scene, colour, grey
+
+
+@pytest.mark.parametrize("name", ["held_colour_generic", "held_colour_other"])
+def test_a_wrong_matrix_gives_the_fallback_and_grey_world(colour_scenes, name, capsys):
+    scene, colour, grey = _plan(colour_scenes[name])
+    out = capsys.readouterr().out
+    assert "locus prior is given up" in out and "ColorMatrix" in out
+    assert not colour.locus and colour.estimator == "grey_world"
+    assert float(illuminant.angular_error_deg(np.asarray(colour.anchor), grey)) < 3.0
+    assert scene.camera_model in CAMERA_XYZ_TO_CAM  # the DNG names its camera
+
+
+def test_a_right_matrix_keeps_the_prior(small_scene, capsys):
+    _, colour, _ = _plan(small_scene)
+    assert "locus prior is given up" not in capsys.readouterr().out
+    assert colour.locus and colour.estimator in illuminant.CONSENSUS + ("consensus",)
