@@ -14,6 +14,7 @@ from gridnerf.sim import (
     ALL_SCENES,
     DEV,
     HELDOUT,
+    HELDOUT_COLOUR,
     HELDOUT_MIXED,
     MIXED,
     SCENES,
@@ -78,7 +79,7 @@ def stale_run(run: Path, preset: str, quick: bool = False) -> bool:
 
 # the scene groups a study's --scenes may name
 GROUPS = {"nine": SCENES, "heldout": HELDOUT, "dev": DEV, "mixed": MIXED,
-          "heldmixed": HELDOUT_MIXED}
+          "heldmixed": HELDOUT_MIXED, "heldcolour": HELDOUT_COLOUR}
 # (label, scenes) of the groups a colour study reports its means over, each apart
 REPORT_GROUPS = (("nine", SCENES), ("tuning", DEV), ("held out", HELDOUT),
                  ("mixed light", MIXED), ("held-out mixed light", HELDOUT_MIXED))

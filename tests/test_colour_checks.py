@@ -1,6 +1,7 @@
-"""The colour priors check themselves against the frames: a ColorMatrix that does not
-describe the sensor, or frames far off its Planckian locus, give up the locus prior with one
-printed line and fall back to grey world; estimators that disagree widely likewise."""
+"""The colour priors check themselves against the frames: frames far off the Planckian
+locus of the file's ColorMatrix give up the locus prior with one printed line and fall back
+to the estimators' consensus, unprojected; a matrix that differs from its camera's
+reference is reported; estimators that disagree widely fall back to grey world."""
 
 from __future__ import annotations
 
@@ -76,6 +77,8 @@ def test_consistent_takes_grey_world_where_the_estimators_disagree(capsys):
     name = colour_target.consistent_estimator(
         _uniform_frames(np.ones(3)), disagreement=colour_target.ESTIMATORS_AGREE_DEG + 1)
     assert name == "grey_world" and "disagree" in capsys.readouterr().out
+    name = colour_target.consistent_estimator(_uniform_frames(np.ones(3)), disagreement=-1.0)
+    assert name == "consensus" and "given up" in capsys.readouterr().out
 
 
 @pytest.fixture(scope="module")
@@ -97,18 +100,40 @@ def _plan(scene_dir):
     data = dataset.build(scene, scene.train_idx, True)
     _, colour = colour_target.plan_colour(data, scene, cfgmod.preset("tiny"))
     frames = colour_target.estimate_frames(data, scene)
-    grey = colour_target.scene_illuminant(frames, "grey_world", colour.estimate_downscale)
-    return scene, colour, grey
+    free = colour_target.scene_illuminant(frames, "consensus", colour.estimate_downscale)
+    return scene, colour, free
 
 
-@pytest.mark.parametrize("name", ["held_colour_generic", "held_colour_other"])
-def test_a_wrong_matrix_gives_the_fallback_and_grey_world(colour_scenes, name, capsys):
-    scene, colour, grey = _plan(colour_scenes[name])
+def test_a_generic_matrix_gives_up_the_locus_for_the_frames_own_estimate(colour_scenes,
+                                                                         capsys):
+    """held_colour_generic: a 2600 K capture whose file carries XYZ -> sRGB as its
+    ColorMatrix: the frames lie far off that locus; the prior is given up with one line
+    and the anchor is the consensus unprojected, near the true light, where the projection
+    lands far from it."""
+    import json
+
+    scene, colour, free = _plan(colour_scenes["held_colour_generic"])
     out = capsys.readouterr().out
-    assert "locus prior is given up" in out and "ColorMatrix" in out
-    assert not colour.locus and colour.estimator == "grey_world"
-    assert float(illuminant.angular_error_deg(np.asarray(colour.anchor), grey)) < 3.0
+    assert out.count("locus prior is given up") == 1 and "ColorMatrix" in out
+    assert "differs from" in out  # and the matrix is not its camera's
+    assert not colour.locus and colour.estimator == "consensus"
+    # the map target anchors to the warm and cool halves, each by the consensus
+    assert float(illuminant.angular_error_deg(np.asarray(colour.anchor), free)) < 2.0
+    sim = json.loads((colour_scenes["held_colour_generic"] / "sim.json").read_text())
+    truth = np.asarray(sim["illuminant_neutral_cam"])
+    projected = illuminant.to_locus(free, illuminant.planckian_locus(scene.xyz_to_cam))
+    assert (float(illuminant.angular_error_deg(np.asarray(colour.anchor), truth))
+            < float(illuminant.angular_error_deg(projected, truth)) - 3.0)
+
+
+def test_another_camera_s_matrix_is_reported_and_checked_by_the_frames(colour_scenes, capsys):
+    """held_colour_other: the file names one camera and carries another's matrix: said in
+    one line; the frames still lie near that locus, so the prior is kept."""
+    scene, colour, _ = _plan(colour_scenes["held_colour_other"])
+    out = capsys.readouterr().out
     assert scene.camera_model in CAMERA_XYZ_TO_CAM  # the DNG names its camera
+    assert out.count("differs from") == 1 and scene.camera_model in out
+    assert "locus prior is given up" not in out and colour.locus
 
 
 def test_a_right_matrix_keeps_the_prior(small_scene, capsys):
