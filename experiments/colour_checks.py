@@ -45,7 +45,8 @@ def scene_row(folder) -> dict:
     _, angle, kelvin, free = colour_target.locus_check(scene, frames, d)
     locus = illuminant.planckian_locus(scene.xyz_to_cam)
     with contextlib.redirect_stdout(io.StringIO()) as said:
-        use_locus, disagreement = colour_target.trusted_locus(scene, cfgmod.Config(), frames, d)
+        use_locus, disagreement, _ = colour_target.trusted_locus(scene, cfgmod.Config(), frames,
+                                                                 d)
         picked = colour_target.consistent_estimator(frames, d, None,
                                                     locus if use_locus else None, disagreement)
         before = colour_target.consistent_estimator(frames, d, None, locus, 0.0)

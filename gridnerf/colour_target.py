@@ -204,16 +204,22 @@ def with_illuminant_map(data: dataset.RayData, frames, estimator: str, downscale
     return dataclasses.replace(data, illuminant_map=jnp.asarray(maps, jnp.float32)), anchor
 
 
-def light_spread(frames, downscale: int = 1, locus=None) -> tuple[float, dict]:
+def light_spread(frames, downscale: int = 1, locus=None, free: dict | None = None
+                 ) -> tuple[float, dict]:
     """(spread, estimates): how far the capture's illuminant maps, anchored to the
     consensus, stray from it (illum_map.map_spread_deg, deg; under one light less than
     ONE_LIGHT_DEG), and the consensus's three estimates {name: (3,)} of the whole
     capture. frames: (images, masks) of estimate_frames; the estimates run on them
-    downscaled by `downscale` (scene_illuminant), the maps at full size."""
+    downscaled by `downscale` (scene_illuminant), the maps at full size; free: the three
+    estimates without the locus where the caller has them (locus_check's), projected here
+    rather than estimated again."""
     images, masks = frames
-    small, small_masks = downscaled(frames, downscale)
-    wholes = {n: illuminant.capture_estimate(n, small, small_masks, locus, ESTIMATOR_P)
-              for n in illuminant.CONSENSUS}
+    if free is None:
+        small, small_masks = downscaled(frames, downscale)
+        free = {n: illuminant.capture_estimate(n, small, small_masks, None, ESTIMATOR_P)
+                for n in illuminant.CONSENSUS}
+    wholes = {n: np.asarray(e if locus is None else illuminant.to_locus(e, locus), np.float64)
+              for n, e in free.items()}
     cons = illuminant.consensus(list(wholes.values()), locus)
     maps = illum_map.frame_maps(images, masks, cons, locus, MAP_BLOCK, MAP_TAU)
     return illum_map.map_spread_deg(maps, cons), wholes
@@ -262,8 +268,9 @@ def one_gain(gain_model: str, spread: float | None) -> bool:
                                       and spread < ONE_LIGHT_DEG)
 
 
-def trusted_locus(scene, cfg: Config, frames, downscale: int) -> tuple[bool, float]:
-    """(use the locus, disagreement deg): loss.ca_locus where the frames agree with the
+def trusted_locus(scene, cfg: Config, frames, downscale: int) -> tuple[bool, float, dict]:
+    """(use the locus, disagreement deg, the three estimates without the locus):
+    loss.ca_locus where the frames agree with the
     file's locus (locus_check), and how far the estimators disagree without the locus
     (estimators_disagree; -1 where the locus was given up: "consistent" then takes the
     consensus unprojected). One printed line naming the file's matrix, the angle and the
@@ -275,20 +282,20 @@ def trusted_locus(scene, cfg: Config, frames, downscale: int) -> tuple[bool, flo
     trusted, angle, kelvin, free = locus_check(scene, frames, downscale)
     disagreement = estimators_disagree(free)
     if not cfg.loss.ca_locus:
-        return False, disagreement
+        return False, disagreement, free
     matrix = np.round(np.asarray(scene.xyz_to_cam, np.float64).ravel(), 3).tolist()
     if (why := matrix_check(scene)) is not None:
         print(f"note: {why}; the file's ColorMatrix {matrix} is used (the file's tag wins) "
               "and checked against the frames")
     if trusted:
-        return True, disagreement
+        return True, disagreement, free
     print(f"colour: the locus prior is given up: the frames' illuminant lies {angle:.1f} deg "
           f"from the Planckian locus of the file's ColorMatrix {matrix}, nearest "
           f"{kelvin:.0f} K (trusted within {LOCUS_TRUST_DEG:g} deg and "
           f"{LOCUS_END_KELVIN[0]:.0f}-{LOCUS_END_KELVIN[1]:.0f} K): the matrix does not "
           "describe this sensor or the light is not a blackbody; the colour falls back to "
           "the consensus of the frames' estimators, not projected onto the locus")
-    return False, -1.0
+    return False, -1.0, free
 
 
 def plan_colour(data: dataset.RayData, scene, cfg: Config, saved: ColourPlan | None = None
@@ -316,7 +323,7 @@ def plan_colour(data: dataset.RayData, scene, cfg: Config, saved: ColourPlan | N
         if d > 1:
             print(f"L_ca estimates on the frames downscaled {d}x: their noise is above "
                   f"{NOISE_RATIO:g} x their level")
-        use_locus, disagreement = trusted_locus(scene, cfg, frames, d)
+        use_locus, disagreement, free = trusted_locus(scene, cfg, frames, d)
     if lc.ca_target == "batch":
         return data, ColourPlan(model="field", locus=use_locus, estimate_downscale=int(d))
     locus = illuminant.planckian_locus(scene.xyz_to_cam) if use_locus else None
@@ -327,7 +334,7 @@ def plan_colour(data: dataset.RayData, scene, cfg: Config, saved: ColourPlan | N
     else:
         measured = None
         if lc.ca_illuminant == "consistent" or lc.gain_model == "auto":
-            measured = light_spread(frames, d, locus)
+            measured = light_spread(frames, d, locus, free)
         estimator = (consistent_estimator(frames, d, measured, locus, disagreement)
                      if lc.ca_illuminant == "consistent" else lc.ca_illuminant)
         spread = None if measured is None else float(measured[0])

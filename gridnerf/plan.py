@@ -132,11 +132,6 @@ def load(run: Path) -> RunPlan:
                               "delete the run folder and train again") from None
 
 
-def load_if_any(run: Path) -> RunPlan | None:
-    """The saved plan, or None where the run has none yet (a fresh start)."""
-    return load(run) if (Path(run) / PLAN).exists() else None
-
-
 @dataclass(frozen=True, eq=False)
 class StepPlan:
     """What one stage's step is built with (optim.make_step), from the run plan.
