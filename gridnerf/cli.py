@@ -62,7 +62,8 @@ def _train(args) -> None:
     _distributed(args)
     cfg = cfgmod.override(cfgmod.preset(args.preset), args.set or [])
     run = Path(args.out) if args.out else Path("runs") / Path(args.scene).name / args.preset
-    summary = train(Path(args.scene), run, cfg, overwrite_config=args.overwrite_config)
+    summary = train(Path(args.scene), run, cfg, overwrite_config=args.overwrite_config,
+                    white_ref=args.white_ref)
     print(json.dumps(summary, indent=2))
 
 
@@ -166,6 +167,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", help="run folder (default runs/<scene>/<preset>)")
     s.add_argument("--preset", default="default",
                    help=f"named config: {', '.join(sorted(PRESETS))} (default: default)")
+    s.add_argument("--white-ref", metavar="FRAME:X,Y,W,H",
+                   help="a grey card or white patch in one frame (its name, a pixel box) that "
+                   "sets the light instead of the estimators")
     # extend, not store: a repeated --set adds its overrides instead of replacing the
     # earlier ones (which argparse's default would drop without a word)
     s.add_argument("--set", nargs="*", action="extend", metavar="SECTION.FIELD=VALUE",

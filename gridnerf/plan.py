@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -44,7 +44,12 @@ class ColourPlan:
     one-light test), None where it was not measured. estimate_downscale: the box
     downscale the estimates ran at. locus: whether the estimates were projected onto the
     Planckian locus of the file's ColorMatrix (loss.ca_locus where the frames agree with
-    it: colour_target.locus_check).
+    it: colour_target.locus_check). evidence: {name: (3,)} what the frames say the light
+    is, without the locus (the three estimators, the files' as-shot neutral, a white
+    reference where given): the end-of-training check (gridnerf.shipped_colour) compares
+    the shipped white with it. shipped_gains / shipped_why: the one gain shown in place of
+    the gain field and why, where that check found the field's white implausible; None
+    where the field is shown.
     """
 
     model: Literal["field", "one_gain", "none"] = "none"
@@ -54,6 +59,9 @@ class ColourPlan:
     light_spread_deg: float | None = None
     estimate_downscale: int = 1
     locus: bool = False
+    evidence: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    shipped_gains: tuple[float, float, float] | None = None
+    shipped_why: str | None = None
 
 
 @dataclass(frozen=True)
@@ -77,8 +85,11 @@ class RunPlan:
 
     @property
     def one_gain(self) -> tuple[float, float, float] | None:
-        """(3,) the capture's one gain where the colour is one gain, else None."""
-        return self.colour.gains if self.colour.model == "one_gain" else None
+        """(3,) the capture's one gain where the colour is one gain (trained so, or shown so
+        by the end-of-training check: colour.shipped_gains), else None."""
+        if self.colour.model == "one_gain":
+            return self.colour.gains
+        return self.colour.shipped_gains
 
     def with_candidates(self, stage: int, n: int) -> RunPlan:
         """The plan with stage `stage`'s candidate count set to n."""
@@ -100,8 +111,10 @@ def to_dict(plan: RunPlan) -> dict:
 def from_dict(d: dict) -> RunPlan:
     """RunPlan from to_dict output (tuples restored); KeyError/TypeError/ValueError if not."""
     c = dict(d["colour"])
-    for k in ("anchor", "gains"):
+    for k in ("anchor", "gains", "shipped_gains"):
         c[k] = None if c.get(k) is None else tuple(float(v) for v in c[k])
+    c["evidence"] = {str(k): tuple(float(x) for x in v)
+                     for k, v in c.get("evidence", {}).items()}
     d = dict(d)
     d["colour"] = ColourPlan(**c)
     d["opacity"] = tuple(float(v) for v in d["opacity"])

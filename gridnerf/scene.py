@@ -22,9 +22,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from gridnerf import cameras as cam_mod
-from gridnerf import pose_files, raw, rays
+from gridnerf import pose_files, raw, rays, white_reference
 from gridnerf.cameras import Cameras
 from gridnerf.errors import PoseError, SceneError
+from gridnerf.white_reference import WhiteRef
 
 RAW_EXTENSIONS = (".dng", ".arw", ".cr2", ".cr3", ".nef", ".nrw", ".raf", ".orf", ".rw2",
                   ".pef", ".srw", ".3fr", ".iiq", ".erf", ".kdc", ".dcr", ".mrw", ".raw")
@@ -61,6 +62,8 @@ class Scene:
     gt_linear_paths: dict[str, pathlib.Path]
     world_from_normalized: np.ndarray | None = None
     camera_model: str | None = None  # frame 0's UniqueCameraModel / Model tag
+    # a grey card that sets the light (transforms.json's white_reference, or --white-ref)
+    white_reference: WhiteRef | None = None
 
     def raw_normalized(self, i: int) -> np.ndarray:
         """raw_bayer (H, W) float32: (raw - black) / (white - black), negatives kept."""
@@ -391,4 +394,6 @@ def load_scene(path, near_far: tuple[float, float] | None = None) -> Scene:
         gt_linear_paths={n: gt / f"{n}.exr" for n in names if (gt / f"{n}.exr").is_file()},
         world_from_normalized=world_from_norm,
         camera_model=first.camera_model,
+        white_reference=(white_reference.from_transforms(scene / "transforms.json")
+                         if (scene / "transforms.json").is_file() else None),
     )

@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import resource
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import jax
@@ -37,8 +38,11 @@ from gridnerf import (
     illuminant,
     methods,
     optim,
+    outputs,
     runfolder,
+    shipped_colour,
     stages,
+    white_reference,
 )
 from gridnerf import config as cfgmod
 from gridnerf import plan as planmod
@@ -93,8 +97,13 @@ def _checked_loss(pending: list, run: Path, stage: int, step: int) -> float:
     return float(values[-1])
 
 
-def train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool = False) -> dict:
+def train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool = False,
+          white_ref: str | None = None) -> dict:
     """Train (or resume) a run; returns the summary written to run/summary.json.
+
+    white_ref: "frame:x,y,w,h", a grey card that sets the light (gridnerf.white_reference),
+    in place of the scene's transforms.json white_reference; a resumed run keeps the light
+    its plan saved.
 
     Holds the run folder's lock throughout (RunLockedError if another training has it).
     A run with a checkpoint resumes with its saved config; a different `cfg` is refused
@@ -103,13 +112,14 @@ def train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool = Fals
     """
     run = Path(run)
     with runfolder.RunLock(run) as lock:
-        return _train(scene_dir, run, cfg, overwrite_config, lock)
+        return _train(scene_dir, run, cfg, overwrite_config, lock, white_ref)
 
 
 
 def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
-           lock: runfolder.RunLock) -> dict:
+           lock: runfolder.RunLock, white_ref: str | None = None) -> dict:
     cfg = runfolder.resolve_config(run, cfg, overwrite_config)
+    reference = None if white_ref is None else white_reference.parse(white_ref)
     method = methods.get(cfg.loss.method)
     method.check(cfg)
     resuming = (run / CHECKPOINT).exists()
@@ -118,6 +128,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     if black is None and cfg.data.black_offset == "dark":  # before the scene loads: a fast refusal
         black = data_term.black_level(scene_dir, run, cfg, None)
     scene = runfolder.open_scene(scene_dir, run)
+    if reference is not None:
+        scene = replace(scene, white_reference=reference)
     if black is None:
         black = data_term.black_level(scene_dir, run, cfg, scene)
     if black == "lens_cap":
@@ -264,6 +276,14 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     bar.close()
     log.close()
 
+    # the safety net: the field's white checked against the frames before the run is done
+    colour_record = {"shipped": plan.colour.model}
+    if plan.colour.model == "field" and plan.colour.evidence:
+        colour, colour_record = shipped_colour.check(
+            outputs.training_render(structure, params, scene, cfg), plan.colour)
+        if colour != plan.colour:
+            plan = replace(plan, colour=colour)
+            planmod.save(run, plan)
     summary = {
         "scene": str(Path(scene_dir).resolve()),
         "resolution": list(structure.resolution),
@@ -282,5 +302,6 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         summary["black_offset_dn"] = offset.tolist()
     if plan.one_gain is not None:
         summary["one_gain"] = list(plan.one_gain)
+    summary["colour"] = colour_record  # which colour was shipped, and why
     atomic.write_text(run / "summary.json", json.dumps(summary, indent=2))
     return summary
