@@ -18,7 +18,7 @@ SCENE_DIR := $(if $(findstring /,$(SCENE)),$(SCENE),data/sim/$(SCENE))
 SCENE_NAME := $(shell basename -- "$(SCENE_DIR)")
 RUN_DIR := runs/$(SCENE_NAME)/$(PRESET)
 
-.PHONY: venv system-deps data poses train eval render ablate report recon bench test lint clean
+.PHONY: venv system-deps data cycles poses train eval render ablate report recon bench test lint clean
 
 venv: $(STAMP)
 
@@ -63,6 +63,11 @@ ablate: $(STAMP)
 	$(RUN)python -m experiments.ablate --scenes "$(ABLATE_SCENES)"
 
 # QUICK=1: the whole report small (160x90 scenes, shrunk presets) under reports/quick/
+# path-traced captures (Blender Cycles: Debian's `blender` package) under data/cycles/
+cycles: $(STAMP)
+	@command -v blender >/dev/null || { echo "error: blender is not installed (Debian: apt-get install blender)" >&2; exit 2; }
+	$(RUN)gridnerf simulate cycles
+
 report: $(STAMP)
 	$(RUN)python -m experiments.report $(if $(QUICK),--quick)
 

@@ -21,6 +21,7 @@ from gridnerf.sim import (
     folder_name,
     simulate_scene,
 )
+from gridnerf.sim.cycles import CYCLES, simulate_cycles
 from gridnerf.train import train
 
 # Quick mode (`make report QUICK=1`): every study on 160x90, 12-frame versions of its
@@ -37,6 +38,8 @@ def scene_dir(scene: str, quick: bool = False, light: float = 1.0) -> Path:
     if scene in ALL_SCENES:
         root, size = (Path("data/quick"), QUICK_SIZE) if quick else (Path("data/sim"), {})
         return simulate_scene(scene, root / folder_name(scene, light), light=light, **size)
+    if scene in CYCLES:  # path-traced by Blender (gridnerf.sim.cycles)
+        return simulate_cycles(scene, Path("data/cycles") / scene)
     return Path(scene)
 
 
@@ -79,7 +82,7 @@ def stale_run(run: Path, preset: str, quick: bool = False) -> bool:
 
 # the scene groups a study's --scenes may name
 GROUPS = {"nine": SCENES, "heldout": HELDOUT, "dev": DEV, "mixed": MIXED,
-          "heldmixed": HELDOUT_MIXED, "heldcolour": HELDOUT_COLOUR}
+          "heldmixed": HELDOUT_MIXED, "heldcolour": HELDOUT_COLOUR, "cycles": tuple(CYCLES)}
 # (label, scenes) of the groups a colour study reports its means over, each apart
 REPORT_GROUPS = (("nine", SCENES), ("tuning", DEV), ("held out", HELDOUT),
                  ("mixed light", MIXED), ("held-out mixed light", HELDOUT_MIXED))
@@ -117,9 +120,10 @@ def study_parser(doc: str, out: str | None, scenes: str = "all", runs: bool = Fa
 
 def simulated_folders(spec: str):
     """(name, folder) of the simulated scenes named by `spec` (scene_names; 'all': every
-    group) that exist under data/sim; says which are skipped."""
+    group) that exist under data/sim (data/cycles for the path-traced ones); says which are
+    skipped."""
     for name in scene_names(spec, tuple(GROUPS)):
-        folder = Path("data/sim") / name
+        folder = Path("data/cycles" if name in CYCLES else "data/sim") / name
         if not (folder / "sim.json").exists():
             print(f"skipping {name}: simulate it first (gridnerf simulate {name})")
             continue

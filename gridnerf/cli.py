@@ -16,14 +16,22 @@ from gridnerf.errors import GridNerfError
 
 def _simulate(args) -> None:
     from gridnerf import sim
+    from gridnerf.sim import cycles
 
     groups = {"all": sim.SCENES, "heldout": sim.HELDOUT, "dev": sim.DEV, "mixed": sim.MIXED,
-              "heldmixed": sim.HELDOUT_MIXED, "heldcolour": sim.HELDOUT_COLOUR}
+              "heldmixed": sim.HELDOUT_MIXED, "heldcolour": sim.HELDOUT_COLOUR,
+              "cycles": tuple(cycles.CYCLES)}
     names = groups.get(args.name, (args.name,))
     for name in names:
+        if name in cycles.CYCLES:  # path-traced by Blender, at its own size
+            out = Path(args.out) if args.out and len(names) == 1 else Path("data/cycles") / name
+            path = cycles.simulate_cycles(name, out, n_frames=args.frames, seed=args.seed,
+                                          overwrite=args.overwrite)
+            print(f"scene {name}: {path}")
+            continue
         if name not in sim.ALL_SCENES:
-            fix = (f"choose one of {', '.join(sim.ALL_SCENES)}, 'all', "
-                   "'heldout', 'dev', 'mixed', 'heldmixed' or 'heldcolour'")
+            fix = (f"choose one of {', '.join(sim.ALL_SCENES + tuple(cycles.CYCLES))}, 'all', "
+                   "'heldout', 'dev', 'mixed', 'heldmixed', 'heldcolour' or 'cycles'")
             raise GridNerfError(None, f"unknown scene {name!r}", fix)
         out = (Path(args.out) if args.out and len(names) == 1
                else Path("data/sim") / sim.folder_name(name, args.light))

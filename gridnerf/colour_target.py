@@ -292,10 +292,12 @@ def one_gain(gain_model: str, spread: float | None) -> bool:
 
 
 def trusted_locus(scene, cfg: Config, frames, downscale: int) -> tuple[bool, bool, float, dict]:
-    """(use the locus, given up, disagreement, the three estimates without the locus):
-    loss.ca_locus where the file's ColorMatrix is its camera's (matrix_check) and the
-    frames agree with its locus (locus_check); given up: whether the checks made the prior
-    be given up (loss.ca_locus on: "consistent" then takes grey world, unprojected); how far the estimators disagree without the locus
+    """(use the locus, given up, disagreement, the three estimates without the locus).
+
+    The locus is used where loss.ca_locus asks for it, the file's ColorMatrix is its
+    camera's (matrix_check) and the frames agree with its locus (locus_check). given up:
+    whether the checks gave the prior up ("consistent" then takes grey world,
+    unprojected); disagreement: how far the estimators disagree without the locus
     (estimators_disagree). One printed line naming the file's matrix, the reason and the
     fallback where the prior is given up. A matrix unlike its camera's reference gives the
     prior up although on the built-in and tuning scenes with another camera's matrix or

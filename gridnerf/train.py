@@ -130,6 +130,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     scene = runfolder.open_scene(scene_dir, run)
     if reference is not None:
         scene = replace(scene, white_reference=reference)
+    if scene.white_reference is not None and saved is None:
+        white_reference.estimate(scene, scene.white_reference)  # refused before any write
     if black is None:
         black = data_term.black_level(scene_dir, run, cfg, scene)
     if black == "lens_cap":

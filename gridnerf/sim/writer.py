@@ -210,16 +210,54 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
     e_scale = params.electrons / mean_green  # electrons per unit of relative camera signal
 
     names = frame_names(n_frames)
-    for sub in ("raw", "images", "gt", "dark", *(("illuminant",) if spec.layered else ())):
+    test = write_capture(folder, params, poses, intr, frames,
+                         (lambda i: rgb_cams[i]) if spec.layered
+                         else (lambda i: sensor.scene_to_cam(frames[i], params)),
+                         e_scale, gt_scale, seed, salt, share if spec.layered else None)
+    mixed = {}
+    if spec.layered:
+        mixed = {
+            "illuminants": lights,
+            "illuminant_note": (
+                "several illuminants: illuminant_neutral_cam is their mix weighted by each "
+                "one's share of the camera green signal (what one global gain should undo), "
+                "illuminant_kelvin the strongest one's; illuminant/<frame>.png holds per "
+                "pixel round(255 * share of the first illuminant in camera green); the "
+                "references white balance every light (as if each were D65)"),
+        }
+        main = max(lights, key=lambda e: e["share_of_green_signal"])
+    _write_json(folder / "sim.json", {
+        **_key(name, width, height, n_frames, seed, light),
+        "held_out": name in HELDOUT + HELDOUT_MIXED, "rig": spec.rig,
+        **({"mixed_light": True} if spec.layered else {}),
+        "frames": names, "test_frames": [names[i] for i in test],
+        "dark_frames": [f"dark/{n}.dng" for n in dark_names()],
+        "illuminant_kelvin": main["kelvin"] if spec.layered else params.kelvin,
+        "illuminant_neutral_cam": (neutral if spec.layered
+                                   else sensor.illuminant_neutral(params).tolist()),
+        **mixed,
+        **sensor_manifest(params, e_scale, gt_scale, near_far),
+    })
+
+
+def write_capture(folder: Path, params, poses, intr, frames, rgb_cam_of, e_scale: float,
+                  gt_scale: float, seed: int, salt: int, share=None) -> list[int]:
+    """Write a capture's files (all but sim.json) into `folder`: raw/ (noisy DNGs),
+    images/ (previews), gt/ (references: frames (N, H, W, 3) linear sRGB times gt_scale),
+    dark/ (lens-cap frames), transforms.json (poses (N, 4, 4), intr), and illuminant/
+    where `share` (N, H, W) is given. rgb_cam_of(i): the clean camera signal (H, W, 3) of
+    view i, times e_scale electrons. Returns the test views' indices."""
+    n_frames = len(poses)
+    height, width = intr.h, intr.w
+    names = frame_names(n_frames)
+    for sub in ("raw", "images", "gt", "dark", *(("illuminant",) if share is not None else ())):
         (folder / sub).mkdir(parents=True)
     black = np.full((2, 2), float(sensor.BLACK_LEVEL))
     for i, stem in enumerate(names):
-        if spec.layered:
-            rgb_cam = rgb_cams[i]
+        if share is not None:
             iio.imwrite(folder / "illuminant" / f"{stem}.png",
                         np.round(255.0 * share[i]).astype(np.uint8), extension=".png")
-        else:
-            rgb_cam = sensor.scene_to_cam(frames[i], params)
+        rgb_cam = rgb_cam_of(i)
         electrons = sensor.mosaic(rgb_cam, params.cfa) * e_scale
         raw_bayer = sensor.expose(electrons, params, np.random.default_rng([seed, salt, 1, i]))
         write_dng(folder / "raw" / f"{stem}.dng", raw_bayer, params.cfa, black,
@@ -253,28 +291,12 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
         "train_filenames": [p for i, p in enumerate(paths) if i not in test],
         "test_filenames": [paths[i] for i in test],
     })
-    mixed = {}
-    if spec.layered:
-        mixed = {
-            "illuminants": lights,
-            "illuminant_note": (
-                "several illuminants: illuminant_neutral_cam is their mix weighted by each "
-                "one's share of the camera green signal (what one global gain should undo), "
-                "illuminant_kelvin the strongest one's; illuminant/<frame>.png holds per "
-                "pixel round(255 * share of the first illuminant in camera green); the "
-                "references white balance every light (as if each were D65)"),
-        }
-        main = max(lights, key=lambda e: e["share_of_green_signal"])
-    _write_json(folder / "sim.json", {
-        **_key(name, width, height, n_frames, seed, light),
-        "held_out": name in HELDOUT + HELDOUT_MIXED, "rig": spec.rig,
-        **({"mixed_light": True} if spec.layered else {}),
-        "frames": names, "test_frames": [names[i] for i in test],
-        "dark_frames": [f"dark/{n}.dng" for n in dark_names()],
-        "illuminant_kelvin": main["kelvin"] if spec.layered else params.kelvin,
-        "illuminant_neutral_cam": (neutral if spec.layered
-                                   else sensor.illuminant_neutral(params).tolist()),
-        **mixed,
+    return test
+
+
+def sensor_manifest(params, e_scale: float, gt_scale: float, near_far) -> dict:
+    """sim.json's entries on the sensor, the noise, the references and the bounds."""
+    return {
         "lux": params.lux, "exposure_time_s": params.exposure_time, "iso": params.iso,
         "electrons_mean_green": params.electrons, "electrons_per_unit_signal": e_scale,
         "K_dn_per_electron": params.k_gain,
@@ -295,7 +317,7 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
         "depth_convention": "z-depth along the camera's -z axis, world units",
         "exposure_convention": EXPOSURE_CONVENTION, "gt_scale": gt_scale,
         "gt_mean_luminance": GT_MEAN_LUMINANCE,
-    })
+    }
 
 
 def simulate_scene(name: str, out_dir, width: int = 480, height: int = 270,
