@@ -1,0 +1,106 @@
+"""The default against one grey-world gain on the same field, per scene group.
+
+Every scene of every group trained by the default preset (or its kept result,
+experiments.common.run_variant), test views, PSNR (dB) / CIEDE2000: the default; one
+grey-world gain for the capture on the same trained field (the reference a gain field must
+not fall below); the per-frame pipeline (2x2 binning, grey world, colour matrix, exposure
+matched to the reference); one frame denoised by non-local means. "margin" is default - one
+gain; "colour" what the run shipped where its run folder is here (the end-of-training check
+of gridnerf.shipped_colour: the field, or one grey-world gain, and the gain distance of the
+field's white from the nearest of the frames' estimates), "kept result" where only the
+numbers are kept (reports/results.json).
+
+    python -m experiments.colour_groups [--scenes all] [--runs runs]
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from experiments.common import (
+    GROUPS,
+    RESULTS_DOC,
+    markdown_table,
+    run_variant,
+    scene_dir,
+    scene_names,
+    study_parser,
+    update_doc,
+    write_report,
+)
+
+LABELS = {"nine": "nine built-in", "dev": "tuning", "heldout": "held out",
+          "mixed": "mixed light", "heldmixed": "held-out mixed light",
+          "heldcolour": "held-out colour", "cycles": "path-traced (Blender Cycles)"}
+
+
+def shipped(run: Path) -> str:
+    """What the run's summary says was shipped, or "kept result" without the run."""
+    path = run / "summary.json"
+    if not path.is_file():
+        return "kept result"
+    record = json.loads(path.read_text()).get("colour")
+    if not record or "distance" not in record:
+        return record["shipped"] if record else "trained before the check"
+    return f"{record['shipped']} ({record['distance']:.2f})"
+
+
+def main() -> None:
+    ap = study_parser(__doc__, "reports/colour_groups", scenes="all", runs=True)
+    args = ap.parse_args()
+    groups = [g for g in GROUPS if g in LABELS]
+    wanted = scene_names(args.scenes, tuple(groups))
+    record, sections, summary_rows = {"scenes": {}}, [], []
+    for g in groups:
+        rows, vals = [], []
+        for name in (n for n in GROUPS[g] if n in wanted):
+            m = run_variant(scene_dir(name), "default", "default", [], Path(args.runs))
+            s = m["summary"]
+            row = {k: (s[k]["psnr"], s[k]["delta_e"]) for k in
+                   ("gridnerf", "global_grey_world", "baseline_binned_matched",
+                    "baseline_denoised")}
+            row["colour"] = shipped(Path(args.runs) / name / "default")
+            record["scenes"][name] = {"group": g, **row}
+            vals.append(row)
+            margin = row["gridnerf"][0] - row["global_grey_world"][0]
+            rows.append([name, *(f"{row[k][0]:.2f} / {row[k][1]:.2f}" for k in
+                                 ("gridnerf", "global_grey_world")),
+                         f"{margin:+.2f}", f"{row['baseline_binned_matched'][0]:.2f}",
+                         f"{row['baseline_denoised'][0]:.2f}", row["colour"]])
+            print(name, rows[-1], flush=True)
+        if not vals:
+            continue
+
+        def mean(k, i, vals=vals):
+            return float(np.mean([v[k][i] for v in vals]))
+
+        margins = [v["gridnerf"][0] - v["global_grey_world"][0] for v in vals]
+        over_frame = [v["gridnerf"][0] - v["baseline_binned_matched"][0] for v in vals]
+        rows.append([f"**mean** ({len(vals)})",
+                     f"{mean('gridnerf', 0):.2f} / {mean('gridnerf', 1):.2f}",
+                     f"{mean('global_grey_world', 0):.2f} / {mean('global_grey_world', 1):.2f}",
+                     f"{np.mean(margins):+.2f}", f"{mean('baseline_binned_matched', 0):.2f}",
+                     f"{mean('baseline_denoised', 0):.2f}", ""])
+        summary_rows.append([LABELS[g], str(len(vals)),
+                             f"{mean('gridnerf', 0):.2f} / {mean('gridnerf', 1):.2f}",
+                             f"{mean('global_grey_world', 0):.2f} / "
+                             f"{mean('global_grey_world', 1):.2f}",
+                             f"{min(margins):+.2f}", f"{min(over_frame):+.2f}"])
+        sections.append(f"### {LABELS[g]}\n\n" + markdown_table(
+            ["scene", "default", "one grey-world gain", "margin", "per-frame PSNR",
+             "one frame + NLM PSNR", "colour shipped (gain distance)"], rows))
+    table = markdown_table(["group", "scenes", "default", "one grey-world gain",
+                            "worst margin", "worst default - per-frame"], summary_rows)
+    md = ("# The default against one grey-world gain, per group\n\n"
+          f"`python -m experiments.colour_groups --scenes {args.scenes}`: PSNR (dB) / "
+          "CIEDE2000 of the test views.\n\n" + table + "\n\n" + "\n\n".join(sections) + "\n")
+    write_report(args.out, md, record)
+    update_doc("colour_groups", table + "\n\n" + "\n\n".join(sections), RESULTS_DOC)
+    print(md)
+
+
+if __name__ == "__main__":
+    main()
