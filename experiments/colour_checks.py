@@ -50,10 +50,11 @@ def scene_row(folder) -> dict:
     _, angle, kelvin, gap, free = colour_target.locus_check(scene, frames, d)
     locus = illuminant.planckian_locus(scene.xyz_to_cam)
     with contextlib.redirect_stdout(io.StringIO()) as said:
-        use_locus, given_up, disagreement, _ = colour_target.trusted_locus(
+        matrix, given_up, disagreement, _ = colour_target.trusted_locus(
             scene, cfgmod.Config(), frames, d)
-        picked = colour_target.consistent_estimator(
-            frames, d, None, locus if use_locus else None, disagreement, given_up)
+        used = None if matrix is None else illuminant.planckian_locus(matrix)
+        picked = colour_target.consistent_estimator(frames, d, None, used, disagreement,
+                                                    given_up)
         before = colour_target.consistent_estimator(frames, d, None, locus, 0.0)
 
     def error(name, loc) -> tuple[float, float]:
@@ -62,11 +63,12 @@ def scene_row(folder) -> dict:
                 illuminant.gain_distance(est, truth))
 
     (err, err_gain), (err0, err0_gain), (err_gw, err_gw_gain) = (
-        error(picked, locus if use_locus else None), error(before, locus),
-        error("grey_world", None))
+        error(picked, used), error(before, locus), error("grey_world", None))
     return {"matrix_ok": colour_target.matrix_check(scene) is None, "locus_deg": angle,
             "locus_kelvin": kelvin, "grey_gap": gap, "disagree": disagreement,
-            "locus_kept": bool(use_locus), "estimator": picked, "estimator_before": before,
+            "locus": ("file" if matrix is not None and np.array_equal(matrix, scene.xyz_to_cam)
+                      else "reference" if matrix is not None else "given up"),
+            "estimator": picked, "estimator_before": before,
             "error_deg": err, "error_gain": err_gain, "error_before_deg": err0,
             "error_before_gain": err0_gain, "error_grey_world_deg": err_gw,
             "error_grey_world_gain": err_gw_gain,
@@ -122,7 +124,7 @@ def main() -> None:
         rows.append([name, group_of.get(name, ""), "yes" if r["matrix_ok"] else "NO",
                      f"{fmt(r['locus_deg'])} / {r['locus_kelvin']:.0f} K",
                      f"{r['grey_gap']:.3f}", f"{r['disagree']:.3f}",
-                     "kept" if r["locus_kept"] else "given up",
+                     r["locus"],
                      f"{r['estimator_before']} -> {r['estimator']}"
                      if r["estimator"] != r["estimator_before"] else r["estimator"],
                      f"{fmt(r['error_before_deg'])} / {r['error_before_gain']:.3f}",
@@ -133,7 +135,7 @@ def main() -> None:
                              f"{s['distance']:.3f}", s["shipped"]])
     table = markdown_table(
         ["scene", "group", "matrix fits its camera", "frames to locus (deg / nearest)",
-         "grey world to locus (gain)", "estimators disagree (gain)", "locus prior",
+         "grey world to locus (gain)", "estimators disagree (gain)", "locus prior from",
          "estimator", "error without checks", "error with checks", "grey world, no locus"],
         rows)
     t = record["thresholds"]

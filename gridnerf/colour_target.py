@@ -146,7 +146,8 @@ def matrix_check(scene) -> str | None:
             "(its whites)")
 
 
-def locus_check(scene, frames, downscale: int = 1) -> tuple[bool, float, float, float, dict]:
+def locus_check(scene, frames, downscale: int = 1, xyz_to_cam=None
+                ) -> tuple[bool, float, float, float, dict]:
     """Whether the frames agree with the Planckian-locus prior of the file's ColorMatrix:
     (trusted, angle deg, kelvin, grey gap, estimates).
 
@@ -161,13 +162,14 @@ def locus_check(scene, frames, downscale: int = 1) -> tuple[bool, float, float, 
     generic matrix put a 2600 K capture's grey world 12.8 deg off the locus, projected to
     1500 K: a magenta render; a sodium-like lamp's grey world lay 0.83 from the locus,
     whose projection had three times its blue). estimates: {name: (3,)} the three
-    estimators' capture estimates without the locus.
+    estimators' capture estimates without the locus. xyz_to_cam: the matrix whose locus is
+    checked (default the file's).
     """
     small, small_masks = downscaled(frames, downscale)
     free = {n: illuminant.capture_estimate(n, small, small_masks, None, ESTIMATOR_P)
             for n in illuminant.CONSENSUS}
     cons = illuminant.consensus(list(free.values()), None)
-    locus = illuminant.planckian_locus(scene.xyz_to_cam)
+    locus = illuminant.planckian_locus(scene.xyz_to_cam if xyz_to_cam is None else xyz_to_cam)
     cos = locus @ np.asarray(illuminant.unit(cons), np.float64)
     i = int(np.argmax(cos))
     angle = float(np.degrees(np.arccos(np.clip(cos[i], -1.0, 1.0))))
@@ -291,29 +293,41 @@ def one_gain(gain_model: str, spread: float | None) -> bool:
                                       and spread < ONE_LIGHT_DEG)
 
 
-def trusted_locus(scene, cfg: Config, frames, downscale: int) -> tuple[bool, bool, float, dict]:
-    """(use the locus, given up, disagreement, the three estimates without the locus).
+def trusted_locus(scene, cfg: Config, frames, downscale: int
+                  ) -> tuple[np.ndarray | None, bool, float, dict]:
+    """(locus matrix, given up, disagreement, the three estimates without the locus).
 
-    The locus is used where loss.ca_locus asks for it, the file's ColorMatrix is its
-    camera's (matrix_check) and the frames agree with its locus (locus_check). given up:
-    whether the checks gave the prior up ("consistent" then takes grey world,
-    unprojected); disagreement: how far the estimators disagree without the locus
-    (estimators_disagree). One printed line naming the file's matrix, the reason and the
-    fallback where the prior is given up. A matrix unlike its camera's reference gives the
-    prior up although on the built-in and tuning scenes with another camera's matrix or
-    rows scaled by (1.25, 1, 0.7) swapped in, the pick on that wrong locus erred a little
-    less than the consensus unprojected (mean 3.82 and 2.64 deg against 4.21;
-    docs/results.md): a matrix known to be wrong is evidence against the prior built on
-    it, and the more conservative answer is taken."""
+    locus matrix: the XYZ -> camera matrix whose Planckian locus the prior uses, or None
+    where there is no prior (loss.ca_locus off, or given up). It is the file's ColorMatrix
+    where that is its camera's (matrix_check) and the frames agree with its locus
+    (locus_check). Where the file's matrix is unlike its camera model's reference, the
+    reference's locus is checked against the frames instead and used where they agree
+    with it: the frames, not the file, say which matrix describes the sensor (the display
+    keeps the file's matrix: the file's tag wins there). given up: whether the checks gave
+    the prior up ("consistent" then takes grey world, unprojected); disagreement: how far
+    the estimators disagree without the locus (estimators_disagree). One printed line
+    naming the file's matrix, the reason and the fallback wherever the file's locus is not
+    used."""
     trusted, angle, kelvin, gap, free = locus_check(scene, frames, downscale)
     disagreement = estimators_disagree(free)
     if not cfg.loss.ca_locus:
-        return False, False, disagreement, free
+        return None, False, disagreement, free
     matrix = np.round(np.asarray(scene.xyz_to_cam, np.float64).ravel(), 3).tolist()
     why = matrix_check(scene)
     if trusted and why is None:
-        return True, False, disagreement, free
-    if why is None:
+        return np.asarray(scene.xyz_to_cam, np.float64), False, disagreement, free
+    if why is not None:
+        model, ref = reference_matrix(scene)
+        ok, ref_angle, _, ref_gap, _ = locus_check(scene, frames, downscale, ref)
+        if ok:
+            print(f"colour: {why}; the frames agree with the reference's Planckian locus "
+                  f"({ref_angle:.1f} deg, grey world {ref_gap:.2f} from it) where the file's "
+                  f"ColorMatrix {matrix} gives {angle:.1f} deg and {gap:.2f}: the locus prior "
+                  f"is built from {model}'s reference matrix (the display keeps the file's)")
+            return np.asarray(ref, np.float64), False, disagreement, free
+        why += (f", and the frames agree with neither locus ({ref_angle:.1f} deg / "
+                f"{ref_gap:.2f} from the reference's)")
+    else:
         why = (f"the frames' illuminant lies {angle:.1f} deg from its Planckian locus, "
                f"nearest {kelvin:.0f} K, grey world {gap:.2f} from it in log chromaticity "
                f"(trusted within {LOCUS_TRUST_DEG:g} deg, {LOCUS_TRUST_GAIN:g} and "
@@ -321,7 +335,7 @@ def trusted_locus(scene, cfg: Config, frames, downscale: int) -> tuple[bool, boo
                "describe this sensor or the light is not a blackbody")
     print(f"colour: the locus prior is given up: {why} (the file's ColorMatrix {matrix}); "
           "the colour is estimated from the frames alone, not projected onto the locus")
-    return False, True, disagreement, free
+    return None, True, disagreement, free
 
 
 def plan_colour(data: dataset.RayData, scene, cfg: Config, saved: ColourPlan | None = None
@@ -342,7 +356,7 @@ def plan_colour(data: dataset.RayData, scene, cfg: Config, saved: ColourPlan | N
     if not lc.use_gains:
         return data, ColourPlan(model="none")
     frames = estimate_frames(data, scene)  # binned once for every estimate
-    reference = None
+    reference, locus_matrix = None, None
     if saved is not None:
         d, use_locus = saved.estimate_downscale, saved.locus
     else:
@@ -356,12 +370,20 @@ def plan_colour(data: dataset.RayData, scene, cfg: Config, saved: ColourPlan | N
                   f"(camera RGB {np.round(reference / reference.max(), 3).tolist()}); the "
                   "estimators and the locus prior are not used")
             _, _, _, _, free = locus_check(scene, frames, d)
-            use_locus, given_up, disagreement = False, False, 0.0
+            locus_matrix, given_up, disagreement = None, False, 0.0
         else:
-            use_locus, given_up, disagreement, free = trusted_locus(scene, cfg, frames, d)
+            locus_matrix, given_up, disagreement, free = trusted_locus(scene, cfg, frames, d)
+        use_locus = locus_matrix is not None
+    if saved is not None and saved.locus:
+        locus_matrix = (np.asarray(scene.xyz_to_cam, np.float64) if saved.locus_matrix is None
+                        else np.reshape(saved.locus_matrix, (3, 3)))
+    # where the prior's matrix is not the file's, the plan names it
+    other = (None if not use_locus or np.array_equal(locus_matrix, scene.xyz_to_cam)
+             else tuple(float(v) for v in np.ravel(locus_matrix)))
     if lc.ca_target == "batch":
-        return data, ColourPlan(model="field", locus=use_locus, estimate_downscale=int(d))
-    locus = illuminant.planckian_locus(scene.xyz_to_cam) if use_locus else None
+        return data, ColourPlan(model="field", locus=use_locus, locus_matrix=other,
+                                estimate_downscale=int(d))
+    locus = illuminant.planckian_locus(locus_matrix) if use_locus else None
     anchor = None
     if saved is not None:
         estimator, spread = saved.estimator, saved.light_spread_deg
@@ -403,7 +425,7 @@ def plan_colour(data: dataset.RayData, scene, cfg: Config, saved: ColourPlan | N
                             anchor=tuple(float(v) for v in anchor),
                             gains=tuple(float(v) for v in gains),
                             light_spread_deg=spread, estimate_downscale=int(d),
-                            locus=use_locus, evidence=evidence)
+                            locus=use_locus, locus_matrix=other, evidence=evidence)
 
 
 def frames_evidence(free: dict, scene) -> dict[str, tuple[float, float, float]]:

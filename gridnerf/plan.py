@@ -44,7 +44,10 @@ class ColourPlan:
     one-light test), None where it was not measured. estimate_downscale: the box
     downscale the estimates ran at. locus: whether the estimates were projected onto the
     Planckian locus of the file's ColorMatrix (loss.ca_locus where the frames agree with
-    it: colour_target.locus_check). evidence: {name: (3,)} what the frames say the light
+    it: colour_target.locus_check); locus_matrix: the XYZ -> camera matrix (9,) row-major
+    whose locus was used where it is not the file's (its camera model's reference, which
+    the frames agreed with where the file's matrix did not: colour_target.trusted_locus),
+    None for the file's. evidence: {name: (3,)} what the frames say the light
     is, without the locus (the three estimators, the files' as-shot neutral, a white
     reference where given): the end-of-training check (gridnerf.shipped_colour) compares
     the shipped white with it. shipped_gains / shipped_why: the one gain shown in place of
@@ -59,6 +62,7 @@ class ColourPlan:
     light_spread_deg: float | None = None
     estimate_downscale: int = 1
     locus: bool = False
+    locus_matrix: tuple[float, ...] | None = None
     evidence: dict[str, tuple[float, float, float]] = field(default_factory=dict)
     shipped_gains: tuple[float, float, float] | None = None
     shipped_why: str | None = None
@@ -111,7 +115,7 @@ def to_dict(plan: RunPlan) -> dict:
 def from_dict(d: dict) -> RunPlan:
     """RunPlan from to_dict output (tuples restored); KeyError/TypeError/ValueError if not."""
     c = dict(d["colour"])
-    for k in ("anchor", "gains", "shipped_gains"):
+    for k in ("anchor", "gains", "shipped_gains", "locus_matrix"):
         c[k] = None if c.get(k) is None else tuple(float(v) for v in c[k])
     c["evidence"] = {str(k): tuple(float(x) for x in v)
                      for k, v in c.get("evidence", {}).items()}

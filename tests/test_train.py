@@ -583,3 +583,16 @@ def test_data_noise_measures_the_frames_noise_and_scales_with_them(small_scene):
     valid = np.ones((n, h, w, 3), bool)
     valid[:, :, : w // 2] = False
     assert abs(data_term.data_noise(with_frames(clipped, valid), key) / sigma - 1.0) < 0.05
+
+
+def test_the_summary_says_which_colour_was_shipped(tiny_run):
+    """The end-of-training check ran: summary.json names the colour shipped and how far the
+    field's white lay from the frames' nearest estimate."""
+    run, cfg, summary = tiny_run
+    record = summary["colour"]
+    assert record["shipped"] in ("field", "one_gain")
+    if cfg.loss.gain_model == "field":
+        assert np.isfinite(record["distance"]) and record["nearest"]
+    plan = json.loads((run / "plan.json").read_text())
+    assert set(plan["colour"]["evidence"]) >= {"grey_world", "shades_of_grey", "grey_edge"}
+    assert (plan["colour"]["shipped_gains"] is None) == (record["shipped"] == "field")
