@@ -21,8 +21,8 @@ REPO = Path(__file__).resolve().parent.parent
 from experiments import ablate, common, consistency, photons, report, speed, sweep  # noqa: E402
 
 # the modules of the package: the studies make report, ablate, recon and bench run
-STUDIES = ("ablate", "bench", "colour_checks", "consistency", "photons", "recon", "report", "speed",
-           "sweep")
+STUDIES = ("ablate", "bench", "colour_checks", "colour_groups", "consistency", "photons",
+           "recon", "report", "speed", "sweep")
 
 
 def _m(psnr: float) -> dict:
