@@ -146,7 +146,7 @@ def matrix_check(scene) -> str | None:
             "(its whites)")
 
 
-def locus_check(scene, frames, downscale: int = 1, xyz_to_cam=None
+def locus_check(scene, frames, downscale: int = 1, xyz_to_cam=None, free: dict | None = None
                 ) -> tuple[bool, float, float, float, dict]:
     """Whether the frames agree with the Planckian-locus prior of the file's ColorMatrix:
     (trusted, angle deg, kelvin, grey gap, estimates).
@@ -162,12 +162,13 @@ def locus_check(scene, frames, downscale: int = 1, xyz_to_cam=None
     generic matrix put a 2600 K capture's grey world 12.8 deg off the locus, projected to
     1500 K: a magenta render; a sodium-like lamp's grey world lay 0.83 from the locus,
     whose projection had three times its blue). estimates: {name: (3,)} the three
-    estimators' capture estimates without the locus. xyz_to_cam: the matrix whose locus is
-    checked (default the file's).
+    estimators' capture estimates without the locus (`free`: where the caller has them, not
+    estimated again). xyz_to_cam: the matrix whose locus is checked (default the file's).
     """
-    small, small_masks = downscaled(frames, downscale)
-    free = {n: illuminant.capture_estimate(n, small, small_masks, None, ESTIMATOR_P)
-            for n in illuminant.CONSENSUS}
+    if free is None:
+        small, small_masks = downscaled(frames, downscale)
+        free = {n: illuminant.capture_estimate(n, small, small_masks, None, ESTIMATOR_P)
+                for n in illuminant.CONSENSUS}
     cons = illuminant.consensus(list(free.values()), None)
     locus = illuminant.planckian_locus(scene.xyz_to_cam if xyz_to_cam is None else xyz_to_cam)
     cos = locus @ np.asarray(illuminant.unit(cons), np.float64)
@@ -263,7 +264,6 @@ def consistent_estimator(frames, downscale: int = 1, spread: tuple[float, dict] 
     agree best (illuminant.quadrant_spreads). frames: (images, masks) of estimate_frames;
     the estimates run on them downscaled by `downscale`, the maps at full size; spread:
     light_spread's result when the caller has it. Prints the choice."""
-    small, small_masks = downscaled(frames, downscale)
     spread, wholes = light_spread(frames, downscale, locus) if spread is None else spread
     if spread < ONE_LIGHT_DEG and disagreement > ESTIMATORS_AGREE:
         print(f"L_ca estimator: grey_world (one light, but the estimators disagree: "
@@ -278,6 +278,7 @@ def consistent_estimator(frames, downscale: int = 1, spread: tuple[float, dict] 
     if spread >= ONE_LIGHT_DEG:
         print(f"L_ca estimator: consensus (the maps stray {spread:.2f} deg: lights mix)")
         return "consensus"
+    small, small_masks = downscaled(frames, downscale)
     spreads = illuminant.quadrant_spreads(small, small_masks, locus, ESTIMATOR_P, wholes)
     name = illuminant.least_spread(spreads)
     print(f"L_ca estimator: {name} (one light: the maps stray {spread:.2f} deg; quadrant "
@@ -318,7 +319,7 @@ def trusted_locus(scene, cfg: Config, frames, downscale: int
         return np.asarray(scene.xyz_to_cam, np.float64), False, disagreement, free
     if why is not None:
         model, ref = reference_matrix(scene)
-        ok, ref_angle, _, ref_gap, _ = locus_check(scene, frames, downscale, ref)
+        ok, ref_angle, _, ref_gap, _ = locus_check(scene, frames, downscale, ref, free)
         if ok:
             print(f"colour: {why}; the frames agree with the reference's Planckian locus "
                   f"({ref_angle:.1f} deg, grey world {ref_gap:.2f} from it) where the file's "
