@@ -177,7 +177,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"named config: {', '.join(sorted(PRESETS))} (default: default)")
     s.add_argument("--white-ref", metavar="FRAME:X,Y,W,H",
                    help="a grey card or white patch in one frame (its name, a pixel box) that "
-                   "sets the light instead of the estimators")
+                   "sets the light instead of the estimators; or rgb:R,G,B, a light "
+                   "measured elsewhere in camera RGB")
     # extend, not store: a repeated --set adds its overrides instead of replacing the
     # earlier ones (which argparse's default would drop without a word)
     s.add_argument("--set", nargs="*", action="extend", metavar="SECTION.FIELD=VALUE",

@@ -113,9 +113,10 @@ class DataConfig(_Section):
     binning: bool = True  # train on 2x2-binned camera RGB (true) or on the Bayer mosaic (false)
     downscale: int = 1  # extra box downscale of the training frames (1 = binned/raw size)
     eval_downscale: int = 1  # downscale of eval renders relative to the full frame and gt/
-    # training frames: "raw" (the capture), "reference" (gt/, clean: the oracle) or
-    # "processed" (each frame through the 2D pipeline with a denoiser: 2D + NeRF)
-    target: Literal["raw", "reference", "processed"] = "raw"
+    # training frames: "raw" (the capture), "reference" (gt/, clean: the oracle),
+    # "processed" (each frame through the 2D pipeline with a denoiser: 2D + NeRF) or "clean"
+    # (a simulated capture's noise-free raw: the error budget)
+    target: Literal["raw", "reference", "processed", "clean"] = "raw"
     black_offset: Literal["file", "dark"] = "file"  # black level: file tags, or + lens-cap dark/
     exposure_ratio: float = 1.0  # raw targets times this after black-level removal (darkness)
 

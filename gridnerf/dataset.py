@@ -99,9 +99,37 @@ def processed_frames(scene: Scene, frames, binning: bool, downscale: int, exposu
     return pixels, np.ones(pixels.shape, bool), np.ones(len(frames), np.float32)
 
 
+def clean_frames(scene: Scene, frames, binning: bool, downscale: int, exposure_ratio: float):
+    """The error budget's noise-free row: a simulated capture's exact clean raw (the
+    simulator's mean signal of each frame, gridnerf.sim.truth.clean_mean: no shot or read
+    noise, no hidden black offset), binned like the raw, exposure as the raw's. Only for
+    simulated single-light scenes (sim.json beside the frames)."""
+    from gridnerf.sim import truth  # the simulator's knowledge: studies only
+
+    _binned_only(scene, binning, "clean")
+    if not (scene.path / "sim.json").is_file():
+        raise SceneError(scene.path / "sim.json", "data.target=clean needs the simulator's "
+                         "record of the scene", "train data.target=clean only on simulated "
+                         "scenes")
+    try:
+        mean = truth.clean_mean(scene.path)
+    except ValueError as err:
+        raise SceneError(scene.path, str(err), "use a single-light scene") from None
+    pixels = []
+    for i in frames:
+        rgb_cam = raw.bin2x2(mean(scene.names[int(i)]), scene.cfa)
+        pixels.append(raw.downscale(rgb_cam, downscale) if downscale > 1 else rgb_cam)
+    pixels = np.stack(pixels).astype(np.float32)
+    inv_exposure = (float(exposure_ratio) / scene.exposure[frames]).astype(np.float32)
+    return pixels, np.ones(pixels.shape, bool), inv_exposure
+
+
 # data.target -> (scene, frames, binning, downscale, exposure_ratio) -> (pixels, valid,
 # inv_exposure); a method with targets of its own passes its function to build
-TARGETS = {"raw": raw_frames, "reference": reference_frames, "processed": processed_frames}
+# the targets in camera raw (shown through the colour matrix, trained with the gains)
+CAMERA_RAW = ("raw", "clean")
+TARGETS = {"raw": raw_frames, "reference": reference_frames, "processed": processed_frames,
+           "clean": clean_frames}
 
 
 def build(scene: Scene, frames: np.ndarray, binning: bool, downscale: int = 1,

@@ -7,7 +7,10 @@ For users who need exact colour. Named in transforms.json,
 (the frame's name as in its file_path, the box in that frame's raw pixels), or given on
 the command line, `gridnerf train <scene> --white-ref frame_003:x,y,w,h`, which wins. The
 light is the box's mean colour in camera RGB (2x2-binned frame, black level removed, no
-clipped pixel: estimate), so a neutral card under the light reads as the light itself. It
+clipped pixel: estimate), so a neutral card under the light reads as the light itself.
+A light measured elsewhere (a grey card shot with the same camera under the same light,
+its camera RGB after the black level: what a custom white balance records as
+AsShotNeutral) is given as {"camera_rgb": [r, g, b]} or `--white-ref rgb:r,g,b`. It
 replaces the illuminant estimators and the Planckian-locus prior: the L_ca target's
 anchor (colour_target.plan_colour). A box that is not a usable reference (outside the
 frame, clipped, too dark or too small for its mean to stand above the noise) is refused
@@ -33,14 +36,30 @@ MIN_BINNED_PIXELS = 16
 @dataclass(frozen=True)
 class WhiteRef:
     """frame: a frame's name; box: (x, y, w, h) in that frame's raw pixels; source: where
-    it was given (for messages)."""
+    it was given (for messages); camera_rgb: (3,) a light measured elsewhere, in camera RGB
+    (frame and box then empty)."""
 
     frame: str
-    box: tuple[int, int, int, int]
+    box: tuple[int, ...]
     source: str = "--white-ref"
+    camera_rgb: tuple[float, float, float] | None = None
 
     def spec(self) -> str:
+        if self.camera_rgb is not None:
+            return "rgb:" + ",".join(f"{v:.6g}" for v in self.camera_rgb)
         return f"{self.frame}:{','.join(str(v) for v in self.box)}"
+
+
+def _light(values, where: str | None, field: str) -> WhiteRef:
+    try:
+        rgb = tuple(float(v) for v in values)
+    except (TypeError, ValueError):
+        rgb = ()
+    if len(rgb) != 3 or not all(np.isfinite(rgb)) or min(rgb) <= 0.0:
+        raise SceneError(where, f"{field} is {values!r}, not a light's camera RGB",
+                         "give three positive numbers r,g,b (a grey card's camera RGB "
+                         "after the black level, any scale)")
+    return WhiteRef("", (), where or "--white-ref", rgb)
 
 
 def _box(values, where: str, field: str) -> tuple[int, int, int, int]:
@@ -56,11 +75,13 @@ def _box(values, where: str, field: str) -> tuple[int, int, int, int]:
 
 
 def parse(spec: str) -> WhiteRef:
-    """WhiteRef from "frame:x,y,w,h" (the command line's --white-ref)."""
+    """WhiteRef from "frame:x,y,w,h" or "rgb:r,g,b" (the command line's --white-ref)."""
     if ":" not in spec:
         raise SceneError(None, f"--white-ref {spec!r} has no frame name",
                          "give it as <frame>:<x>,<y>,<w>,<h>, e.g. frame_003:120,80,24,24")
     frame, box = spec.rsplit(":", 1)
+    if frame.strip() == "rgb":
+        return _light(box.split(","), None, f"--white-ref {spec!r}")
     return WhiteRef(frame.strip(), _box(box.split(","), None, f"--white-ref box {box!r}"))
 
 
@@ -74,9 +95,12 @@ def from_transforms(path: Path) -> WhiteRef | None:
     ref = meta.get(KEY) if isinstance(meta, dict) else None
     if ref is None:
         return None
+    if isinstance(ref, dict) and "camera_rgb" in ref:
+        return _light(ref["camera_rgb"], str(path), f"{KEY}.camera_rgb")
     if not isinstance(ref, dict) or not isinstance(ref.get("frame"), str) or "box" not in ref:
         raise SceneError(path, f"{KEY} is {ref!r}",
-                         'give {"frame": "<name>", "box": [x, y, w, h]} or remove it')
+                         'give {"frame": "<name>", "box": [x, y, w, h]} or '
+                         '{"camera_rgb": [r, g, b]}, or remove it')
     frame = Path(ref["frame"]).stem
     return WhiteRef(frame, _box(ref["box"], str(path), f"{KEY}.box"), str(path))
 
@@ -84,6 +108,9 @@ def from_transforms(path: Path) -> WhiteRef | None:
 def estimate(scene, ref: WhiteRef) -> np.ndarray:
     """(3,) unit camera RGB: the light as the reference's box reads it (module docstring).
     SceneError where the frame is unknown or the box is not usable."""
+    if ref.camera_rgb is not None:
+        rgb = np.asarray(ref.camera_rgb, np.float64)
+        return rgb / np.linalg.norm(rgb)
     where = ref.source
     if ref.frame not in scene.names:
         raise SceneError(where, f"white reference frame {ref.frame!r} is not one of the "

@@ -157,3 +157,20 @@ def test_exposure_ratio_scales_the_targets(small_scene):
         y3, m3 = dataset.targets(dark, frame, v, u)
         np.testing.assert_allclose(np.asarray(y3), 0.3 * np.asarray(y1), rtol=1e-5, atol=1e-9)
         np.testing.assert_array_equal(np.asarray(m1), np.asarray(m3))
+
+
+def test_clean_target_is_the_noise_free_mean_of_the_raw(small_scene):
+    """The error budget's clean raw: per frame and channel its mean is the noisy raw's
+    (the same signal, within the noise and the hidden black offset), its pixel-to-pixel
+    differences far smaller (no noise)."""
+    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
+    frames = scene.train_idx[:2]
+    clean = dataset.build(scene, frames, binning=True, target="clean")
+    noisy = dataset.build(scene, frames, binning=True, target="raw")
+    c, n = np.asarray(clean.pixels, np.float64), np.asarray(noisy.pixels, np.float64)
+    assert c.shape == n.shape and np.all(np.isfinite(c)) and np.all(c >= 0)
+    level = n.mean(axis=(1, 2))
+    assert np.all(np.abs(c.mean(axis=(1, 2)) - level) < 0.25 * level)
+    rough = lambda x: np.mean(np.abs(np.diff(x, axis=2)))  # noqa: E731
+    assert rough(c) < 0.5 * rough(n)
+    np.testing.assert_allclose(np.asarray(clean.inv_exposure), np.asarray(noisy.inv_exposure))

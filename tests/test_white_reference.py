@@ -109,3 +109,21 @@ def test_the_cli_refuses_a_bad_reference_in_one_line(small_scene, tmp_path):
     lines = [ln for ln in proc.stderr.splitlines() if "nosuch" in ln]
     assert len(lines) == 1 and "Traceback" not in proc.stderr
     assert not (run / "config.json").exists() and not (run / "checkpoint.npz").exists()
+
+
+def test_measured_light_in_camera_rgb(tmp_path):
+    """A light measured elsewhere, given as camera RGB on the command line or in
+    transforms.json, is the light (unit); a malformed one is refused naming the field."""
+    ref = white_reference.parse("rgb:0.6,1,0.3")
+    assert ref.camera_rgb == (0.6, 1.0, 0.3) and ref.spec() == "rgb:0.6,1,0.3"
+    est = white_reference.estimate(None, ref)
+    assert est == pytest.approx(np.array([0.6, 1.0, 0.3]) / np.linalg.norm([0.6, 1.0, 0.3]))
+    for bad in ("rgb:1,2", "rgb:1,0,1", "rgb:a,b,c", "rgb:1,nan,1"):
+        with pytest.raises(SceneError, match="camera RGB"):
+            white_reference.parse(bad)
+    path = tmp_path / "transforms.json"
+    path.write_text(json.dumps({"white_reference": {"camera_rgb": [2, 4, 1]}}))
+    assert white_reference.from_transforms(path).camera_rgb == (2.0, 4.0, 1.0)
+    path.write_text(json.dumps({"white_reference": {"camera_rgb": [2, -4, 1]}}))
+    with pytest.raises(SceneError, match="camera_rgb"):
+        white_reference.from_transforms(path)

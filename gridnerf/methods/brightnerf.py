@@ -1,7 +1,8 @@
 """Bright-NeRF (the method): a raw data term, per-voxel von Kries gains, L_ca, smoothness.
 
-Trains the grid's low-light colour on the raw frames (data.target "raw"; "reference" and
-"processed" are the oracle and 2D + NeRF rows, without gains) under RawNeRF's relative
+Trains the grid's low-light colour on the raw frames (data.target "raw"; "clean", a
+simulated capture's noise-free raw, is the error budget's; "reference" and "processed" are
+the oracle and 2D + NeRF rows, without gains) under RawNeRF's relative
 L2 (losses.data_loss) and the gain field under the chromatic adaptation loss (eq. 14,
 losses.ca_loss, its target from gridnerf.colour_target's plan) and the local smoothness
 (edge-aware grid TV, losses.edge_aware_gain_tv, or eq. 15 on ray patches,
@@ -94,7 +95,7 @@ def outputs(structure, params, scene, cfg: Config, plan, out: dict | None = None
     grey-world gain for the capture, global_gains). Where the run's colour is one
     gain (plan.one_gain) the first two show the low-light colour times it."""
     out = training_render(structure, params, scene, cfg) if out is None else out
-    raw_target = cfg.data.target == "raw"
+    raw_target = cfg.data.target in dataset.CAMERA_RAW
     one_gain = plan.one_gain
     ones = np.ones(3) if one_gain is None else np.asarray(one_gain, np.float64)
     source = "rgb_restored" if cfg.loss.use_gains and one_gain is None else "rgb_low"
