@@ -6,8 +6,8 @@ affine fit in linear space first), then the mean over the nine built-in scenes a
 separately, over the held-out ones (no default was tuned on those). Rows whose runs are
 missing say so; the paper's CNN rows need pretrained weights that are not available
 offline and are n/a. The studies' tables are appended when their files exist beside the
-report (ablation, sweep, photons, speed, consistency, recon, bench: STUDIES, each from
-`python -m experiments.<study>`), with their plots, and a figure of one test view per
+report (ablation, sweep, photons, speed, consistency, recon, error budget, bench: STUDIES,
+each from `python -m experiments.<study>`), with their plots, and a figure of one test view per
 scene side by side (dark input, each method, reference) is written as <out>_views.png.
 The rows' means go into README.md between its report markers.
 
@@ -86,6 +86,8 @@ STUDIES = [("ablation", "Ablation", "ablate"),
            ("speed", "Speed against error", "speed"),
            ("consistency", "Multi-view consistency", "consistency"),
            ("recon", "Reconstruction against the per-frame pipeline and the oracle", "recon"),
+           ("error_budget", "Error budget: where the dB between the oracle and the default go",
+            "error_budget"),
            ("ablation_smoothness", "The gains' smoothness weight (loss.w_smooth)",
             "ablate --study smoothness"),
            ("ablation_gain_model", "One gain where one light (loss.gain_model)",

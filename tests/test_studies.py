@@ -21,8 +21,8 @@ REPO = Path(__file__).resolve().parent.parent
 from experiments import ablate, common, consistency, photons, report, speed, sweep  # noqa: E402
 
 # the modules of the package: the studies make report, ablate, recon and bench run
-STUDIES = ("ablate", "bench", "colour_checks", "colour_groups", "consistency", "photons",
-           "recon", "report", "speed", "sweep")
+STUDIES = ("ablate", "bench", "colour_checks", "colour_groups", "consistency",
+           "error_budget", "photons", "recon", "report", "speed", "sweep")
 
 
 def _m(psnr: float) -> dict:
@@ -251,3 +251,26 @@ def test_bench_training_key_follows_the_config_not_the_preset_name(monkeypatch, 
     monkeypatch.setattr(cfgmod, "PRESETS", changed)
     after = bench.train_spec(scene, "default", [], run)
     assert after["preset"] == before["preset"] and after["config"] != before["config"]
+
+
+def test_error_budget_gaps_telescope_and_missing_fits_say_so():
+    """The three gaps of a full row add up to oracle - default; a row without the trained
+    fits says n/a rather than a number; the sRGB slope is the encoding's derivative."""
+    from experiments import error_budget as eb
+    from gridnerf.color import srgb_encode
+
+    full = {"noise_only": 30.0, "bound": 25.0, "best_3x3": 26.0, "path": 24.0,
+            "oracle": 29.0, "clean": 25.5, "noisy": 23.0, "default": 21.0,
+            "one_frame_nlm": 20.0}
+    cells = eb.table_row("x", full)
+    gaps = [float(c) for c in cells[len(eb.COLUMNS) + 1:len(eb.COLUMNS) + 4]]
+    assert sum(gaps) == pytest.approx(full["oracle"] - full["default"])
+    part = {k: full[k] for k in ("noise_only", "bound", "oracle", "default")}
+    cells = eb.table_row("y", part)
+    assert cells[eb.COLUMNS.index("clean") + 1] == "n/a" and cells[-4:-1] == ["n/a"] * 3
+    import numpy as np
+
+    x = np.array([0.001, 0.01, 0.18, 0.7])
+    h = 1e-6
+    numeric = (srgb_encode(x + h) - srgb_encode(x - h)) / (2 * h)
+    np.testing.assert_allclose(eb.srgb_slope(x), numeric, rtol=1e-3)

@@ -1,0 +1,198 @@
+"""Where the dB go: an error budget per simulated scene, and its noise-limited bound.
+
+Four fits of the same default grid, test views, PSNR (dB):
+
+- oracle: trained on the clean normal-light references (the `oracle` preset): what the
+  grid holds;
+- clean raw, true white: trained on the capture's exact noise-free raw
+  (data.target=clean) through the method's own colour path, the L_ca anchor the
+  simulator's light (`--white-ref rgb:...`): representation and colour pipeline;
+- noisy raw, true white: the capture itself, the same anchor: what the noise costs;
+- default: the capture, the light estimated from the frames.
+
+The gaps telescope, so every dB between the oracle and the default is assigned:
+pipeline = oracle - clean, noise = clean - noisy, white = noisy - default.
+
+The noise-limited bound: the oracle's squared error plus the variance an ideal average
+of the training views would leave in each test pixel (sim.json's noise model: K and the
+read variance in DN, per raw pixel K x signal + read; the binned block's variance (the
+greens averaged) of the clean raw, divided by the number of training views (every view
+taken to see every pixel: an optimistic bound), carried to the reference's display
+space by the 3x3 map fitted from the clean binned raw to the reference, and to sRGB by
+the encoding's slope; the same crop as the metrics). Single-light simulated scenes only
+(their clean raw is rebuilt from the reference).
+
+The colour path's own ceiling, no reconstruction at all: the clean binned raw of each
+test view against its binned reference, through the best 3x3 map any raw pipeline could
+apply (least squares per view: what the camera's response allows) and through the
+method's own output path (the true white's von Kries gains, the file's colour matrix,
+exposure matched to the reference).
+
+    python -m experiments.error_budget [--scenes nine,dev,heldout] [--runs runs]
+    python -m experiments.error_budget --no-train   # the columns that need no training
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from experiments.common import (
+    GROUPS,
+    RESULTS_DOC,
+    cached_result,
+    markdown_table,
+    run_variant,
+    scene_dir,
+    scene_names,
+    study_parser,
+    update_doc,
+    write_report,
+)
+from gridnerf import config as cfgmod
+from gridnerf import exposure, illuminant, image_io, raw
+from gridnerf.evaluate import effective_crop, image_metrics
+from gridnerf.scene import load_scene
+from gridnerf.sim import truth
+
+CROP = 16  # the metrics' border crop (evaluate.image_metrics)
+COLUMNS = ("noise_only", "bound", "best_3x3", "path", "oracle", "clean", "noisy", "default")
+
+
+def srgb_slope(x: np.ndarray) -> np.ndarray:
+    """d srgb_encode / dx of linear values (clipped to [0, 1] as the metrics clip)."""
+    x = np.clip(x, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92, 1.055 / 2.4 * np.maximum(x, 1e-6) ** (1 / 2.4 - 1))
+
+
+def per_view(folder: Path) -> dict[str, list[float]]:
+    """Per test view (module docstring): "noise_mse", the sRGB mean squared error an ideal
+    average of the training views' noise would leave; "best_3x3" and "path", the PSNR of
+    the clean binned raw through the best 3x3 map and through the output path."""
+    sim = json.loads((folder / "sim.json").read_text())
+    nt = truth.noise_truth(sim)
+    mean = truth.clean_mean(folder)
+    scene = load_scene(folder, near_far=tuple(sim["near_far"]))
+    views = len(scene.train_idx)
+    light = np.asarray(sim["illuminant_neutral_cam"], np.float64)
+    gains = np.asarray(illuminant.gains_from_illuminant(light / np.linalg.norm(light)))
+    matrix = exposure.display_matrix(scene.xyz_to_cam, True)
+    out = {"noise_mse": [], "best_3x3": [], "path": []}
+    for i in scene.test_idx:
+        name = scene.names[i]
+        clean = mean(name)  # (H, W) normalised raw
+        var_raw = (nt["K_dn_per_electron"] * clean * nt["scale"] + nt["read_var_dn2"]) / (
+            nt["scale"] ** 2)
+        cam = raw.bin2x2(clean, scene.cfa, np.float64)
+        var = raw.bin2x2(var_raw, scene.cfa, np.float64)
+        var[..., 1] *= 0.5  # the mean of two greens
+        gt = image_io.read_exr(scene.gt_linear_paths[name]).astype(np.float64)
+        h2, w2 = cam.shape[:2]
+        gt_b = raw.downscale(gt[: 2 * h2, : 2 * w2], 2)
+        t, *_ = np.linalg.lstsq(cam.reshape(-1, 3), gt_b.reshape(-1, 3), rcond=None)
+        var_disp = (var.reshape(-1, 3) @ (t**2)).reshape(h2, w2, 3) / views
+        var_full = np.repeat(np.repeat(var_disp, 2, 0), 2, 1)
+        g = gt[: 2 * h2, : 2 * w2]
+        c = effective_crop(*g.shape[:2], CROP)
+        sl = (slice(c, g.shape[0] - c), slice(c, g.shape[1] - c))
+        out["noise_mse"].append(float(np.mean(srgb_slope(g[sl]) ** 2 * var_full[sl])))
+        shown = (cam * gains) @ matrix.T
+        shown *= np.sum(shown * gt_b) / np.sum(shown * shown)
+        crop = CROP // 2  # the binned frame's
+        out["best_3x3"].append(image_metrics(cam @ t, gt_b, crop)["psnr"])
+        out["path"].append(image_metrics(shown, gt_b, crop)["psnr"])
+    return out
+
+
+def truth_white(folder: Path) -> str:
+    """--white-ref of the simulator's light (camera RGB)."""
+    rgb = json.loads((folder / "sim.json").read_text())["illuminant_neutral_cam"]
+    return "rgb:" + ",".join(repr(float(v)) for v in rgb)
+
+
+def kept(name: str, variant: str, preset: str, runs: Path) -> dict | None:
+    """The summary of <runs>/<name>/<variant>'s evaluation, else its kept result (common
+    RESULTS, same config), else None: nothing is trained."""
+    metrics = runs / name / variant / "eval" / "metrics.json"
+    if metrics.is_file():
+        return json.loads(metrics.read_text())["summary"]
+    hit = cached_result(name, variant, cfgmod.preset(preset))
+    return None if hit is None else hit["summary"]
+
+
+def budget(name: str, runs: Path, train: bool = True) -> dict:
+    folder = scene_dir(name)
+    white = truth_white(folder)
+    if not train:
+        psnr = {k: kept(name, k, k, runs) for k in ("oracle", "default")}
+        psnr = {k: v for k, v in psnr.items() if v is not None}
+    else:
+        psnr = {
+        "oracle": run_variant(name, "oracle", "oracle", [], runs)["summary"],
+        "clean": run_variant(name, "clean_truewhite", "default", ["data.target=clean"], runs,
+                             white_ref=white)["summary"],
+        "noisy": run_variant(name, "truewhite", "default", [], runs,
+                             white_ref=white)["summary"],
+        "default": run_variant(name, "default", "default", [], runs)["summary"],
+        }
+    row = {k: float(v["gridnerf"]["psnr"]) for k, v in psnr.items()}
+    if "default" in psnr:
+        row["one_frame_nlm"] = float(psnr["default"]["baseline_denoised"]["psnr"])
+    mse_oracle = 10.0 ** (-row.get("oracle", np.inf) / 10.0)
+    views = per_view(folder)
+    row["bound"] = float(np.mean([-10.0 * np.log10(mse_oracle + m)
+                                  for m in views["noise_mse"]]))
+    row["noise_only"] = float(np.mean([-10.0 * np.log10(m) for m in views["noise_mse"]]))
+    row["best_3x3"] = float(np.mean(views["best_3x3"]))
+    row["path"] = float(np.mean(views["path"]))
+    return row
+
+
+GAPS = (("oracle", "clean"), ("clean", "noisy"), ("noisy", "default"))
+
+
+def table_row(label: str, r: dict) -> list[str]:
+    """A row's cells ("n/a" where a fit is missing) and its three gaps."""
+    cells = [label, *(f"{r[k]:.2f}" if k in r else "n/a" for k in COLUMNS)]
+    cells += [f"{r[a] - r[b]:+.2f}" if a in r and b in r else "n/a" for a, b in GAPS]
+    return cells + [f"{r['one_frame_nlm']:.2f}" if "one_frame_nlm" in r else "n/a"]
+
+
+def main() -> None:
+    ap = study_parser(__doc__, "reports/error_budget", scenes="nine,dev,heldout", runs=True)
+    ap.add_argument("--no-train", action="store_true",
+                    help="only the columns that need no training (kept oracle and default)")
+    args = ap.parse_args()
+    names = scene_names(args.scenes, ("nine", "dev", "heldout"))
+    record, rows = {}, []
+    for name in names:
+        record[name] = budget(name, Path(args.runs), train=not args.no_train)
+        rows.append(table_row(name, record[name]))
+        print(rows[-1], flush=True)
+    for g in ("nine", "dev", "heldout"):
+        group = [r for n, r in record.items() if n in GROUPS[g]]
+        if len(group) > 1:
+            keys = set.intersection(*(set(r) for r in group))
+            rows.append(table_row(f"**mean, {g}** ({len(group)})",
+                                  {k: float(np.mean([r[k] for r in group])) for k in keys}))
+    table = markdown_table(
+        ["scene", "noise alone", "noise bound", "colour: best 3x3", "colour: output path",
+         "oracle", "clean raw, true white", "noisy raw, true white", "default", "pipeline",
+         "noise", "white", "one frame + NLM"], rows)
+    md = ("# Error budget\n\n"
+          f"`python -m experiments.error_budget --scenes {args.scenes}"
+          f"{' --no-train' if args.no_train else ''}`: test-view PSNR (dB) "
+          "of the same grid fitted four ways, and the gaps between them (pipeline = oracle - "
+          "clean, noise = clean - noisy, white = noisy - default); noise alone: the PSNR the "
+          "ideal average of the training views' noise would leave on a perfect image; colour: "
+          "the clean raw with no reconstruction, binned, through the best 3x3 map and through "
+          "the output path.\n\n" + table + "\n")
+    write_report(args.out, md, record)
+    update_doc("error_budget", table, RESULTS_DOC)
+    print(md)
+
+
+if __name__ == "__main__":
+    main()
