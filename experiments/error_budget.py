@@ -29,7 +29,7 @@ method's own output path (the true white's von Kries gains, the file's colour ma
 exposure matched to the reference).
 
     python -m experiments.error_budget [--scenes nine,dev,heldout] [--runs runs]
-    python -m experiments.error_budget --no-train   # the columns that need no training
+    python -m experiments.error_budget --no-train   # no training: the fits already there
 """
 
 from __future__ import annotations
@@ -112,13 +112,21 @@ def truth_white(folder: Path) -> str:
     return "rgb:" + ",".join(repr(float(v)) for v in rgb)
 
 
-def kept(name: str, variant: str, preset: str, runs: Path) -> dict | None:
-    """The summary of <runs>/<name>/<variant>'s evaluation, else its kept result (common
-    RESULTS, same config), else None: nothing is trained."""
+# fit -> (run folder name, preset, overrides): the four fits (budget)
+FITS = {"oracle": ("oracle", "oracle", []),
+        "clean": ("clean_truewhite", "default", ["data.target=clean"]),
+        "noisy": ("truewhite", "default", []),
+        "default": ("default", "default", [])}
+
+
+def kept(name: str, fit: str, runs: Path) -> dict | None:
+    """The summary of a fit's evaluated run folder, else its kept result (common RESULTS,
+    same config), else None: nothing is trained."""
+    variant, preset, sets = FITS[fit]
     metrics = runs / name / variant / "eval" / "metrics.json"
     if metrics.is_file():
         return json.loads(metrics.read_text())["summary"]
-    hit = cached_result(name, variant, cfgmod.preset(preset))
+    hit = cached_result(name, variant, cfgmod.override(cfgmod.preset(preset), sets))
     return None if hit is None else hit["summary"]
 
 
@@ -126,17 +134,12 @@ def budget(name: str, runs: Path, train: bool = True) -> dict:
     folder = scene_dir(name)
     white = truth_white(folder)
     if not train:
-        psnr = {k: kept(name, k, k, runs) for k in ("oracle", "default")}
+        psnr = {k: kept(name, k, runs) for k in FITS}
         psnr = {k: v for k, v in psnr.items() if v is not None}
     else:
-        psnr = {
-        "oracle": run_variant(name, "oracle", "oracle", [], runs)["summary"],
-        "clean": run_variant(name, "clean_truewhite", "default", ["data.target=clean"], runs,
-                             white_ref=white)["summary"],
-        "noisy": run_variant(name, "truewhite", "default", [], runs,
-                             white_ref=white)["summary"],
-        "default": run_variant(name, "default", "default", [], runs)["summary"],
-        }
+        psnr = {k: run_variant(name, variant, preset, sets, runs,
+                               white_ref=white if k in ("clean", "noisy") else None)["summary"]
+                for k, (variant, preset, sets) in FITS.items()}
     row = {k: float(v["gridnerf"]["psnr"]) for k, v in psnr.items()}
     if "default" in psnr:
         row["one_frame_nlm"] = float(psnr["default"]["baseline_denoised"]["psnr"])
@@ -163,7 +166,7 @@ def table_row(label: str, r: dict) -> list[str]:
 def main() -> None:
     ap = study_parser(__doc__, "reports/error_budget", scenes="nine,dev,heldout", runs=True)
     ap.add_argument("--no-train", action="store_true",
-                    help="only the columns that need no training (kept oracle and default)")
+                    help="train nothing: the fits whose runs or kept results are here")
     args = ap.parse_args()
     names = scene_names(args.scenes, ("nine", "dev", "heldout"))
     record, rows = {}, []
