@@ -172,14 +172,15 @@ def record_result(scene: str, name: str, cfg: cfgmod.Config, metrics: dict,
 
 def run_variant(scene: str, name: str, preset: str, overrides: list[str],
                 runs: Path = Path("runs"), quick: bool = False,
-                need_run: bool = False, white_ref: str | None = None) -> dict:
+                need_run: bool = False, white_ref: str | None = None,
+                keep: bool = True) -> dict:
     """Train (resuming if possible) and evaluate <runs>/<scene>/<name>; returns eval metrics.
     quick: the small scene and quick_sets on top of the preset and overrides. Without the
     run folder, a result of the same config in RESULTS is returned instead of training
     ({"summary", "cached": True}), unless the caller needs the run itself (`need_run`:
     its renders or files); every result evaluated here is kept there (not in quick mode).
-    white_ref: train's --white-ref (not in the fingerprint: give such a variant its own
-    name)."""
+    white_ref: train's --white-ref; its runs are not kept in RESULTS (keep=False: the
+    fingerprint is the config's alone), the caller keeps their numbers."""
     scene_name = Path(scene).name  # scene_dir's folder name, without simulating it yet
     run = Path(runs) / scene_name / name
     cfg = cfgmod.override(cfgmod.preset(preset), overrides)
@@ -188,14 +189,14 @@ def run_variant(scene: str, name: str, preset: str, overrides: list[str],
     if (run / "config.json").exists() and cfgmod.load(run / "config.json") != cfg:
         raise SystemExit(f"{run} holds a different config; delete it to re-run this variant")
     if not (run / "summary.json").exists():
-        hit = None if quick or need_run else cached_result(scene_name, name, cfg)
+        hit = None if quick or need_run or not keep else cached_result(scene_name, name, cfg)
         if hit:
             return hit
         train(scene_dir(scene, quick), run, cfg, white_ref=white_ref)
     metrics_path = run / "eval" / "metrics.json"
     metrics = (json.loads(metrics_path.read_text()) if metrics_path.exists()
                else evaluate_run(run))
-    if not quick:
+    if keep and not quick:
         record_result(scene_name, name, cfg, metrics)
     return metrics
 

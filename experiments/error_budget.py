@@ -51,8 +51,8 @@ from experiments.common import (
     update_doc,
     write_report,
 )
+from gridnerf import atomic, dataset, exposure, illuminant, image_io, raw
 from gridnerf import config as cfgmod
-from gridnerf import exposure, illuminant, image_io, raw
 from gridnerf.evaluate import effective_crop, image_metrics
 from gridnerf.scene import load_scene
 from gridnerf.sim import truth
@@ -106,6 +106,32 @@ def per_view(folder: Path) -> dict[str, list[float]]:
     return out
 
 
+def kept_nlm(name: str, runs: Path) -> float | None:
+    """The one-frame non-local-means row's PSNR beside the default run (its evaluation)."""
+    metrics = runs / name / "default" / "eval" / "metrics.json"
+    if metrics.is_file():
+        return float(json.loads(metrics.read_text())["summary"]["baseline_denoised"]["psnr"])
+    hit = cached_result(name, "default", cfgmod.preset("default"))
+    return None if hit is None else float(hit["summary"]["baseline_denoised"]["psnr"])
+
+
+def save_npy(path: Path, array: np.ndarray) -> None:
+    with open(path, "wb") as f:  # np.save on a name would append .npy to the temporary
+        np.save(f, np.asarray(array, np.float32))
+
+
+def write_clean(folder: Path) -> None:
+    """<scene>/clean/<frame>.npy: every frame's exact noise-free raw (truth.clean_mean),
+    what data.target=clean trains on; written once."""
+    mean = truth.clean_mean(folder)
+    out = folder / dataset.CLEAN_DIR
+    for path in sorted((folder / "raw").glob("*.dng")):
+        target = out / f"{path.stem}.npy"
+        if not target.is_file():
+            frame = mean(path.stem)
+            atomic.write(target, lambda tmp, frame=frame: save_npy(tmp, frame))
+
+
 def truth_white(folder: Path) -> str:
     """--white-ref of the simulator's light (camera RGB)."""
     rgb = json.loads((folder / "sim.json").read_text())["illuminant_neutral_cam"]
@@ -119,30 +145,36 @@ FITS = {"oracle": ("oracle", "oracle", []),
         "default": ("default", "default", [])}
 
 
-def kept(name: str, fit: str, runs: Path) -> dict | None:
-    """The summary of a fit's evaluated run folder, else its kept result (common RESULTS,
-    same config), else None: nothing is trained."""
+def kept(name: str, fit: str, runs: Path, earlier: dict) -> float | None:
+    """PSNR of a fit from its evaluated run folder, else its kept result (common RESULTS,
+    same config; the true-white fits, whose light is not in the config, from this study's
+    own earlier record `earlier`), else None: nothing is trained."""
     variant, preset, sets = FITS[fit]
     metrics = runs / name / variant / "eval" / "metrics.json"
     if metrics.is_file():
-        return json.loads(metrics.read_text())["summary"]
+        return float(json.loads(metrics.read_text())["summary"]["gridnerf"]["psnr"])
+    if fit in ("clean", "noisy"):
+        return earlier.get(name, {}).get(fit)
     hit = cached_result(name, variant, cfgmod.override(cfgmod.preset(preset), sets))
-    return None if hit is None else hit["summary"]
+    return None if hit is None else float(hit["summary"]["gridnerf"]["psnr"])
 
 
-def budget(name: str, runs: Path, train: bool = True) -> dict:
+def budget(name: str, runs: Path, train: bool = True, earlier: dict | None = None) -> dict:
     folder = scene_dir(name)
-    white = truth_white(folder)
-    if not train:
-        psnr = {k: kept(name, k, runs) for k in FITS}
-        psnr = {k: v for k, v in psnr.items() if v is not None}
+    if train:
+        write_clean(folder)
+        white = truth_white(folder)
+        summaries = {k: run_variant(name, variant, preset, sets, runs,
+                                    white_ref=white if k in ("clean", "noisy") else None,
+                                    keep=k not in ("clean", "noisy"))["summary"]
+                     for k, (variant, preset, sets) in FITS.items()}
+        row = {k: float(v["gridnerf"]["psnr"]) for k, v in summaries.items()}
     else:
-        psnr = {k: run_variant(name, variant, preset, sets, runs,
-                               white_ref=white if k in ("clean", "noisy") else None)["summary"]
-                for k, (variant, preset, sets) in FITS.items()}
-    row = {k: float(v["gridnerf"]["psnr"]) for k, v in psnr.items()}
-    if "default" in psnr:
-        row["one_frame_nlm"] = float(psnr["default"]["baseline_denoised"]["psnr"])
+        row = {k: kept(name, k, runs, earlier or {}) for k in FITS}
+        row = {k: v for k, v in row.items() if v is not None}
+    nlm = kept_nlm(name, runs)
+    if nlm is not None:
+        row["one_frame_nlm"] = nlm
     mse_oracle = 10.0 ** (-row.get("oracle", np.inf) / 10.0)
     views = per_view(folder)
     row["bound"] = float(np.mean([-10.0 * np.log10(mse_oracle + m)
@@ -170,8 +202,10 @@ def main() -> None:
     args = ap.parse_args()
     names = scene_names(args.scenes, ("nine", "dev", "heldout"))
     record, rows = {}, []
+    earlier_path = Path(args.out).with_suffix(".json")
+    earlier = json.loads(earlier_path.read_text()) if earlier_path.is_file() else {}
     for name in names:
-        record[name] = budget(name, Path(args.runs), train=not args.no_train)
+        record[name] = budget(name, Path(args.runs), not args.no_train, earlier)
         rows.append(table_row(name, record[name]))
         print(rows[-1], flush=True)
     for g in ("nine", "dev", "heldout"):

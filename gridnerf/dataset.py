@@ -99,25 +99,25 @@ def processed_frames(scene: Scene, frames, binning: bool, downscale: int, exposu
     return pixels, np.ones(pixels.shape, bool), np.ones(len(frames), np.float32)
 
 
-def clean_frames(scene: Scene, frames, binning: bool, downscale: int, exposure_ratio: float):
-    """The error budget's noise-free row: a simulated capture's exact clean raw (the
-    simulator's mean signal of each frame, gridnerf.sim.truth.clean_mean: no shot or read
-    noise, no hidden black offset), binned like the raw, exposure as the raw's. Only for
-    simulated single-light scenes (sim.json beside the frames)."""
-    from gridnerf.sim import truth  # the simulator's knowledge: studies only
+CLEAN_DIR = "clean"  # <scene>/clean/<frame>.npy: a simulated capture's noise-free raw
 
+
+def clean_frames(scene: Scene, frames, binning: bool, downscale: int, exposure_ratio: float):
+    """The error budget's noise-free row: a simulated capture's exact clean raw,
+    <scene>/clean/<frame>.npy ((H, W) float32 normalised mosaic, black level removed, no
+    shot or read noise, no hidden black offset; written from the simulator's truth by
+    `python -m experiments.error_budget`), binned like the raw, exposure as the raw's."""
     _binned_only(scene, binning, "clean")
-    if not (scene.path / "sim.json").is_file():
-        raise SceneError(scene.path / "sim.json", "data.target=clean needs the simulator's "
-                         "record of the scene", "train data.target=clean only on simulated "
-                         "scenes")
-    try:
-        mean = truth.clean_mean(scene.path)
-    except ValueError as err:
-        raise SceneError(scene.path, str(err), "use a single-light scene") from None
+    folder = scene.path / CLEAN_DIR
+    missing = [scene.names[i] for i in frames
+               if not (folder / f"{scene.names[i]}.npy").is_file()]
+    if missing:
+        raise SceneError(folder, f"data.target=clean needs the noise-free raw of every "
+                         f"training frame (missing: {missing[:3]})", "write them for a "
+                         "simulated scene with python -m experiments.error_budget")
     pixels = []
     for i in frames:
-        rgb_cam = raw.bin2x2(mean(scene.names[int(i)]), scene.cfa)
+        rgb_cam = raw.bin2x2(np.load(folder / f"{scene.names[int(i)]}.npy"), scene.cfa)
         pixels.append(raw.downscale(rgb_cam, downscale) if downscale > 1 else rgb_cam)
     pixels = np.stack(pixels).astype(np.float32)
     inv_exposure = (float(exposure_ratio) / scene.exposure[frames]).astype(np.float32)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from conftest import sim_near_far
 
 from gridnerf import dataset, rays
@@ -105,7 +106,7 @@ def test_a_target_function_gives_the_pixels_and_binned_rays(small_scene):
 
     scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
     frames = scene.train_idx[:2]
-    assert set(dataset.TARGETS) == {"raw", "reference", "processed"}
+    assert set(dataset.TARGETS) == {"raw", "reference", "processed", "clean"}
     by_name = dataset.build(scene, frames, binning=True, target="raw")
     by_fn = dataset.build(scene, frames, binning=True, target=dataset.raw_frames)
     np.testing.assert_array_equal(np.asarray(by_name.pixels), np.asarray(by_fn.pixels))
@@ -159,12 +160,22 @@ def test_exposure_ratio_scales_the_targets(small_scene):
         np.testing.assert_array_equal(np.asarray(m1), np.asarray(m3))
 
 
-def test_clean_target_is_the_noise_free_mean_of_the_raw(small_scene):
+def test_clean_target_is_the_noise_free_mean_of_the_raw(small_scene, tmp_path):
     """The error budget's clean raw: per frame and channel its mean is the noisy raw's
     (the same signal, within the noise and the hidden black offset), its pixel-to-pixel
     differences far smaller (no noise)."""
-    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
+    import shutil
+
+    from experiments.error_budget import write_clean
+    from gridnerf.errors import SceneError
+
+    folder = tmp_path / "scene"
+    shutil.copytree(small_scene, folder)
+    scene = load_scene(folder, near_far=sim_near_far(folder))
     frames = scene.train_idx[:2]
+    with pytest.raises(SceneError, match="noise-free raw"):
+        dataset.build(scene, frames, binning=True, target="clean")
+    write_clean(folder)
     clean = dataset.build(scene, frames, binning=True, target="clean")
     noisy = dataset.build(scene, frames, binning=True, target="raw")
     c, n = np.asarray(clean.pixels, np.float64), np.asarray(noisy.pixels, np.float64)

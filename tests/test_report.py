@@ -109,7 +109,8 @@ def test_run_variant_keeps_and_reuses_results(tmp_path, monkeypatch):
 
     monkeypatch.chdir(tmp_path)
     trained = []
-    monkeypatch.setattr(common, "train", lambda sdir, run, cfg: trained.append(run))
+    monkeypatch.setattr(common, "train",
+                        lambda sdir, run, cfg, **kw: trained.append(run))
     monkeypatch.setattr(common, "scene_dir", lambda scene, quick=False: tmp_path / scene)
     monkeypatch.setattr(common, "evaluate_run", lambda run: _metrics(19.0))
     cfg = common.preset_config("default")
