@@ -106,13 +106,14 @@ def per_view(folder: Path) -> dict[str, list[float]]:
     return out
 
 
-def kept_nlm(name: str, runs: Path) -> float | None:
-    """The one-frame non-local-means row's PSNR beside the default run (its evaluation)."""
-    metrics = runs / name / "default" / "eval" / "metrics.json"
+def kept_summary(name: str, variant: str, cfg: cfgmod.Config, runs: Path) -> dict | None:
+    """The eval summary of <runs>/<name>/<variant>, else its kept result (common RESULTS,
+    same config), else None: nothing is trained."""
+    metrics = runs / name / variant / "eval" / "metrics.json"
     if metrics.is_file():
-        return float(json.loads(metrics.read_text())["summary"]["baseline_denoised"]["psnr"])
-    hit = cached_result(name, "default", cfgmod.preset("default"))
-    return None if hit is None else float(hit["summary"]["baseline_denoised"]["psnr"])
+        return json.loads(metrics.read_text())["summary"]
+    hit = cached_result(name, variant, cfg)
+    return None if hit is None else hit["summary"]
 
 
 def save_npy(path: Path, array: np.ndarray) -> None:
@@ -146,17 +147,14 @@ FITS = {"oracle": ("oracle", "oracle", []),
 
 
 def kept(name: str, fit: str, runs: Path, earlier: dict) -> float | None:
-    """PSNR of a fit from its evaluated run folder, else its kept result (common RESULTS,
-    same config; the true-white fits, whose light is not in the config, from this study's
-    own earlier record `earlier`), else None: nothing is trained."""
+    """PSNR of a fit (kept_summary; the true-white fits, whose light is not in the config,
+    are not in RESULTS: from this study's own earlier record `earlier`), else None."""
     variant, preset, sets = FITS[fit]
-    metrics = runs / name / variant / "eval" / "metrics.json"
-    if metrics.is_file():
-        return float(json.loads(metrics.read_text())["summary"]["gridnerf"]["psnr"])
-    if fit in ("clean", "noisy"):
-        return earlier.get(name, {}).get(fit)
-    hit = cached_result(name, variant, cfgmod.override(cfgmod.preset(preset), sets))
-    return None if hit is None else float(hit["summary"]["gridnerf"]["psnr"])
+    cfg = cfgmod.override(cfgmod.preset(preset), sets)
+    summary = kept_summary(name, variant, cfg, runs)
+    if summary is None:
+        return earlier.get(name, {}).get(fit) if fit in ("clean", "noisy") else None
+    return float(summary["gridnerf"]["psnr"])
 
 
 def budget(name: str, runs: Path, train: bool = True, earlier: dict | None = None) -> dict:
@@ -172,9 +170,9 @@ def budget(name: str, runs: Path, train: bool = True, earlier: dict | None = Non
     else:
         row = {k: kept(name, k, runs, earlier or {}) for k in FITS}
         row = {k: v for k, v in row.items() if v is not None}
-    nlm = kept_nlm(name, runs)
-    if nlm is not None:
-        row["one_frame_nlm"] = nlm
+    default = kept_summary(name, "default", cfgmod.preset("default"), runs)
+    if default is not None:  # the one-frame non-local-means row, beside the default
+        row["one_frame_nlm"] = float(default["baseline_denoised"]["psnr"])
     mse_oracle = 10.0 ** (-row.get("oracle", np.inf) / 10.0)
     views = per_view(folder)
     row["bound"] = float(np.mean([-10.0 * np.log10(mse_oracle + m)
