@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gridnerf import cameras as cam_mod
-from gridnerf import pose_files, raw, rays, white_reference
+from gridnerf import defects, pose_files, raw, rays, white_reference
 from gridnerf.cameras import Cameras
 from gridnerf.errors import PoseError, SceneError
 from gridnerf.white_reference import WhiteRef
@@ -64,6 +64,8 @@ class Scene:
     camera_model: str | None = None  # frame 0's UniqueCameraModel / Model tag
     # a grey card that sets the light (transforms.json's white_reference, or --white-ref)
     white_reference: WhiteRef | None = None
+    # (H, W) bool: defective sensor positions (gridnerf.defects), None where none is found
+    defects: np.ndarray | None = None
 
     def raw_normalized(self, i: int) -> np.ndarray:
         """raw_bayer (H, W) float32: (raw - black) / (white - black), negatives kept."""
@@ -73,11 +75,17 @@ class Scene:
         """(H, W) bool: pixels at or above the white level."""
         return self.raw_bayer[i] >= self.white_level[i]
 
+    def valid_mask(self, i: int) -> np.ndarray:
+        """(H, W) bool: the pixels of frame i a fit may use: not saturated, not defective."""
+        saturated = self.saturated(i)
+        return ~saturated if self.defects is None else ~(saturated | self.defects)
+
     def rgb_cam_binned(self, i: int, downscale: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """2x2-binned then box-downscaled frame i: rgb_cam (H/2/d, W/2/d, 3) float32 and a
-        valid mask of the same shape (False where any source pixel is saturated)."""
+        valid mask of the same shape (False where any source pixel is saturated or
+        defective)."""
         rgb_cam = raw.bin2x2(self.raw_normalized(i), self.cfa)
-        valid = raw.bin2x2_mask(~self.saturated(i), self.cfa)
+        valid = raw.bin2x2_mask(self.valid_mask(i), self.cfa)
         if downscale > 1:
             rgb_cam = raw.downscale(rgb_cam, downscale)
             valid = raw.downscale(valid, downscale) >= 1.0
@@ -373,13 +381,19 @@ def load_scene(path, near_far: tuple[float, float] | None = None) -> Scene:
         raise SceneError(source, "the training split is empty" + (
             f" ({len(bad)} of {len(names)} frames are unusable: dark, clipped or corrupt)"
             if bad else ""), "list some usable frames in train_filenames (or remove the split)")
+    black, white = np.stack(meta["black"]).astype(np.float32), np.asarray(meta["white"])
+    usable = [k for k in range(len(names)) if k not in bad]
+    defect_mask, why = defects.defective_pixels(
+        raw.normalize_mosaic(raw_bayer[k], black[k], white[k]) for k in usable)
+    if why:
+        print(f"sensor: {why}")
     gt = scene / "gt"
     return Scene(
         path=scene,
         names=tuple(names),
         cameras=cams.with_c2w(c2w),
         raw_bayer=raw_bayer,
-        black_level=np.stack(meta["black"]).astype(np.float32),
+        black_level=black,
         white_level=np.asarray(meta["white"], np.float32),
         cfa=np.asarray(first.cfa, int),
         xyz_to_cam=np.asarray(first.xyz_to_cam, np.float64),
@@ -396,4 +410,5 @@ def load_scene(path, near_far: tuple[float, float] | None = None) -> Scene:
         camera_model=first.camera_model,
         white_reference=(white_reference.from_transforms(scene / "transforms.json")
                          if (scene / "transforms.json").is_file() else None),
+        defects=defect_mask,
     )

@@ -85,6 +85,39 @@ def test_locus_check_sees_a_weak_channel_the_angle_hides():
     assert gap > colour_target.LOCUS_TRUST_GAIN and not trusted
 
 
+
+def test_the_locus_prior_yields_to_estimators_that_agree_off_it():
+    """A light 0.01 Duv above the locus at 2800 K: 3 deg from the locus and grey world 0.13
+    from it, inside the angle and gain bounds, but the three estimators agree exactly on
+    it (uniform paint): the prior would pull the light further than the frames doubt it,
+    and is given up. A light nearer the locus (0.004 Duv) keeps it: its pull is under
+    LOCUS_GAP_FLOOR."""
+    m = CAMERA_XYZ_TO_CAM[SONY]
+    scene = SimpleNamespace(xyz_to_cam=m, camera_model=SONY)
+    off = m @ tinted_xyz_white(2800.0, 0.01)
+    trusted, angle, _, gap, free = colour_target.locus_check(scene, _uniform_frames(off))
+    assert angle < colour_target.LOCUS_TRUST_DEG and gap < colour_target.LOCUS_TRUST_GAIN
+    assert colour_target.estimators_disagree(free) < 0.01
+    assert gap > colour_target.LOCUS_GAP_FLOOR and not trusted
+    near = m @ tinted_xyz_white(2800.0, 0.004)
+    trusted, _, _, gap, _ = colour_target.locus_check(scene, _uniform_frames(near))
+    assert 0.0 < gap < colour_target.LOCUS_GAP_FLOOR and trusted
+
+
+def test_consistent_takes_grey_world_where_one_light_or_several_cannot_be_told(capsys):
+    """A light spread inside LIGHT_DOUBT_DEG: neither the quadrant pick nor the consensus,
+    grey world, with one printed line; just outside the band the usual choices."""
+    frames = _uniform_frames(np.ones(3))
+    lo, hi = colour_target.LIGHT_DOUBT_DEG
+    for spread in (lo, 0.5 * (lo + hi), hi - 1e-3):
+        assert colour_target.consistent_estimator(frames, spread=(spread, {})) == "grey_world"
+        assert "cannot be told" in capsys.readouterr().out
+    assert colour_target.consistent_estimator(frames, spread=(hi, {})) == "consensus"
+    capsys.readouterr()
+    wholes = {n: np.ones(3) for n in illuminant.CONSENSUS}
+    name = colour_target.consistent_estimator(frames, spread=(lo - 0.1, wholes))
+    assert name in illuminant.CONSENSUS and "one light" in capsys.readouterr().out
+
 def test_consistent_takes_grey_world_where_the_estimators_disagree(capsys):
     frames = _uniform_frames(np.ones(3))
     name = colour_target.consistent_estimator(

@@ -1,0 +1,93 @@
+"""Sensor defects: hot, stuck and dead pixels found from their recurrence across frames.
+
+A defective photosite reads wrong at the same sensor position in every frame, whatever the
+camera looks at; a scene's own bright or dark detail moves across the sensor as the camera
+moves between views. So a pixel that stands out from its same-colour neighbours in most
+frames of a capture is the sensor's, not the scene's: it is left out of the data term and
+of the colour estimates (Scene.valid_mask), where a radiance field would otherwise try to
+explain a fixed bright dot in 21 views as floating geometry.
+
+The test per frame k: the pixel's deviation from the median of its 8 nearest neighbours
+of the same CFA colour (two pixels away in the mosaic), over the frame's robust noise
+scale at that CFA position (1.4826 x the median absolute deviation: the standard
+deviation of Gaussian noise, whatever the scene's texture does to a few pixels). A pixel is
+defective where that z-score exceeds Z_DEFECT in at least RECUR_SHARE of the frames (and
+at least MIN_FRAMES of them). Under Gaussian noise a |z| above 6 has a probability of
+2e-9 per pixel and frame, so noise alone does not recur in half the frames; the heavier
+tails of read noise at high gain are checked on the simulated captures
+(tests/test_defects.py: none found on a clean sensor).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# a pixel is an outlier in a frame where its |deviation| from its same-colour neighbours'
+# median is above this many robust noise sigmas
+Z_DEFECT = 6.0
+# ... and defective where it is an outlier in at least this share of the frames
+RECUR_SHARE = 0.5
+# and in at least this many frames (a capture of one or two frames cannot tell)
+MIN_FRAMES = 3
+# more recurring outliers than this share of the sensor are the scene's, not defects (a
+# sensor with a thousandth of its pixels defective would be mapped by its maker)
+MAX_SHARE = 1e-3
+# the 8 same-colour neighbours of a Bayer mosaic pixel: two pixels away
+_OFFSETS = tuple((dy, dx) for dy in (-2, 0, 2) for dx in (-2, 0, 2) if (dy, dx) != (0, 0))
+
+
+def neighbour_deviation(raw_norm: np.ndarray) -> np.ndarray:
+    """(H, W) float32: each pixel minus the median of its 8 same-colour neighbours.
+
+    raw_norm: (H, W) the normalised mosaic ((raw - black) / (white - black)); the border
+    is reflected by two pixels, which keeps each neighbour on the pixel's CFA colour."""
+    x = np.asarray(raw_norm, np.float32)
+    h, w = x.shape
+    padded = np.pad(x, 2, mode="reflect")
+    shifted = np.stack([padded[2 + dy:2 + dy + h, 2 + dx:2 + dx + w] for dy, dx in _OFFSETS])
+    return x - np.median(shifted, axis=0)
+
+
+def robust_z(dev: np.ndarray) -> np.ndarray:
+    """(H, W) dev over its robust sigma (1.4826 x MAD), taken per CFA position (y % 2,
+    x % 2): the colours' noise differs with their signal. Zero where the sigma is 0."""
+    z = np.zeros_like(dev, np.float32)
+    for py in (0, 1):
+        for px in (0, 1):
+            d = dev[py::2, px::2]
+            sigma = 1.4826 * float(np.median(np.abs(d - np.median(d))))
+            if sigma > 0:
+                z[py::2, px::2] = d / sigma
+    return z
+
+
+def defective_pixels(raw_norm_frames) -> tuple[np.ndarray | None, str]:
+    """(mask, why): the sensor positions that are outliers (|robust_z| > Z_DEFECT) in at
+    least RECUR_SHARE and MIN_FRAMES of the frames, and one line saying what was decided.
+
+    raw_norm_frames: an iterable of (H, W) normalised mosaics of one capture (one frame in
+    memory at a time). mask: (H, W) bool, None where nothing is left out: no recurring
+    outlier, fewer than MIN_FRAMES frames, or more than MAX_SHARE of the sensor recurring
+    (frames that barely move keep the scene's own detail at the same pixels: they cannot
+    tell a defect from a star or a lamp, so none is taken). why: "" where there is no
+    recurring outlier at all."""
+    count, n = None, 0
+    for frame in raw_norm_frames:
+        out = np.abs(robust_z(neighbour_deviation(frame))) > Z_DEFECT
+        count = out.astype(np.int32) if count is None else count + out
+        n += 1
+    if count is None or n < MIN_FRAMES:
+        return None, ""
+    mask = count >= max(MIN_FRAMES, int(np.ceil(RECUR_SHARE * n)))
+    found = int(mask.sum())
+    if found == 0:
+        return None, ""
+    if found > MAX_SHARE * mask.size:
+        return None, (f"{found} pixels stand out from their neighbours at the same sensor "
+                      f"position in over {RECUR_SHARE:.0%} of the {n} frames, more than "
+                      f"{MAX_SHARE:g} of the sensor: the frames move too little to tell "
+                      "defects from the scene's detail, so none is left out")
+    return mask, (f"{found} defective pixels (hot, stuck or dead: outliers against their "
+                  f"same-colour neighbours at the same sensor position in at least "
+                  f"{RECUR_SHARE:.0%} of the {n} frames) are left out of the data term and "
+                  "the colour estimates")
