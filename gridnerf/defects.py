@@ -8,14 +8,15 @@ of the colour estimates (Scene.valid_mask), where a radiance field would otherwi
 explain a fixed bright dot in 21 views as floating geometry.
 
 The test per frame k: the pixel's deviation from the median of its 8 nearest neighbours
-of the same CFA colour (two pixels away in the mosaic), over the frame's robust noise
-scale at that CFA position (1.4826 x the median absolute deviation: the standard
-deviation of Gaussian noise, whatever the scene's texture does to a few pixels). A pixel is
-defective where that z-score exceeds Z_DEFECT in at least RECUR_SHARE of the frames (and
-at least MIN_FRAMES of them). Under Gaussian noise a |z| above 6 has a probability of
-2e-9 per pixel and frame, so noise alone does not recur in half the frames; the heavier
-tails of read noise at high gain are checked on the simulated captures
-(tests/test_defects.py: none found on a clean sensor).
+of the same CFA colour (two pixels away in the mosaic), over the noise sigma expected at
+that level (robust_z: a + b * level fitted per CFA position to median absolute
+deviations, which the scene's texture and the defects themselves barely move). A pixel is
+defective where that z-score exceeds Z_DEFECT with the same sign (always too bright, or
+always too dark) in at least RECUR_SHARE of the frames and at least MIN_FRAMES of them.
+Under Gaussian noise a |z| above 6 has a probability of 2e-9 per pixel and frame, so
+noise alone does not recur in three quarters of the frames; the heavier tails of read noise at high
+gain are checked on simulated frames (tests/test_defects.py: none found on a clean
+sensor; none on any of the simulated scenes either).
 """
 
 from __future__ import annotations
@@ -26,18 +27,24 @@ import numpy as np
 # median is above this many robust noise sigmas
 Z_DEFECT = 6.0
 # ... and defective where it is an outlier in at least this share of the frames
-RECUR_SHARE = 0.5
+RECUR_SHARE = 0.75
 # and in at least this many frames (a capture of one or two frames cannot tell)
 MIN_FRAMES = 3
 # more recurring outliers than this share of the sensor are the scene's, not defects (a
 # sensor with a thousandth of its pixels defective would be mapped by its maker)
 MAX_SHARE = 1e-3
+# ... though a few dozen are believed whatever the sensor's size (a small frame of a few
+# thousand pixels may hold a few dozen defects)
+MAX_ALWAYS = 64
+# the noise variance against the level is fitted to this many bins of equal count
+LEVEL_BINS = 16
 # the 8 same-colour neighbours of a Bayer mosaic pixel: two pixels away
 _OFFSETS = tuple((dy, dx) for dy in (-2, 0, 2) for dx in (-2, 0, 2) if (dy, dx) != (0, 0))
 
 
-def neighbour_deviation(raw_norm: np.ndarray) -> np.ndarray:
-    """(H, W) float32: each pixel minus the median of its 8 same-colour neighbours.
+def neighbour_deviation(raw_norm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(dev, level), each (H, W) float32: each pixel minus the median of its 8 same-colour
+    neighbours, and that median.
 
     raw_norm: (H, W) the normalised mosaic ((raw - black) / (white - black)); the border
     is reflected by two pixels, which keeps each neighbour on the pixel's CFA colour."""
@@ -45,19 +52,38 @@ def neighbour_deviation(raw_norm: np.ndarray) -> np.ndarray:
     h, w = x.shape
     padded = np.pad(x, 2, mode="reflect")
     shifted = np.stack([padded[2 + dy:2 + dy + h, 2 + dx:2 + dx + w] for dy, dx in _OFFSETS])
-    return x - np.median(shifted, axis=0)
+    level = np.median(shifted, axis=0)
+    return x - level, level
 
 
-def robust_z(dev: np.ndarray) -> np.ndarray:
-    """(H, W) dev over its robust sigma (1.4826 x MAD), taken per CFA position (y % 2,
-    x % 2): the colours' noise differs with their signal. Zero where the sigma is 0."""
+def _mad_var(d: np.ndarray) -> float:
+    """The variance of Gaussian noise with the median absolute deviation of d."""
+    return float((1.4826 * np.median(np.abs(d - np.median(d)))) ** 2)
+
+
+def robust_z(dev: np.ndarray, level: np.ndarray) -> np.ndarray:
+    """(H, W) dev over the noise sigma expected at its level, per CFA position (y % 2,
+    x % 2): the variance is fitted as a + b * level (shot noise grows with the signal,
+    read noise does not) to the robust variances (_mad_var) of LEVEL_BINS bins of equal
+    count; a bright region's noise is then not read as defects. Zero where the fitted
+    variance is not positive."""
     z = np.zeros_like(dev, np.float32)
     for py in (0, 1):
         for px in (0, 1):
-            d = dev[py::2, px::2]
-            sigma = 1.4826 * float(np.median(np.abs(d - np.median(d))))
-            if sigma > 0:
-                z[py::2, px::2] = d / sigma
+            d, lv = dev[py::2, px::2].ravel(), level[py::2, px::2].ravel()
+            order = np.argsort(lv)
+            bins = np.array_split(order, LEVEL_BINS)
+            x = np.array([np.median(lv[b]) for b in bins if b.size])
+            v = np.array([_mad_var(d[b]) for b in bins if b.size])
+            if x.size >= 2 and np.ptp(x) > 0:
+                slope, intercept = np.polyfit(x, v, 1)
+                slope = max(slope, 0.0)
+                intercept = max(float(np.median(v - slope * x)), 0.0)
+            else:
+                slope, intercept = 0.0, _mad_var(d)
+            var = intercept + slope * np.maximum(level[py::2, px::2], 0.0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                z[py::2, px::2] = np.where(var > 0, dev[py::2, px::2] / np.sqrt(var), 0.0)
     return z
 
 
@@ -67,22 +93,24 @@ def defective_pixels(raw_norm_frames) -> tuple[np.ndarray | None, str]:
 
     raw_norm_frames: an iterable of (H, W) normalised mosaics of one capture (one frame in
     memory at a time). mask: (H, W) bool, None where nothing is left out: no recurring
-    outlier, fewer than MIN_FRAMES frames, or more than MAX_SHARE of the sensor recurring
+    outlier, fewer than MIN_FRAMES frames, or more than MAX_SHARE of the sensor (and more
+    than MAX_ALWAYS pixels) recurring
     (frames that barely move keep the scene's own detail at the same pixels: they cannot
     tell a defect from a star or a lamp, so none is taken). why: "" where there is no
     recurring outlier at all."""
-    count, n = None, 0
+    high, low, n = None, None, 0
     for frame in raw_norm_frames:
-        out = np.abs(robust_z(neighbour_deviation(frame))) > Z_DEFECT
-        count = out.astype(np.int32) if count is None else count + out
+        z = robust_z(*neighbour_deviation(frame))
+        high = (z > Z_DEFECT).astype(np.int32) + (0 if high is None else high)
+        low = (z < -Z_DEFECT).astype(np.int32) + (0 if low is None else low)
         n += 1
-    if count is None or n < MIN_FRAMES:
+    if high is None or n < MIN_FRAMES:
         return None, ""
-    mask = count >= max(MIN_FRAMES, int(np.ceil(RECUR_SHARE * n)))
+    mask = np.maximum(high, low) >= max(MIN_FRAMES, int(np.ceil(RECUR_SHARE * n)))
     found = int(mask.sum())
     if found == 0:
         return None, ""
-    if found > MAX_SHARE * mask.size:
+    if found > max(MAX_SHARE * mask.size, MAX_ALWAYS):
         return None, (f"{found} pixels stand out from their neighbours at the same sensor "
                       f"position in over {RECUR_SHARE:.0%} of the {n} frames, more than "
                       f"{MAX_SHARE:g} of the sensor: the frames move too little to tell "

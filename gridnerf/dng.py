@@ -25,10 +25,26 @@ Tag numbers and types follow the DNG 1.4 specification and TIFF/EP:
 | 50721 | ColorMatrix1         | SRATIONAL 9 |
 | 50728 | AsShotNeutral        | RATIONAL 3 |
 | 50778 | CalibrationIlluminant1 | SHORT   |
+
+Optional, off by default (what a raw converter writes; no part of gridnerf reads them):
+
+| tag   | name                 | type      |
+|-------|----------------------|-----------|
+| 274   | Orientation          | SHORT (always written; 1 unless given) |
+| 50719 | DefaultCropOrigin    | LONG 2 (x, y) |
+| 50720 | DefaultCropSize      | LONG 2 (width, height) |
+| 50730 | BaselineExposure     | SRATIONAL (EV) |
+| 51022 | OpcodeList3          | UNDEFINED (big-endian opcode list) |
+
+The opcode list holds one FixVignetteRadial opcode (ID 3, DNG 1.3): the gain
+g(r) = 1 + k0 r^2 + k1 r^4 + k2 r^6 + k3 r^8 + k4 r^10 that undoes a lens's falloff, r the
+distance from the optical centre (cx, cy, fractions of the image width and height) over
+its distance to the farthest image corner.
 """
 
 from __future__ import annotations
 
+import struct
 from fractions import Fraction
 from pathlib import Path
 
@@ -38,7 +54,7 @@ import tifffile
 from gridnerf import atomic
 
 # TIFF field types.
-_BYTE, _ASCII, _SHORT, _LONG, _RATIONAL, _SRATIONAL = 1, 2, 3, 4, 5, 10
+_BYTE, _ASCII, _SHORT, _LONG, _RATIONAL, _UNDEFINED, _SRATIONAL = 1, 2, 3, 4, 5, 7, 10
 
 # Tag codes (see module docstring).
 TAG_MAKE = 271
@@ -56,11 +72,18 @@ TAG_CFA_LAYOUT = 50711
 TAG_BLACK_LEVEL_REPEAT_DIM = 50713
 TAG_BLACK_LEVEL = 50714
 TAG_WHITE_LEVEL = 50717
+TAG_DEFAULT_CROP_ORIGIN = 50719
+TAG_DEFAULT_CROP_SIZE = 50720
 TAG_COLOR_MATRIX_1 = 50721
 TAG_COLOR_MATRIX_2 = 50722
 TAG_AS_SHOT_NEUTRAL = 50728
+TAG_BASELINE_EXPOSURE = 50730
 TAG_CALIBRATION_ILLUMINANT_1 = 50778
 TAG_CALIBRATION_ILLUMINANT_2 = 50779
+TAG_OPCODE_LIST_3 = 51022
+
+OPCODE_FIX_VIGNETTE_RADIAL = 3
+OPCODE_VERSION_1_3 = (1, 3, 0, 0)  # the DNG version that introduced FixVignetteRadial
 
 PHOTOMETRIC_CFA = 32803
 ILLUMINANT_D65 = 21
@@ -86,6 +109,26 @@ def _rationals(values, signed: bool) -> tuple[int, ...]:
             raise ValueError(f"value {v} is too large for a DNG rational")
         out += [f.numerator, f.denominator]
     return tuple(out)
+
+
+def fix_vignette_radial(k, centre=(0.5, 0.5)) -> bytes:
+    """One FixVignetteRadial opcode, big-endian: ID, DNG version, flags (0), parameter size,
+    then k0..k4 and cx, cy as doubles. k: up to 5 coefficients of g(r) (missing ones 0);
+    centre: the optical centre as fractions of the image width and height."""
+    k = np.asarray(k, np.float64).ravel()
+    if k.size > 5 or not np.all(np.isfinite(k)):
+        raise ValueError(f"FixVignetteRadial takes up to 5 finite coefficients, got {k}")
+    cx, cy = (float(v) for v in centre)
+    if not (0.0 <= cx <= 1.0 and 0.0 <= cy <= 1.0):
+        raise ValueError(f"the optical centre must lie in [0, 1]^2, got {centre}")
+    params = struct.pack(">7d", *np.pad(k, (0, 5 - k.size)), cx, cy)
+    return (struct.pack(">I4BII", OPCODE_FIX_VIGNETTE_RADIAL, *OPCODE_VERSION_1_3, 0,
+                        len(params)) + params)
+
+
+def opcode_list(opcodes: list[bytes]) -> bytes:
+    """A DNG opcode list (big-endian whatever the file's byte order): count, then opcodes."""
+    return struct.pack(">I", len(opcodes)) + b"".join(opcodes)
 
 
 def _check_inputs(raw_bayer, cfa, black_level, white_level, xyz_to_cam, as_shot_neutral):
@@ -117,6 +160,28 @@ def _check_inputs(raw_bayer, cfa, black_level, white_level, xyz_to_cam, as_shot_
     return raw_bayer, cfa, black_level, xyz_to_cam, as_shot_neutral
 
 
+def _converter_tags(shape, default_crop, orientation, baseline_exposure, vignette_k,
+                    vignette_centre) -> list[tuple]:
+    """The optional tags (module docstring) as tifffile extratags; Orientation always."""
+    if int(orientation) != orientation or not 1 <= orientation <= 8:
+        raise ValueError(f"orientation must be a TIFF Orientation 1..8, got {orientation}")
+    tags = [(TAG_ORIENTATION, _SHORT, 1, int(orientation), True)]
+    if default_crop is not None:
+        x, y, w, h = (int(v) for v in default_crop)
+        if min(x, y) < 0 or min(w, h) < 1 or x + w > shape[1] or y + h > shape[0]:
+            raise ValueError(f"default_crop {default_crop} must lie inside the "
+                             f"{shape[1]}x{shape[0]} image")
+        tags += [(TAG_DEFAULT_CROP_ORIGIN, _LONG, 2, (x, y), True),
+                 (TAG_DEFAULT_CROP_SIZE, _LONG, 2, (w, h), True)]
+    if baseline_exposure is not None:
+        tags.append((TAG_BASELINE_EXPOSURE, _SRATIONAL, 1,
+                     _rationals([baseline_exposure], signed=True), True))
+    if vignette_k is not None:
+        opcodes = opcode_list([fix_vignette_radial(vignette_k, vignette_centre)])
+        tags.append((TAG_OPCODE_LIST_3, _UNDEFINED, len(opcodes), opcodes, True))
+    return tags
+
+
 def write_dng(
     path,
     raw_bayer: np.ndarray,
@@ -128,6 +193,11 @@ def write_dng(
     exposure_time: float | None = None,
     iso: float | None = None,
     camera_model: str = "gridnerf simulated camera",
+    default_crop: tuple[int, int, int, int] | None = None,
+    orientation: int = 1,
+    baseline_exposure: float | None = None,
+    vignette_k=None,
+    vignette_centre: tuple[float, float] = (0.5, 0.5),
 ) -> None:
     """Write a Bayer mosaic as an uncompressed 16-bit DNG, atomically.
 
@@ -142,6 +212,12 @@ def write_dng(
       exposure_time: seconds, optional (ExposureTime).
       iso: optional ISO speed (ISOSpeedRatings, rounded to an integer).
       camera_model: UniqueCameraModel and Model string.
+      default_crop: optional (x, y, width, height) in photosites, the part a converter
+        shows (DefaultCropOrigin, DefaultCropSize); inside the image.
+      orientation: TIFF Orientation, 1 (default, as stored) to 8.
+      baseline_exposure: optional EV a converter adds (BaselineExposure).
+      vignette_k: optional (<= 5,) FixVignetteRadial coefficients k0..k4, written as
+        OpcodeList3 with the optical centre vignette_centre (fractions of width, height).
     """
     raw_bayer, cfa, black_level, xyz_to_cam, as_shot_neutral = _check_inputs(
         raw_bayer, cfa, black_level, white_level, xyz_to_cam, as_shot_neutral
@@ -164,7 +240,6 @@ def write_dng(
         (TAG_CALIBRATION_ILLUMINANT_1, _SHORT, 1, ILLUMINANT_D65, True),
         (TAG_MAKE, _ASCII, 0, "gridnerf", True),
         (TAG_MODEL, _ASCII, 0, model, True),
-        (TAG_ORIENTATION, _SHORT, 1, 1, True),
     ]
     if exposure_time is not None:
         extratags.append(
@@ -172,6 +247,8 @@ def write_dng(
         )
     if iso is not None:
         extratags.append((TAG_ISO, _SHORT, 1, int(round(float(iso))), True))
+    extratags += _converter_tags(raw_bayer.shape, default_crop, orientation, baseline_exposure,
+                                 vignette_k, vignette_centre)
 
     def fill(tmp: Path) -> None:
         with open(tmp, "wb") as fh:

@@ -26,7 +26,7 @@ def _frames(rng, n=12, move=True, electrons=40.0, k_gain=5.0, read=3.5, white=16
     """Normalised noisy mosaics of a camera that pans across _scene (or stays put)."""
     scene = _scene(rng)
     out = []
-    for i in range(n):
+    for _ in range(n):
         dy, dx = ((rng.integers(0, 40), rng.integers(0, 40)) if move else (20, 20))
         signal = scene[dy:dy + H, dx:dx + W]
         e = rng.poisson(signal / signal.mean() * electrons)
@@ -93,5 +93,5 @@ def test_the_neighbours_are_the_same_cfa_colour():
     outliers: each pixel is compared with its own colour only."""
     level = np.array([[0.5, 0.05], [0.05, 0.01]], np.float32)
     mosaic = np.tile(level, (H // 2, W // 2))
-    dev = defects.neighbour_deviation(mosaic)
+    dev, _ = defects.neighbour_deviation(mosaic)
     np.testing.assert_allclose(dev, 0.0, atol=1e-7)

@@ -135,3 +135,48 @@ def test_bad_inputs_raise_and_write_nothing(tmp_path, change, match):
     with pytest.raises(ValueError, match=match):
         write_dng(path, **args)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_converter_tags_are_off_by_default_and_read_back(tmp_path):
+    """DefaultCrop, Orientation, BaselineExposure and an OpcodeList3 holding one
+    FixVignetteRadial opcode, as a raw converter writes them; the mosaic reads back as
+    before."""
+    import struct
+
+    from gridnerf.dng import OPCODE_FIX_VIGNETTE_RADIAL
+
+    cfa = np.array(PATTERNS["RGGB"])
+    plain, extra = tmp_path / "plain.dng", tmp_path / "extra.dng"
+    raw_bayer = _mosaic(5, (40, 64))
+    write_dng(plain, raw_bayer, cfa, BLACK, WHITE, np.eye(3), NEUTRAL)
+    k = [0.83, 0.17]
+    write_dng(extra, raw_bayer, cfa, BLACK, WHITE, np.eye(3), NEUTRAL,
+              default_crop=(2, 4, 60, 32), orientation=6, baseline_exposure=-0.5,
+              vignette_k=k, vignette_centre=(0.5, 0.45))
+    with tifffile.TiffFile(plain) as tif:
+        tags = tif.pages[0].tags
+        assert tags[274].value == 1
+        assert not {50719, 50720, 50730, 51022} & set(tags.keys())
+    with tifffile.TiffFile(extra) as tif:
+        tags = tif.pages[0].tags
+        assert tags[274].value == 6
+        assert tuple(tags[50719].value) == (2, 4) and tuple(tags[50720].value) == (60, 32)
+        num, den = tags[50730].value
+        assert int(tags[50730].dtype) == 10 and num / den == pytest.approx(-0.5)
+        assert int(tags[51022].dtype) == 7  # UNDEFINED
+        opcodes = bytes(tags[51022].value)
+    count, opcode, *version, flags, size = struct.unpack(">II4BII", opcodes[:20])
+    assert (count, opcode, version, flags, size) == (1, OPCODE_FIX_VIGNETTE_RADIAL,
+                                                     [1, 3, 0, 0], 0, 56)
+    values = struct.unpack(">7d", opcodes[20:])
+    np.testing.assert_allclose(values, [0.83, 0.17, 0, 0, 0, 0.5, 0.45])
+    assert len(opcodes) == 20 + size
+    with rawpy.imread(str(extra)) as raw:
+        np.testing.assert_array_equal(raw.raw_image_visible, raw_bayer)
+    with pytest.raises(ValueError, match="default_crop"):
+        write_dng(tmp_path / "bad.dng", raw_bayer, cfa, BLACK, WHITE, np.eye(3), NEUTRAL,
+                  default_crop=(10, 0, 60, 32))
+    with pytest.raises(ValueError, match="5 finite"):
+        write_dng(tmp_path / "bad.dng", raw_bayer, cfa, BLACK, WHITE, np.eye(3), NEUTRAL,
+                  vignette_k=np.ones(6))
+    assert not (tmp_path / "bad.dng").exists()

@@ -197,8 +197,9 @@ def simulate_cycles(name: str, out_dir, width: int = WIDTH, height: int = HEIGHT
     try:
         tmp.mkdir()
         salt = zlib.crc32(name.encode())
+        quirks = writer.draw_quirks(params, n_frames, intr.h, intr.w, seed, salt)
         test = writer.write_capture(tmp, params, poses, intr, white, lambda i: lit_cam[i],
-                                    e_scale, gt_scale, seed, salt)
+                                    e_scale, gt_scale, seed, salt, quirks=quirks)
         names = writer.frame_names(n_frames)
         writer._write_json(tmp / "sim.json", {
             **key, "renderer": "Blender Cycles (blender_scene.py)", "held_out": True,
@@ -207,7 +208,7 @@ def simulate_cycles(name: str, out_dir, width: int = WIDTH, height: int = HEIGHT
             "dark_frames": [f"dark/{n}.dng" for n in writer.dark_names()],
             "light_rgb": light.tolist(), "illuminant_kelvin": None,
             "illuminant_neutral_cam": (neutral / neutral[1]).tolist(),
-            **writer.sensor_manifest(params, e_scale, gt_scale, near_far),
+            **writer.sensor_manifest(params, e_scale, gt_scale, near_far, quirks),
             "exposure_convention": (
                 "references are the white-lit render (linear sRGB, interreflections kept), "
                 "one scale so that the mean luminance over all views is 0.18"),

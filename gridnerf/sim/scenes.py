@@ -17,6 +17,12 @@ temperature, a lamp (`PointLight`, falling off with distance) and daylight (a di
 rendered light by light (capture.render_view_layers) and the writer records both lights
 and a per-frame map of which one dominates where.
 
+The quirky-camera scenes (`HELDOUT_QUIRK`) re-shoot held-out scenes with a camera that
+has a real camera's quirks (another CFA layout, a 12- or 10-bit ADC, lens falloff,
+per-frame auto-exposure jitter, hot and stuck pixels; sensor.SensorParams): the same
+geometry, light, photon budget and cameras as their clean-camera twin (`twin_of`), so the
+references are the twin's.
+
 Geometry and sensor settings are fixed per scene name; the seed only moves the
 cameras and draws the noise.
 """
@@ -59,9 +65,14 @@ HELDOUT_MIXED: tuple[str, ...] = ("held_mixed_arc", "held_mixed_slide", "held_mi
 HELDOUT_COLOUR: tuple[str, ...] = ("held_colour_generic", "held_colour_other",
                                    "held_colour_diagonal", "held_colour_sodium",
                                    "held_colour_led")
+# A camera's quirks held out: held-out scenes re-shot (same geometry, light, photon budget,
+# cameras and noise streams) by a camera with another CFA layout, a 12- or 10-bit ADC, lens
+# falloff with no correction, per-frame auto-exposure jitter and hot and stuck pixels; no
+# default is chosen on them.
+HELDOUT_QUIRK: tuple[str, ...] = ("held_quirk_brick", "held_quirk_shelf", "held_quirk_table")
 # every scene name the simulator knows
 ALL_SCENES: tuple[str, ...] = (SCENES + HELDOUT + DEV + MIXED + HELDOUT_MIXED
-                               + HELDOUT_COLOUR)
+                               + HELDOUT_COLOUR + HELDOUT_QUIRK)
 RIGS: tuple[str, ...] = ("tripod", "arc", "slide")
 
 
@@ -121,6 +132,9 @@ class SceneSpec:
     yaw_spread_deg: float = 18.0
     baseline: float = 0.4
     ambient_kelvin: float | None = None  # colour of the ambient fill (None: sensor.kelvin)
+    # the scene this one re-shoots with another camera: its cameras and random streams are
+    # that scene's (writer.capture_salt); None: its own
+    twin_of: str | None = None
 
     @property
     def prims(self) -> list[Primitive]:
@@ -910,11 +924,30 @@ def _held_colour(name: str) -> SceneSpec:
     return replace(spec, name=name, sensor=sensor)
 
 
+# name: (twin, cfa, bits, vignette stops, exposure jitter stops, hot pixels); everything
+# else (geometry, light, camera model, photon budget, noise, bias) is the twin's
+_QUIRK = {
+    "held_quirk_brick": ("held_arc_brick", "BGGR", 12, 1.2, 1.0 / 3.0, 20),
+    "held_quirk_shelf": ("held_slide_shelf", "GRBG", 10, 1.5, 1.0 / 3.0, 12),
+    "held_quirk_table": ("held_arc_table", "GBRG", 12, 1.0, 1.0 / 3.0, 30),
+}
+
+
+def _held_quirk(name: str) -> SceneSpec:
+    twin, cfa, bits, vignette, jitter, hot = _QUIRK[name]
+    spec = _HELD[twin]()
+    sensor = replace(spec.sensor, cfa_pattern=cfa, bits=bits, vignette_stops=vignette,
+                     exposure_jitter_stops=jitter, hot_pixels=hot)
+    return replace(spec, name=name, sensor=sensor, twin_of=twin)
+
+
 def build_scene(name: str) -> SceneSpec:
-    """The SceneSpec for one of SCENES, HELDOUT, DEV, MIXED, HELDOUT_MIXED or
-    HELDOUT_COLOUR (ValueError for other names)."""
+    """The SceneSpec for one of SCENES, HELDOUT, DEV, MIXED, HELDOUT_MIXED,
+    HELDOUT_COLOUR or HELDOUT_QUIRK (ValueError for other names)."""
     if name in _COLOUR:
         return _held_colour(name)
+    if name in _QUIRK:
+        return _held_quirk(name)
     if name in _HELD:
         return _HELD[name]()
     if name in _MIX:

@@ -37,7 +37,8 @@ def clean_mean(scene_dir) -> Callable[[str], np.ndarray]:
     """For a simulated single-illuminant scene: name -> the exact clean mean (H, W) of that
     frame in normalised raw (no offset), from its reference gt/<name>.exr and sim.json
     (the reference divided by gt_scale is the simulator's clean render; camera response
-    under the scene's illuminant, CFA, electrons per unit signal, K, white - black)."""
+    under the scene's illuminant, CFA, electrons per unit signal, K, white - black; the
+    lens falloff and the frame's exposure factor of a quirky camera, not its defects)."""
     folder = Path(scene_dir)
     sim = json.loads((folder / "sim.json").read_text())
     if len(sim.get("illuminants", [None])) > 1:
@@ -50,8 +51,15 @@ def clean_mean(scene_dir) -> Callable[[str], np.ndarray]:
     gain = (sim["electrons_per_unit_signal"] * sim["K_dn_per_electron"]
             / (sim["white_level"] - sim["black_level"]) / sim["gt_scale"])
 
+    stops = sim.get("vignetting", {}).get("stops_at_corners", 0.0)
+    factor = dict(zip(sim["frames"], sim.get("exposure_jitter", {}).get("factor_per_frame", []),
+                      strict=False))
+
     def mean(name: str) -> np.ndarray:
         rgb_cam = sensor.scene_to_cam(read_exr(folder / "gt" / f"{name}.exr"), params)
-        return np.maximum(sensor.mosaic(rgb_cam, params.cfa), 0.0) * gain
+        raw_norm = np.maximum(sensor.mosaic(rgb_cam, params.cfa), 0.0) * gain
+        if stops:
+            raw_norm = raw_norm * sensor.vignette_gain(*raw_norm.shape, stops)
+        return raw_norm * factor[name] if name in factor else raw_norm
 
     return mean

@@ -1,7 +1,9 @@
 """simulate_scene: render a procedural scene and write an LMRAW-like scene folder.
 
 Folder layout (the contract every loader follows):
-  raw/<name>.dng       noisy dark RAW frames frame_000 ... (16-bit DNG, black 512, white 16383)
+  raw/<name>.dng       noisy dark RAW frames frame_000 ... (16-bit DNG container; black 512,
+                       white 16383 for the default 14-bit sensor, 256 / 4095 at 12 bits,
+                       64 / 1023 at 10; ExposureTime per frame)
   images/<name>.jpg    camera-style previews of the dark frames (for pose estimation)
   transforms.json      nerfstudio cameras (OpenGL camera-to-world) and the train/test
                        split (every 8th frame is test). No scene bounds: a trainer must
@@ -21,6 +23,13 @@ Exposure convention of the references: they are linear sRGB (the scene's
 reflectance x shading as if lit by D65, no noise), multiplied by ONE scale factor per
 scene chosen so that the mean luminance (color.luminance) over all views is 0.18.
 The EXR stores that linear image unclipped; the PNG is srgb_encode(clip(., 0, 1)).
+
+A camera's quirks (sensor.SensorParams: bits, vignette_stops, exposure_jitter_stops,
+hot_pixels; all off by default, and then nothing about them is drawn or written) are
+recorded in sim.json: "bits", "vignetting" (model and parameters), "exposure_jitter" (each
+frame's exposure time) and "defects" (the positions and values of the hot and stuck
+photosites). Vignetting darkens raw/ only; the references in gt/ stay the scene's
+radiance, and the lens-cap frames see no light.
 
 The folder is built in `<out_dir>.tmp-<pid>` and renamed into place at the end, so a
 half-written scene never looks valid.
@@ -51,7 +60,7 @@ from gridnerf.sim.capture import (
     render_view,
     render_view_layers,
 )
-from gridnerf.sim.scenes import ALL_SCENES, HELDOUT, HELDOUT_MIXED, build_scene
+from gridnerf.sim.scenes import ALL_SCENES, HELDOUT, HELDOUT_MIXED, HELDOUT_QUIRK, build_scene
 
 # Scene-folder format version, part of the cache key: bump it whenever the written
 # files change so that folders written before are rebuilt. 2: camera rigs, held-out
@@ -192,7 +201,7 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
                          lux=spec.sensor.lux * light)
         spec = replace(spec, sensor=dimmer)
     params = spec.sensor
-    salt = zlib.crc32(name.encode())
+    salt = capture_salt(spec)
     intr = intrinsics(width, height)
     poses = camera_path(spec, n_frames, np.random.default_rng([seed, salt, 0]))
     if spec.layered:
@@ -210,10 +219,12 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
     e_scale = params.electrons / mean_green  # electrons per unit of relative camera signal
 
     names = frame_names(n_frames)
+    quirks = draw_quirks(params, n_frames, height, width, seed, salt)
     test = write_capture(folder, params, poses, intr, frames,
                          (lambda i: rgb_cams[i]) if spec.layered
                          else (lambda i: sensor.scene_to_cam(frames[i], params)),
-                         e_scale, gt_scale, seed, salt, share if spec.layered else None)
+                         e_scale, gt_scale, seed, salt, share if spec.layered else None,
+                         quirks=quirks)
     mixed = {}
     if spec.layered:
         mixed = {
@@ -228,7 +239,8 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
         main = max(lights, key=lambda e: e["share_of_green_signal"])
     _write_json(folder / "sim.json", {
         **_key(name, width, height, n_frames, seed, light),
-        "held_out": name in HELDOUT + HELDOUT_MIXED, "rig": spec.rig,
+        "held_out": name in HELDOUT + HELDOUT_MIXED + HELDOUT_QUIRK, "rig": spec.rig,
+        **({"twin_of": spec.twin_of} if spec.twin_of else {}),
         **({"mixed_light": True} if spec.layered else {}),
         "frames": names, "test_frames": [names[i] for i in test],
         "dark_frames": [f"dark/{n}.dng" for n in dark_names()],
@@ -236,49 +248,82 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
         "illuminant_neutral_cam": (neutral if spec.layered
                                    else sensor.illuminant_neutral(params).tolist()),
         **mixed,
-        **sensor_manifest(params, e_scale, gt_scale, near_far),
+        **sensor_manifest(params, e_scale, gt_scale, near_far, quirks),
     })
 
 
+def capture_salt(spec) -> int:
+    """The salt of a scene's random streams (camera path, noise, quirks): crc32 of its
+    name, or of the scene it re-shoots (spec.twin_of), whose cameras it then shares."""
+    return zlib.crc32((spec.twin_of or spec.name).encode())
+
+
+def draw_quirks(params, n_frames: int, height: int, width: int, seed: int,
+                salt: int) -> tuple[np.ndarray, sensor.Defects | None]:
+    """A capture's per-frame exposure factors (N,) (sensor.exposure_factors) and its
+    sensor's defects (sensor.draw_defects, or None), each from a stream of its own
+    ([seed, salt, 3] and [seed, salt, 4]): at the defaults nothing is drawn, and the
+    frames' noise streams are the same whatever the quirks."""
+    factors = sensor.exposure_factors(params, n_frames, np.random.default_rng([seed, salt, 3]))
+    defects = sensor.draw_defects(params, height, width, np.random.default_rng([seed, salt, 4]))
+    return factors, defects
+
+
 def write_capture(folder: Path, params, poses, intr, frames, rgb_cam_of, e_scale: float,
-                  gt_scale: float, seed: int, salt: int, share=None) -> list[int]:
+                  gt_scale: float, seed: int, salt: int, share=None,
+                  quirks=None) -> list[int]:
     """Write a capture's files (all but sim.json) into `folder`: raw/ (noisy DNGs),
     images/ (previews), gt/ (references: frames (N, H, W, 3) linear sRGB times gt_scale),
     dark/ (lens-cap frames), transforms.json (poses (N, 4, 4), intr), and illuminant/
     where `share` (N, H, W) is given. rgb_cam_of(i): the clean camera signal (H, W, 3) of
-    view i, times e_scale electrons. Returns the test views' indices."""
+    view i, times e_scale electrons. quirks: draw_quirks's (factors (N,), defects), drawn
+    here when None; frame i's electrons are times sensor.vignette_gain and factors[i], its
+    ExposureTime params.exposure_time * factors[i]; the defects are in every raw/ and dark/
+    frame (dark/ ExposureTime: the first frame's), concealed in the previews as a camera's
+    JPEG engine would (sensor.conceal_defects). Returns the test views' indices."""
     n_frames = len(poses)
     height, width = intr.h, intr.w
     names = frame_names(n_frames)
+    factors, defects = (quirks if quirks is not None
+                        else draw_quirks(params, n_frames, height, width, seed, salt))
+    falloff = (sensor.vignette_gain(height, width, params.vignette_stops)
+               if params.vignette_stops else None)  # (H, W) on the electrons
     for sub in ("raw", "images", "gt", "dark", *(("illuminant",) if share is not None else ())):
         (folder / sub).mkdir(parents=True)
-    black = np.full((2, 2), float(sensor.BLACK_LEVEL))
+    black = np.full((2, 2), float(params.black_level))
     for i, stem in enumerate(names):
         if share is not None:
             iio.imwrite(folder / "illuminant" / f"{stem}.png",
                         np.round(255.0 * share[i]).astype(np.uint8), extension=".png")
         rgb_cam = rgb_cam_of(i)
         electrons = sensor.mosaic(rgb_cam, params.cfa) * e_scale
-        raw_bayer = sensor.expose(electrons, params, np.random.default_rng([seed, salt, 1, i]))
+        if falloff is not None:
+            electrons = electrons * falloff
+        if factors[i] != 1.0:
+            electrons = electrons * factors[i]
+        raw_bayer = sensor.expose(electrons, params, np.random.default_rng([seed, salt, 1, i]),
+                                  defects)
         write_dng(folder / "raw" / f"{stem}.dng", raw_bayer, params.cfa, black,
-                  sensor.WHITE_LEVEL, params.file_xyz_to_cam,
+                  params.white_level, params.file_xyz_to_cam,
                   sensor.grey_world_neutral(rgb_cam),
-                  exposure_time=params.exposure_time, iso=params.iso,
+                  exposure_time=float(params.exposure_time * factors[i]), iso=params.iso,
                   camera_model=params.camera_model)
-        preview = sensor.preview_srgb(raw_bayer, params.cfa, black, sensor.WHITE_LEVEL,
-                                      params.xyz_to_cam)
+        preview = sensor.preview_srgb(sensor.conceal_defects(raw_bayer, defects), params.cfa,
+                                      black, params.white_level, params.xyz_to_cam)
         iio.imwrite(folder / "images" / f"{stem}.jpg", sensor.to_uint8(preview),
                     extension=".jpg", quality=JPEG_QUALITY)
         rgb_linear = frames[i] * np.float32(gt_scale)
         write_exr(folder / "gt" / f"{stem}.exr", rgb_linear)
         write_png(folder / "gt" / f"{stem}.png", srgb_encode(np.clip(rgb_linear, 0.0, 1.0)))
 
-    for j, stem in enumerate(dark_names()):  # lens cap on: no electrons, same sensor
+    # lens cap on: no electrons, same sensor, the first frame's exposure time (with
+    # auto-exposure jitter: as if locked after it; the dark signal does not depend on it)
+    for j, stem in enumerate(dark_names()):
         raw_bayer = sensor.expose(np.zeros((height, width)), params,
-                                  np.random.default_rng([seed, salt, 2, j]))
+                                  np.random.default_rng([seed, salt, 2, j]), defects)
         write_dng(folder / "dark" / f"{stem}.dng", raw_bayer, params.cfa, black,
-                  sensor.WHITE_LEVEL, params.file_xyz_to_cam, np.ones(3),
-                  exposure_time=params.exposure_time, iso=params.iso,
+                  params.white_level, params.file_xyz_to_cam, np.ones(3),
+                  exposure_time=float(params.exposure_time * factors[0]), iso=params.iso,
                   camera_model=params.camera_model)
 
     test = [i for i in range(n_frames) if i % TEST_EVERY == 0]
@@ -294,17 +339,24 @@ def write_capture(folder: Path, params, poses, intr, frames, rgb_cam_of, e_scale
     return test
 
 
-def sensor_manifest(params, e_scale: float, gt_scale: float, near_far) -> dict:
-    """sim.json's entries on the sensor, the noise, the references and the bounds."""
+def sensor_manifest(params, e_scale: float, gt_scale: float, near_far,
+                    quirks=None) -> dict:
+    """sim.json's entries on the sensor, the noise, the references and the bounds; noise
+    figures in DN of the file's bit depth. quirks: draw_quirks's (factors, defects), whose
+    values are recorded where the sensor has those quirks."""
+    scale = params.dn_scale
     return {
         "lux": params.lux, "exposure_time_s": params.exposure_time, "iso": params.iso,
         "electrons_mean_green": params.electrons, "electrons_per_unit_signal": e_scale,
-        "K_dn_per_electron": params.k_gain,
+        "K_dn_per_electron": params.k_gain * scale,
         "noise": {"model": "K*Poisson(e) + TukeyLambda + row + bias, rounded",
-                  "read_tukey_sigma_dn": params.read_sigma,
-                  "read_tukey_lambda": params.tl_lambda, "row_sigma_dn": params.row_sigma,
-                  "black_bias_dn_per_cfa_position": [list(r) for r in params.bias]},
-        "black_level": sensor.BLACK_LEVEL, "white_level": sensor.WHITE_LEVEL,
+                  "read_tukey_sigma_dn": params.read_sigma * scale,
+                  "read_tukey_lambda": params.tl_lambda,
+                  "row_sigma_dn": params.row_sigma * scale,
+                  "black_bias_dn_per_cfa_position": [[b * scale for b in r]
+                                                     for r in params.bias]},
+        "black_level": params.black_level, "white_level": params.white_level,
+        **quirks_manifest(params, quirks),
         "camera_model": params.camera_model, "cfa_pattern": params.cfa_pattern,
         "cfa": params.cfa.tolist(), "xyz_to_cam": params.xyz_to_cam.tolist(),
         # where the file's ColorMatrix or the light breaks the colour path's assumptions
@@ -320,10 +372,56 @@ def sensor_manifest(params, e_scale: float, gt_scale: float, near_far) -> dict:
     }
 
 
+def quirks_manifest(params, quirks=None) -> dict:
+    """sim.json's entries on the camera's quirks ({} for a clean camera): "bits",
+    "vignetting", "exposure_jitter" (each frame's exposure time, from quirks' factors) and
+    "defects" (hot and stuck photosites as [x, y, DN], from quirks' defects)."""
+    factors, defects = quirks if quirks is not None else (None, None)
+    out: dict = {}
+    if params.bits != 14:
+        out["bits"] = params.bits
+        out["bits_note"] = (
+            "the 14-bit capture's photon statistics quantised coarser: K, read and row "
+            f"noise and bias are the 14-bit figures times 2**(bits - 14) = {params.dn_scale:g}; "
+            "black level 512 / 256 / 64 at 14 / 12 / 10 bits, white level 2**bits - 1")
+    if params.vignette_stops:
+        c = sensor.vignette_coefficient(params.vignette_stops)
+        out["vignetting"] = {
+            "model": "gain(r) = 1 / (1 + c r^2)^2 (cos^4 law), r = distance from the image "
+                     "centre / distance from the centre to a corner; on the electrons of "
+                     "raw/ only (not gt/, not dark/), no correction in the files",
+            "stops_at_corners": params.vignette_stops, "c": c,
+            "fix_vignette_radial_k": [2.0 * c, c * c, 0.0, 0.0, 0.0],
+        }
+    if params.exposure_jitter_stops:
+        out["exposure_jitter"] = {
+            "model": "frame exposure time = exposure_time_s * 2**u, u uniform in "
+                     "[-stops, +stops] per frame, the frame's electrons scaled alike (DNG "
+                     "ExposureTime); dark/ frames at the first frame's exposure time",
+            "stops": params.exposure_jitter_stops,
+            **({"factor_per_frame": [float(f) for f in factors],
+                "exposure_time_s_per_frame": [float(params.exposure_time * f)
+                                              for f in factors]}
+               if factors is not None else {}),
+        }
+    if params.hot_pixels:
+        out["defects"] = {
+            "model": "photosites fixed over the capture (raw/ and dark/): hot ones add a "
+                     "constant (clipped at the white level), stuck ones read a constant",
+            "count": int(params.hot_pixels),
+            **({"hot_xy_dn": [[int(x), int(y), float(v)] for (y, x), v
+                              in zip(defects.hot_yx, defects.hot_dn, strict=True)],
+                "stuck_xy_dn": [[int(x), int(y), float(v)] for (y, x), v
+                                in zip(defects.stuck_yx, defects.stuck_dn, strict=True)]}
+               if defects is not None else {}),
+        }
+    return out
+
+
 def simulate_scene(name: str, out_dir, width: int = 480, height: int = 270,
                    n_frames: int = 24, seed: int = 0, overwrite: bool = False,
                    light: float = 1.0) -> Path:
-    """Write scene `name` (one of SCENES, HELDOUT, DEV or MIXED) into out_dir; returns out_dir.
+    """Write scene `name` (one of ALL_SCENES) into out_dir; returns out_dir.
 
     light: the photon budget as a fraction of the scene's own (its mean green electrons
     and nominal lux times `light`), camera settings (ISO, exposure time, read noise, black
