@@ -34,7 +34,8 @@ from experiments.common import (
 
 LABELS = {"nine": "nine built-in", "dev": "tuning", "heldout": "held out",
           "mixed": "mixed light", "heldmixed": "held-out mixed light",
-          "heldcolour": "held-out colour", "cycles": "path-traced (Blender Cycles)"}
+          "heldcolour": "held-out colour", "cycles": "path-traced (Blender Cycles)",
+          "heldquirk": "held-out quirky camera"}
 
 
 def shipped(run: Path) -> str:

@@ -16,6 +16,7 @@ from gridnerf.sim import (
     HELDOUT,
     HELDOUT_COLOUR,
     HELDOUT_MIXED,
+    HELDOUT_QUIRK,
     MIXED,
     SCENES,
     folder_name,
@@ -82,7 +83,8 @@ def stale_run(run: Path, preset: str, quick: bool = False) -> bool:
 
 # the scene groups a study's --scenes may name
 GROUPS = {"nine": SCENES, "heldout": HELDOUT, "dev": DEV, "mixed": MIXED,
-          "heldmixed": HELDOUT_MIXED, "heldcolour": HELDOUT_COLOUR, "cycles": tuple(CYCLES)}
+          "heldmixed": HELDOUT_MIXED, "heldcolour": HELDOUT_COLOUR, "cycles": tuple(CYCLES),
+          "heldquirk": HELDOUT_QUIRK}
 # (label, scenes) of the groups a colour study reports its means over, each apart
 REPORT_GROUPS = (("nine", SCENES), ("tuning", DEV), ("held out", HELDOUT),
                  ("mixed light", MIXED), ("held-out mixed light", HELDOUT_MIXED))

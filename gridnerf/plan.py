@@ -76,7 +76,8 @@ class RunPlan:
     file's); data_noise: the training frames' noise sigma (normalised raw; None where not
     measurable); data_eps: the data term's eps the steps use; opacity: the opacity prior's
     weight in each stage; n_candidates: each stage's static candidate count per ray (0:
-    not decided yet).
+    not decided yet); vignetting: (k1, k2) the lens falloff exp(k1 r^2 + k2 r^4) taken off
+    the training pixels (gridnerf.vignetting), None where none was found.
     """
 
     method: str
@@ -86,6 +87,7 @@ class RunPlan:
     colour: ColourPlan
     opacity: tuple[float, ...]
     n_candidates: tuple[int, ...]
+    vignetting: tuple[float, float] | None = None
 
     @property
     def one_gain(self) -> tuple[float, float, float] | None:
@@ -123,6 +125,8 @@ def from_dict(d: dict) -> RunPlan:
     d["colour"] = ColourPlan(**c)
     d["opacity"] = tuple(float(v) for v in d["opacity"])
     d["n_candidates"] = tuple(int(v) for v in d["n_candidates"])
+    if d.get("vignetting") is not None:
+        d["vignetting"] = tuple(float(v) for v in d["vignetting"])
     plan = RunPlan(**d)
     if not math.isfinite(plan.data_eps) or plan.data_eps <= 0:
         raise ValueError(f"data_eps {plan.data_eps}")

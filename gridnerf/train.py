@@ -42,6 +42,7 @@ from gridnerf import (
     runfolder,
     shipped_colour,
     stages,
+    vignetting,
     white_reference,
 )
 from gridnerf import config as cfgmod
@@ -95,6 +96,27 @@ def _checked_loss(pending: list, run: Path, stage: int, step: int) -> float:
             "lower train.lr_* or check the frames; rerun to resume from the last save",
         )
     return float(values[-1])
+
+
+def _vignetting(run: Path, plan, stage: int, structure, params, data, near_t, far_t,
+                cfg: Config, fits_raw: bool):
+    """(data, plan) at the start of `stage`: after the first stage the lens falloff of the
+    frames is estimated from the coarse fit's correspondences (gridnerf.vignetting) and,
+    over vignetting.MIN_STOPS at the corners, taken off the data and kept in the plan. Only
+    for a method that fits the raw, binned."""
+    if not fits_raw or data.mosaic or stage != 1:
+        return data, plan
+    k = vignetting.estimate(structure, params, data, near_t, far_t, cfg.render)
+    stops = vignetting.corner_stops(k)
+    if abs(stops) <= vignetting.MIN_STOPS:
+        return data, plan
+    print(f"lens falloff: the frames' corners are {abs(stops):.2f} stops "
+          f"{'darker' if stops > 0 else 'brighter'} than their centres (the same surfaces "
+          f"seen at different radii; over {vignetting.MIN_STOPS:g}): taken off the training "
+          "pixels")
+    plan = replace(plan, vignetting=(float(k[0]), float(k[1])))
+    planmod.save(run, plan)
+    return vignetting.apply(data, k), plan
 
 
 def train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool = False,
@@ -162,6 +184,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
             return json.loads((run / "summary.json").read_text())
         print(f"resuming {run} at stage {stage}, step {start}")
         plan = saved
+        data = vignetting.apply(data, plan.vignetting)
     else:
         structure, params = stages.initial_grid(
             data, scene, cfg, key,
@@ -204,6 +227,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     while stage < len(schedule):
         res, steps = schedule[stage]
         if stage > 0 and start == 0 and not opt_leaves:
+            data, plan = _vignetting(run, plan, stage, structure, params, data, near_t, far_t,
+                                     cfg, method.fits_raw(cfg))
             structure, params, info = stages.next_stage_grid(
                 structure, params, res, data, cfg, near_t, far_t,
                 fit=cfg.grid.fit_box and stage == 1, forward_facing=scene.forward_facing)

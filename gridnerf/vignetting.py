@@ -1,0 +1,166 @@
+"""Lens falloff (vignetting) estimated from the views themselves, and taken off the data.
+
+A fast lens wide open darkens the corners of every frame by the same radial law, 1-1.5
+stops on many lenses, and a RAW file carries no correction unless a converter wrote one.
+A single frame cannot tell that falloff from a scene that is darker at its edges; many
+views can: a surface seen near the centre of one frame and near the corner of another is
+one radiance (a diffuse surface), so the ratio of the two observations is the ratio of the
+falloff at the two radii.
+
+After the first, coarse stage of the fit, whose depth is good enough to match pixels
+between views, estimate takes an even sample of the training pixels, puts each at its
+rendered depth, projects it into every other training frame and pairs the two
+observations (correspondences). fit_pairs then solves log(I_i / I_j) = g(r_i) - g(r_j),
+g(r) = k1 r^2 + k2 r^4, with r the distance from the principal point over the farthest
+corner's, by least squares over 2-D bins of (r_i^2, r_j^2) each holding the ratio of its
+sums (the noise of 5-35 photo-electrons a pixel averages out; occlusions and glossy
+surfaces add scatter, not a radial trend). Comparing the frames with the fit's render
+instead does not work: the grid absorbs most of a falloff shared by all views as darker
+paint (on a 1.2-stop lens it saw 0.26 stop).
+
+Where the fitted corner falloff exceeds MIN_STOPS, the run takes it off the training pixels
+(apply: divided by exp(k1 r^2 + k2 r^4)) for the later stages and keeps (k1, k2) in the run
+plan (RunPlan.vignetting). Under MIN_STOPS nothing changes: a capture without falloff
+trains as before.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import jax.numpy as jnp
+import numpy as np
+
+from gridnerf import consistency, dataset, render
+from gridnerf.cameras import project_points
+
+# the corner falloff (stops) above which it is taken off the data (19 % at the corners).
+# Captures without falloff fit up to 0.13 stop (held_arc_brick): pairs that the coarse depth
+# matches wrongly set a corner beside the brighter content of other frames' centres
+# (docs/results.md, "Camera quirks")
+MIN_STOPS = 0.3
+# bins of each observation's radius (equal count) the pairs' ratios are summed over
+PAIR_BINS = 8
+# a bin is used where it holds this many pairs
+MIN_PAIRS = 50
+# a sample point is placed at its rendered depth where the fit is this opaque
+MIN_ACC = 0.9
+# rays of the training frames the estimate renders (an even grid, dataset.strided_pixels)
+RAYS = 65536
+
+
+def radius2(data: dataset.RayData, frame, v, u) -> np.ndarray:
+    """(...) squared distance of pixels (v, u) of training frames `frame` from their frame's
+    principal point, over that of the frame's farthest corner: 0 at the centre, 1 there."""
+    h, w = data.image_hw
+    intr = np.asarray(data.intrinsics)[np.asarray(frame)]
+    cx, cy = intr[..., 2], intr[..., 3]
+    du = np.asarray(u, np.float64) + 0.5 - cx
+    dv = np.asarray(v, np.float64) + 0.5 - cy
+    far = np.maximum(np.maximum(cx, w - cx) ** 2 + np.maximum(cy, h - cy) ** 2, 1e-12)
+    return (du * du + dv * dv) / far
+
+
+def corner_stops(k: tuple[float, float]) -> float:
+    """How many stops darker the corners (r = 1) are than the centre under exp(k1 r^2 +
+    k2 r^4): positive for a falloff."""
+    return -float(k[0] + k[1]) / float(np.log(2.0))
+
+
+def fit_pairs(r2_i: np.ndarray, r2_j: np.ndarray, obs_i: np.ndarray,
+              obs_j: np.ndarray) -> tuple[float, float]:
+    """(k1, k2) of log(obs_i / obs_j) = g(r_i) - g(r_j), g = k1 r^2 + k2 r^4, weighted least
+    squares over PAIR_BINS x PAIR_BINS bins of (r2_i, r2_j) (equal-count edges), each the
+    log of the ratio of its sums against its pairs' mean r^2 and r^4 differences.
+
+    r2_i, r2_j: (P,) radius2 of the two observations of P pairs; obs_i, obs_j: (P,) their
+    exposure-normalised signals. (0, 0) where fewer than 3 bins hold pairs."""
+    r2_i, r2_j = np.asarray(r2_i, np.float64), np.asarray(r2_j, np.float64)
+    obs_i, obs_j = np.asarray(obs_i, np.float64), np.asarray(obs_j, np.float64)
+    if r2_i.size == 0:
+        return 0.0, 0.0
+    edges = np.quantile(np.concatenate([r2_i, r2_j]), np.linspace(0, 1, PAIR_BINS + 1))
+    bi = np.clip(np.searchsorted(edges, r2_i, side="right") - 1, 0, PAIR_BINS - 1)
+    bj = np.clip(np.searchsorted(edges, r2_j, side="right") - 1, 0, PAIR_BINS - 1)
+    cell = bi * PAIR_BINS + bj
+    n_cells = PAIR_BINS * PAIR_BINS
+
+    def sums(x):
+        return np.bincount(cell, weights=x, minlength=n_cells)
+
+    count = np.bincount(cell, minlength=n_cells).astype(np.float64)
+    si, sj = sums(obs_i), sums(obs_j)
+    use = (count >= MIN_PAIRS) & (si > 0) & (sj > 0)
+    use &= np.arange(n_cells) // PAIR_BINS != np.arange(n_cells) % PAIR_BINS  # r_i != r_j
+    if use.sum() < 3:
+        return 0.0, 0.0
+    c = np.maximum(count, 1.0)
+    x1 = (sums(r2_i) - sums(r2_j)) / c
+    x2 = (sums(r2_i**2) - sums(r2_j**2)) / c
+    y = np.log(np.where(use, si, 1.0) / np.where(use, sj, 1.0))
+    w = np.sqrt(count[use])
+    design = np.stack([x1[use], x2[use]], axis=1) * w[:, None]
+    k = np.linalg.lstsq(design, y[use] * w, rcond=None)[0]
+    return float(k[0]), float(k[1])
+
+
+def correspondences(structure, params, data: dataset.RayData, near_t: float, far_t: float,
+                    render_cfg) -> tuple[np.ndarray, ...]:
+    """(r2_i, r2_j, obs_i, obs_j) each (P,): pairs of observations of one surface point in
+    two training frames. The points: an even sample of the training pixels (RAYS rays) at
+    the depth the fit (structure, params) renders for them, where it is opaque (acc over
+    MIN_ACC); each projected into every other training frame it lies in front of and inside.
+    obs: the pixels' exposure-normalised signal summed over the channels (valid in all)."""
+    frame, v, u = (np.asarray(a) for a in dataset.strided_pixels(data, RAYS))
+    sample = dataset.rays_at(data, frame, v, u)
+    out = render.render_image(structure, params, sample["origins"], sample["directions"],
+                              near_t, far_t, render_cfg)
+    points, opaque = consistency.world_points(
+        out["depth"], out["acc"], sample["origins"], sample["directions"], data.ndc,
+        data.ndc_intrinsics, MIN_ACC)
+    mask = np.asarray(sample["mask"], np.float64).reshape(-1, 3).min(-1) > 0
+    keep = opaque.reshape(-1) & mask
+    points = points.reshape(-1, 3)[keep]
+    fi = frame.reshape(-1)[keep]
+    r2_i = radius2(data, fi, v.reshape(-1)[keep], u.reshape(-1)[keep])
+    obs_i = np.asarray(sample["target"], np.float64).reshape(-1, 3)[keep].sum(-1)
+    pixels = np.asarray(data.pixels)
+    valid = np.asarray(data.valid).all(-1)
+    inv = np.asarray(data.inv_exposure, np.float64)
+    c2w = np.asarray(data.c2w, np.float64)
+    intr = np.asarray(data.intrinsics, np.float64)
+    h, w = data.image_hw
+    out_lists = ([], [], [], [])
+    for j in range(c2w.shape[0]):
+        uv = project_points(c2w[j], intr[j], points)  # NaN behind the camera
+        ok = np.all(np.isfinite(uv), axis=-1)
+        uj = np.floor(np.where(ok, uv[:, 0], -1.0)).astype(np.int64)
+        vj = np.floor(np.where(ok, uv[:, 1], -1.0)).astype(np.int64)
+        inside = ok & (fi != j) & (uj >= 0) & (uj < w) & (vj >= 0) & (vj < h)
+        idx = np.flatnonzero(inside)
+        idx = idx[valid[j, vj[idx], uj[idx]]]
+        out_lists[0].append(r2_i[idx])
+        out_lists[1].append(radius2(data, np.full(idx.size, j), vj[idx], uj[idx]))
+        out_lists[2].append(obs_i[idx])
+        out_lists[3].append(pixels[j, vj[idx], uj[idx]].astype(np.float64).sum(-1) * inv[j])
+    return tuple(np.concatenate(x) for x in out_lists)
+
+
+def estimate(structure, params, data: dataset.RayData, near_t: float, far_t: float,
+             render_cfg) -> tuple[float, float]:
+    """(k1, k2): the lens falloff of the training frames, from the pairs of observations
+    the fit's depth gives (correspondences, fit_pairs)."""
+    return fit_pairs(*correspondences(structure, params, data, near_t, far_t, render_cfg))
+
+
+def apply(data: dataset.RayData, k: tuple[float, float] | None) -> dataset.RayData:
+    """data with its binned pixels divided by the falloff exp(k1 r^2 + k2 r^4) (k None or
+    zero: data itself). The mosaic mode is not corrected (its pixels are the raw integers)."""
+    if k is None or (k[0] == 0 and k[1] == 0) or data.mosaic:
+        return data
+    n = data.c2w.shape[0]
+    h, w = data.image_hw
+    frame, v, u = np.meshgrid(np.arange(n), np.arange(h), np.arange(w), indexing="ij")
+    r2 = radius2(data, frame, v, u)
+    gain = np.exp(-(k[0] * r2 + k[1] * r2 * r2)).astype(np.float32)[..., None]
+    return replace(data, pixels=data.pixels * jnp.asarray(gain))
