@@ -102,19 +102,24 @@ def _vignetting(run: Path, plan, stage: int, structure, params, data, near_t, fa
                 cfg: Config, fits_raw: bool):
     """(data, plan) at the start of `stage`: after the first stage the lens falloff of the
     frames is estimated from the coarse fit's correspondences (gridnerf.vignetting) and,
-    over vignetting.MIN_STOPS at the corners, taken off the data and kept in the plan. Only
-    for a method that fits the raw, binned."""
-    if not fits_raw or data.mosaic or stage != 1:
+    over vignetting.MIN_STOPS at the corners, taken off the data and kept in the plan;
+    after the second, where one was found, what is left of it (the finer depth matches
+    fewer pixels wrongly) is added. Only for a method that fits the raw, binned."""
+    if (not fits_raw or data.mosaic or stage not in (1, 2)
+            or (stage == 2) != (plan.vignetting is not None)):
         return data, plan
     k = vignetting.estimate(structure, params, data, near_t, far_t, cfg.render)
     stops = vignetting.corner_stops(k)
-    if abs(stops) <= vignetting.MIN_STOPS:
+    if plan.vignetting is None and abs(stops) <= vignetting.MIN_STOPS:
         return data, plan
+    total = k if plan.vignetting is None else (plan.vignetting[0] + k[0],
+                                                  plan.vignetting[1] + k[1])
     print(f"lens falloff: the frames' corners are {abs(stops):.2f} stops "
-          f"{'darker' if stops > 0 else 'brighter'} than their centres (the same surfaces "
-          f"seen at different radii; over {vignetting.MIN_STOPS:g}): taken off the training "
-          "pixels")
-    plan = replace(plan, vignetting=(float(k[0]), float(k[1])))
+          f"{'darker' if stops > 0 else 'brighter'} than their centres after stage "
+          f"{stage - 1} (the same surfaces seen at different radii; over "
+          f"{vignetting.MIN_STOPS:g} where first found): taken off the training pixels, "
+          f"{vignetting.corner_stops(total):.2f} stops in all")
+    plan = replace(plan, vignetting=(float(total[0]), float(total[1])))
     planmod.save(run, plan)
     return vignetting.apply(data, k), plan
 

@@ -20,8 +20,9 @@ paint (on a 1.2-stop lens it saw 0.26 stop).
 
 Where the fitted corner falloff exceeds MIN_STOPS, the run takes it off the training pixels
 (apply: divided by exp(k1 r^2 + k2 r^4)) for the later stages and keeps (k1, k2) in the run
-plan (RunPlan.vignetting). Under MIN_STOPS nothing changes: a capture without falloff
-trains as before.
+plan (RunPlan.vignetting); after the second stage, whose finer depth matches fewer pixels
+wrongly (wrong matches pull the ratio towards 1), what is left is measured and added.
+Under MIN_STOPS nothing changes: a capture without falloff trains as before.
 """
 
 from __future__ import annotations
@@ -34,19 +35,22 @@ import numpy as np
 from gridnerf import consistency, dataset, render
 from gridnerf.cameras import project_points
 
-# the corner falloff (stops) above which it is taken off the data (19 % at the corners).
-# Captures without falloff fit up to 0.13 stop (held_arc_brick): pairs that the coarse depth
-# matches wrongly set a corner beside the brighter content of other frames' centres
+# the corner falloff (stops) above which it is taken off the data (24 % at the corners).
+# Captures without falloff fit 0.04-0.19 stop (7 simulated scenes; the coarse depth still
+# pairs some pixels with the wrong surface), captures 1-1.5 stops down 0.93-1.42
 # (docs/results.md, "Camera quirks")
-MIN_STOPS = 0.3
+MIN_STOPS = 0.4
 # bins of each observation's radius (equal count) the pairs' ratios are summed over
 PAIR_BINS = 8
 # a bin is used where it holds this many pairs
 MIN_PAIRS = 50
 # a sample point is placed at its rendered depth where the fit is this opaque
 MIN_ACC = 0.9
+# a point seen in another frame is paired where that frame's rendered depth at its pixel
+# is within this share of the point's own depth there (else an occluder, or a wrong match)
+DEPTH_TOL = 0.05
 # rays of the training frames the estimate renders (an even grid, dataset.strided_pixels)
-RAYS = 65536
+RAYS = 16384
 
 
 def radius2(data: dataset.RayData, frame, v, u) -> np.ndarray:
@@ -109,8 +113,11 @@ def correspondences(structure, params, data: dataset.RayData, near_t: float, far
     """(r2_i, r2_j, obs_i, obs_j) each (P,): pairs of observations of one surface point in
     two training frames. The points: an even sample of the training pixels (RAYS rays) at
     the depth the fit (structure, params) renders for them, where it is opaque (acc over
-    MIN_ACC); each projected into every other training frame it lies in front of and inside.
-    obs: the pixels' exposure-normalised signal summed over the channels (valid in all)."""
+    MIN_ACC); each projected into every other training frame it lies in front of and inside,
+    and kept where that frame sees it (_seen: the fit's depth there agrees; pixels that
+    see an occluder, or a surface the coarse depth matched wrongly, would set a corner beside
+    other content, on average the brighter middle of the frames). obs: the pixels'
+    exposure-normalised signal summed over the channels (valid in all)."""
     frame, v, u = (np.asarray(a) for a in dataset.strided_pixels(data, RAYS))
     sample = dataset.rays_at(data, frame, v, u)
     out = render.render_image(structure, params, sample["origins"], sample["directions"],
@@ -130,7 +137,7 @@ def correspondences(structure, params, data: dataset.RayData, near_t: float, far
     c2w = np.asarray(data.c2w, np.float64)
     intr = np.asarray(data.intrinsics, np.float64)
     h, w = data.image_hw
-    out_lists = ([], [], [], [])
+    cand = []  # (index into the points, frame j, row, column) of every projection
     for j in range(c2w.shape[0]):
         uv = project_points(c2w[j], intr[j], points)  # NaN behind the camera
         ok = np.all(np.isfinite(uv), axis=-1)
@@ -139,11 +146,34 @@ def correspondences(structure, params, data: dataset.RayData, near_t: float, far
         inside = ok & (fi != j) & (uj >= 0) & (uj < w) & (vj >= 0) & (vj < h)
         idx = np.flatnonzero(inside)
         idx = idx[valid[j, vj[idx], uj[idx]]]
-        out_lists[0].append(r2_i[idx])
-        out_lists[1].append(radius2(data, np.full(idx.size, j), vj[idx], uj[idx]))
-        out_lists[2].append(obs_i[idx])
-        out_lists[3].append(pixels[j, vj[idx], uj[idx]].astype(np.float64).sum(-1) * inv[j])
-    return tuple(np.concatenate(x) for x in out_lists)
+        cand.append(np.stack([idx, np.full(idx.size, j), vj[idx], uj[idx]], axis=1))
+    cand = np.concatenate(cand)
+    cand = cand[_seen(structure, params, data, near_t, far_t, render_cfg, cand[:, 1],
+                      cand[:, 2], cand[:, 3], points[cand[:, 0]])]
+    idx, fj, vj, uj = cand.T
+    out_lists = (r2_i[idx], radius2(data, fj, vj, uj), obs_i[idx],
+                 pixels[fj, vj, uj].astype(np.float64).sum(-1) * inv[fj])
+    return out_lists
+
+
+def _seen(structure, params, data: dataset.RayData, near_t: float, far_t: float,
+          render_cfg, fj: np.ndarray, vj: np.ndarray, uj: np.ndarray, points: np.ndarray
+          ) -> np.ndarray:
+    """(P,) bool: pixels (vj, uj) of frames fj see the points (P, 3) themselves, not a
+    surface in front of or behind them: the depth the fit renders there is within DEPTH_TOL
+    of the point's own depth along that camera's axis."""
+    if points.shape[0] == 0:
+        return np.zeros(0, bool)
+    sample = dataset.rays_at(data, jnp.asarray(fj), jnp.asarray(vj), jnp.asarray(uj))
+    out = render.render_image(structure, params, sample["origins"], sample["directions"],
+                              near_t, far_t, render_cfg)
+    seen, opaque = consistency.world_points(
+        out["depth"], out["acc"], sample["origins"], sample["directions"], data.ndc,
+        data.ndc_intrinsics, MIN_ACC)
+    c2w = np.asarray(data.c2w, np.float64)[fj]  # (P, 3, 4)
+    own = -np.einsum("pk,pkl->pl", points - c2w[:, :, 3], c2w[:, :, :3])[:, 2]
+    there = -np.einsum("pk,pkl->pl", seen - c2w[:, :, 3], c2w[:, :, :3])[:, 2]
+    return opaque & (np.abs(there - own) <= DEPTH_TOL * np.abs(own))
 
 
 def estimate(structure, params, data: dataset.RayData, near_t: float, far_t: float,

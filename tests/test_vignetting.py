@@ -76,3 +76,28 @@ def test_plan_round_trip_keeps_the_falloff():
     old = planmod.to_dict(plan)
     del old["vignetting"]  # a plan written before the falloff was estimated
     assert planmod.from_dict(old).vignetting is None
+
+
+def test_training_takes_a_lens_falloff_off_and_leaves_a_clean_lens_alone(small_scene,
+                                                                           tmp_path):
+    """bucket shot through a lens 1.5 stops down at the corners (the simulator's cos^4 law,
+    otherwise the same capture as small_scene): the tiny preset finds the falloff after its
+    first stage and keeps it in the plan; the clean capture keeps none."""
+    from dataclasses import replace
+
+    from gridnerf import config as cfgmod
+    from gridnerf.sim import scenes, simulate_scene, writer
+    from gridnerf.train import train
+
+    base = scenes.build_scene("bucket")
+    spec = replace(base, sensor=replace(base.sensor, vignette_stops=1.5))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(writer, "build_scene", lambda name: spec)
+        folder = simulate_scene("bucket", tmp_path / "vignetted", width=160, height=90,
+                                n_frames=12, seed=0)
+    cfg = cfgmod.preset("tiny")
+    train(folder, tmp_path / "run", cfg)
+    k = planmod.load(tmp_path / "run").vignetting
+    assert k is not None and vignetting.corner_stops(k) == pytest.approx(1.5, abs=0.4)
+    train(small_scene, tmp_path / "clean", cfg)
+    assert planmod.load(tmp_path / "clean").vignetting is None
