@@ -35,11 +35,11 @@ import numpy as np
 from gridnerf import consistency, dataset, render
 from gridnerf.cameras import project_points
 
-# the corner falloff (stops) above which it is taken off the data (24 % at the corners).
-# Captures without falloff fit 0.04-0.19 stop (7 simulated scenes; the coarse depth still
-# pairs some pixels with the wrong surface), captures 1-1.5 stops down 0.93-1.42
-# (docs/results.md, "Camera quirks")
-MIN_STOPS = 0.4
+# the corner falloff (stops) above which it is taken off the data (29 % at the corners).
+# Captures without falloff read -0.35 to 0.42 (held_mixed_arc, cycles_sodium_room; the
+# coarse depth still pairs some pixels with the wrong surface), the three captures 1-1.5
+# stops down 0.96-1.01 after the first stage (docs/results.md, "Camera quirks")
+MIN_STOPS = 0.5
 # bins of each observation's radius (equal count) the pairs' ratios are summed over
 PAIR_BINS = 8
 # a bin is used where it holds this many pairs
