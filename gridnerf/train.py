@@ -105,15 +105,15 @@ def _vignetting(run: Path, plan, stage: int, structure, params, data, near_t, fa
     over vignetting.MIN_STOPS at the corners, taken off the data and kept in the plan;
     after the second, where one was found, what is left of it (the finer depth matches
     fewer pixels wrongly) is added. Only for a method that fits the raw, binned."""
-    if (not fits_raw or data.mosaic or stage not in (1, 2)
-            or (stage == 2) != (plan.vignetting is not None)):
+    first = stage == 1 and plan.vignetting is None
+    refine = stage == 2 and plan.vignetting is not None
+    if not fits_raw or data.mosaic or not (first or refine):
         return data, plan
     k = vignetting.estimate(structure, params, data, near_t, far_t, cfg.render)
     stops = vignetting.corner_stops(k)
-    if plan.vignetting is None and abs(stops) <= vignetting.MIN_STOPS:
+    if first and abs(stops) <= vignetting.MIN_STOPS:
         return data, plan
-    total = k if plan.vignetting is None else (plan.vignetting[0] + k[0],
-                                                  plan.vignetting[1] + k[1])
+    total = k if first else (plan.vignetting[0] + k[0], plan.vignetting[1] + k[1])
     print(f"lens falloff: the frames' corners are {abs(stops):.2f} stops "
           f"{'darker' if stops > 0 else 'brighter'} than their centres after stage "
           f"{stage - 1} (the same surfaces seen at different radii; over "

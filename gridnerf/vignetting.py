@@ -161,7 +161,7 @@ def _seen(structure, params, data: dataset.RayData, near_t: float, far_t: float,
           ) -> np.ndarray:
     """(P,) bool: pixels (vj, uj) of frames fj see the points (P, 3) themselves, not a
     surface in front of or behind them: the depth the fit renders there is within DEPTH_TOL
-    of the point's own depth along that camera's axis."""
+    of the point's own depth in that camera (consistency.camera_depth)."""
     if points.shape[0] == 0:
         return np.zeros(0, bool)
     sample = dataset.rays_at(data, jnp.asarray(fj), jnp.asarray(vj), jnp.asarray(uj))
@@ -170,9 +170,12 @@ def _seen(structure, params, data: dataset.RayData, near_t: float, far_t: float,
     seen, opaque = consistency.world_points(
         out["depth"], out["acc"], sample["origins"], sample["directions"], data.ndc,
         data.ndc_intrinsics, MIN_ACC)
-    c2w = np.asarray(data.c2w, np.float64)[fj]  # (P, 3, 4)
-    own = -np.einsum("pk,pkl->pl", points - c2w[:, :, 3], c2w[:, :, :3])[:, 2]
-    there = -np.einsum("pk,pkl->pl", seen - c2w[:, :, 3], c2w[:, :, :3])[:, 2]
+    c2w = np.asarray(data.c2w, np.float64)
+    own, there = np.empty(len(fj)), np.empty(len(fj))
+    for j in np.unique(fj):
+        at = fj == j
+        own[at] = consistency.camera_depth(c2w[j], points[at])
+        there[at] = consistency.camera_depth(c2w[j], seen[at])
     return opaque & (np.abs(there - own) <= DEPTH_TOL * np.abs(own))
 
 
