@@ -1,4 +1,4 @@
-"""`gridnerf` command line: simulate | poses | train | eval | render.
+"""`gridnerf` command line: simulate | poses | train | eval | render | view.
 
 Every user-fixable problem surfaces as one line on stderr naming the file
 and the fix, with exit status 2 (see gridnerf.errors).
@@ -84,10 +84,29 @@ def _eval(args) -> None:
 
 
 def _render(args) -> None:
-    from gridnerf.eval_run import render_run
+    from gridnerf.eval_run import RenderSettings, render_run
+    from gridnerf.look import FORMATS
 
-    out = render_run(Path(args.run), path=args.path, n_frames=args.frames)
+    formats = tuple(f.strip() for f in args.format.split(",") if f.strip())
+    settings = RenderSettings(path=args.path, n_frames=args.frames, views=args.views or "",
+                              exposure_stops=args.exposure, white=args.white,
+                              scale=args.scale, formats=formats)
+    if args.path == "views" and not args.views:
+        raise _UsageError("gridnerf render: --path views needs --views FRAME,FRAME[,...]. "
+                          "Fix: name at least two frames, e.g. --views frame_000,frame_008")
+    bad = [f for f in formats if f not in FORMATS] or ([] if formats else [args.format])
+    if bad:
+        raise _UsageError(f"gridnerf render: --format {args.format!r} is not a list of "
+                          f"{', '.join(FORMATS)}. Fix: e.g. --format png,exr")
+    out = render_run(Path(args.run), settings)
     print(f"wrote {out}")
+
+
+def _view(args) -> None:
+    from gridnerf.viewer import write_viewer
+
+    out = write_viewer(Path(args.run), Path(args.out) if args.out else None)
+    print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB)")
 
 
 class _UsageError(Exception):
@@ -137,6 +156,7 @@ failed start leaves no run folder behind. One training per run folder at a time.
 
 def build_parser() -> argparse.ArgumentParser:
     from gridnerf.config import PRESETS
+    from gridnerf.look import FORMATS, WHITE_HELP
 
     p = _Parser(prog="gridnerf", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -208,9 +228,28 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("render", help="render test views or a camera path (PNG, EXR, mp4)")
     s.add_argument("run")
-    s.add_argument("--path", default="spiral", choices=["spiral", "ellipse", "test"])
+    s.add_argument("--path", default="spiral", choices=["spiral", "ellipse", "test", "views"],
+                   help="spiral or ellipse around the capture, the test views, or a path "
+                   "through the frames given by --views")
+    s.add_argument("--views", metavar="FRAME,FRAME[,...]",
+                   help="frames the `views` path passes through, in order")
     s.add_argument("--frames", type=_positive_int, default=60, help="frames of the camera path")
+    s.add_argument("--exposure", type=float, default=0.0, metavar="STOPS",
+                   help="exposure compensation over the automatic exposure, in stops")
+    s.add_argument("--white", default="learned", metavar="WB",
+                   help=f"white balance: {WHITE_HELP}")
+    s.add_argument("--scale", type=_positive_float, default=1.0,
+                   help="output size as a multiple of the capture's (e.g. 0.5, 2)")
+    s.add_argument("--format", default=",".join(FORMATS),
+                   help="files to write, comma-separated: png (sRGB), exr (linear), "
+                   "mp4 (the path as a video)")
     s.set_defaults(func=_render)
+
+    s = sub.add_parser("view", help="write one self-contained HTML file that renders the run "
+                       "in a browser (WebGL2: orbit, exposure, white balance)")
+    s.add_argument("run")
+    s.add_argument("--out", help="HTML file (default <run>/viewer.html)")
+    s.set_defaults(func=_view)
     return p
 
 

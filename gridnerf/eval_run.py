@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import resource
 import time
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -35,7 +36,9 @@ from gridnerf import (
     dataset,
     evaluate,
     image_io,
+    look,
     methods,
+    outputs,
     raw,
     rays,
     render,
@@ -165,6 +168,9 @@ def evaluate_run(run: Path) -> dict:
         "per_view": per_view,
         "summary": {m: evaluate.summarize(v) for m, v in per_view.items() if v},
     }
+    if not result["summary"]:
+        print(f"eval: the scene has no references (gt/) for its test views: nothing to score "
+              f"against; the test renders are in {out_dir}")
     atomic.write_text(out_dir / "metrics.json", json.dumps(result, indent=2))
     return result
 
@@ -215,27 +221,79 @@ def camera_path(scene, kind: str, n_frames: int) -> np.ndarray:
     return np.stack(poses)
 
 
-def render_run(run: Path, path: str = "spiral", n_frames: int = 60) -> Path:
-    """Render test views (`path='test'`) or a camera path to run/render/: PNG, EXR, mp4."""
-    cfg, plan, scene, structure, params, _ = load_run(run)
-    main = run_outputs(cfg, plan, scene, structure, params)[main_output(cfg)]
+@dataclass(frozen=True)
+class RenderSettings:
+    """How `render_run` shows a run (gridnerf.look): a camera path (spiral, ellipse, test,
+    views: through the frames named in `views`, comma-separated), its frame count,
+    exposure compensation in stops, a white balance (look.parse_white's text), a size scale
+    and the files written (a subset of FORMATS)."""
+
+    path: str = "spiral"
+    n_frames: int = 60
+    views: str = ""
+    exposure_stops: float = 0.0
+    white: str = "learned"
+    scale: float = 1.0
+    formats: tuple[str, ...] = look.FORMATS
+
+
+def _path_views(scene, settings: RenderSettings) -> list[tuple[str, np.ndarray]]:
+    """[(file stem, (3, 4) camera-to-world)] of the settings' camera path."""
     cams = scene.cameras
-    ds = cfg.data.eval_downscale
-    h, w = cams.height // ds, cams.width // ds
-    intr0 = np.array([cams.fx[0], cams.fy[0], cams.cx[0], cams.cy[0]]) / ds
-    if path == "test":
-        views = [(scene.names[i], cams.c2w[i]) for i in scene.test_idx]
+    if settings.path == "test":
+        return [(scene.names[i], cams.c2w[i]) for i in scene.test_idx]
+    if settings.path == "views":
+        poses = look.views_path(cams.c2w[look.parse_views(settings.views, scene)],
+                                settings.n_frames)
     else:
-        views = [(f"{path}_{k:03d}", p) for k, p in enumerate(camera_path(scene, path, n_frames))]
+        poses = camera_path(scene, settings.path, settings.n_frames)
+    return [(f"{settings.path}_{k:03d}", p) for k, p in enumerate(poses)]
+
+
+def render_run(run: Path, settings: RenderSettings | None = None) -> Path:
+    """Render test views or a camera path to run/render/ (PNG, EXR, mp4 as asked) with the
+    settings' exposure, white balance and size; render/<path>.json records what was shown
+    (the gains, exposure alpha and matrix). Returns the video, or the folder without one."""
+    settings = settings or RenderSettings()
+    white = look.parse_white(settings.white)
+    cfg, plan, scene, structure, params, _ = load_run(run)
+    cams = scene.cameras
+    size = settings.scale / cfg.data.eval_downscale
+    h, w = max(int(round(cams.height * size)), 1), max(int(round(cams.width * size)), 1)
+
+    def frame_intrinsics(i: int) -> np.ndarray:
+        return np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]]) * size
+
+    def render_frame(i: int) -> dict:
+        return render_view(structure, params, scene, cfg, cams.c2w[i], frame_intrinsics(i),
+                           h, w)
+
+    views = _path_views(scene, settings)
+    training_out = outputs.training_render(structure, params, scene, cfg)
+    shown = run_outputs(cfg, plan, scene, structure, params, training_out)
+    main = look.shown_output(shown, main_output(cfg), white,
+                             look.neutral_rgb(white, scene, render_frame),
+                             settings.exposure_stops, training_out,
+                             cfg.output.target_luminance)
     out_dir = run / "render"
     out_dir.mkdir(parents=True, exist_ok=True)
     frames = []
     for name, c2w in views:
-        out = render_view(structure, params, scene, cfg, c2w, intr0, h, w)
+        out = render_view(structure, params, scene, cfg, c2w, frame_intrinsics(0), h, w)
         rgb_linear, rgb_srgb = main.show(out)
-        image_io.write_png(out_dir / f"{name}.png", rgb_srgb)
-        image_io.write_exr(out_dir / f"{name}.exr", rgb_linear)
+        if "png" in settings.formats:
+            image_io.write_png(out_dir / f"{name}.png", rgb_srgb)
+        if "exr" in settings.formats:
+            image_io.write_exr(out_dir / f"{name}.exr", rgb_linear)
         frames.append(rgb_srgb)
-    video = out_dir / f"{path}.mp4"
-    image_io.write_mp4(video, frames, fps=30)
-    return video
+    record = {"settings": asdict(settings), "size": [w, h], "views": [n for n, _ in views],
+              "alpha": getattr(main, "alpha", 1.0)}
+    if isinstance(main, outputs.Output):
+        record.update(source=main.source, gains=[float(v) for v in main.gains],
+                      matrix=np.asarray(main.matrix).tolist())
+    atomic.write_text(out_dir / f"{settings.path}.json", json.dumps(record, indent=2))
+    if "mp4" in settings.formats and len(frames) > 1:
+        video = out_dir / f"{settings.path}.mp4"
+        image_io.write_mp4(video, frames, fps=30)
+        return video
+    return out_dir

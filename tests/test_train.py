@@ -184,13 +184,51 @@ def test_config_overrides_and_round_trip(tmp_path):
 
 
 def test_render_camera_path_writes_video(tiny_run):
-    from gridnerf.eval_run import render_run
+    from gridnerf.eval_run import RenderSettings, render_run
 
     run, _, _ = tiny_run
-    video = render_run(run, path="spiral", n_frames=4)
+    video = render_run(run, RenderSettings(path="spiral", n_frames=4))
     assert video.exists() and video.stat().st_size > 0
     assert len(list((run / "render").glob("spiral_*.png"))) == 4
     assert len(list((run / "render").glob("spiral_*.exr"))) == 4
+
+
+def test_render_controls_change_only_what_they_name(tiny_run):
+    """One stop more doubles the linear EXR; a white balance changes the colour but not the
+    mean luminance (each white is exposed again); scale sets the size; a path through
+    named views starts and ends on them; render/<path>.json records what was shown."""
+    from gridnerf import color, image_io
+    from gridnerf.eval_run import RenderSettings, render_run
+
+    run, _, _ = tiny_run
+
+    def rendered(**kw) -> tuple[np.ndarray, dict]:
+        settings = RenderSettings(path="test", formats=("exr",), **kw)
+        render_run(run, settings)
+        record = json.loads((run / "render" / "test.json").read_text())
+        return image_io.read_exr(run / "render" / f"{record['views'][0]}.exr"), record
+
+    base, rec0 = rendered()
+    brighter, rec1 = rendered(exposure_stops=1.0)
+    np.testing.assert_allclose(brighter, 2.0 * base, rtol=1e-4, atol=1e-6)
+    assert rec1["alpha"] == pytest.approx(2.0 * rec0["alpha"])
+    warm, rec2 = rendered(white="temp:2500")
+    cool, _ = rendered(white="temp:9000")
+    assert rec2["source"] == "rgb_low"
+    # a warmer assumed light takes more red out: the image is bluer than under a cooler one
+    assert warm[..., 2].mean() / warm[..., 0].mean() > cool[..., 2].mean() / cool[..., 0].mean()
+    assert color.luminance(warm).mean() == pytest.approx(color.luminance(cool).mean(), rel=0.1)
+    half, rec3 = rendered(scale=0.5)
+    assert half.shape[:2] == (base.shape[0] // 2, base.shape[1] // 2)
+    assert rec3["size"] == [half.shape[1], half.shape[0]]
+
+    first, last = rec0["views"][0], rec0["views"][-1]
+    render_run(run, RenderSettings(path="views", views=f"{first},{last}", n_frames=3,
+                                   formats=("exr",)))
+    views = json.loads((run / "render" / "views.json").read_text())
+    np.testing.assert_allclose(image_io.read_exr(run / "render" / "views_000.exr"), base,
+                               atol=1e-5)
+    assert views["views"] == ["views_000", "views_001", "views_002"]
 
 
 def test_cli_reports_bad_input_with_exit_status_2(tmp_path, capsys):
@@ -596,3 +634,25 @@ def test_the_summary_says_which_colour_was_shipped(tiny_run):
     plan = json.loads((run / "plan.json").read_text())
     assert set(plan["colour"]["evidence"]) >= {"grey_world", "shades_of_grey", "grey_edge"}
     assert (plan["colour"]["shipped_gains"] is None) == (record["shipped"] == "field")
+
+
+def test_eval_without_references_writes_the_renders_and_says_so(tiny_run, tmp_path, capsys):
+    """A capture with no gt/ (raw files only): eval writes the test renders, scores nothing
+    and says why instead of failing."""
+    import shutil
+
+    from gridnerf.eval_run import evaluate_run
+
+    run, _, summary = tiny_run
+    scene = tmp_path / "scene"
+    shutil.copytree(summary["scene"], scene, ignore=shutil.ignore_patterns("gt"))
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy, ignore=shutil.ignore_patterns("eval", "render"))
+    meta = json.loads((copy / "summary.json").read_text())
+    (copy / "summary.json").write_text(json.dumps({**meta, "scene": str(scene)}))
+    metrics = evaluate_run(copy)
+    assert metrics["summary"] == {}
+    assert "nothing to score against" in capsys.readouterr().out
+    for name in metrics["test_views"]:
+        assert (copy / "eval" / f"{name}_pred.png").exists()
+        assert (copy / "eval" / f"{name}_pred.exr").exists()
