@@ -57,6 +57,27 @@ def test_a_field_near_the_frames_estimates_is_shipped(capsys):
     assert "the field is shipped" in capsys.readouterr().out
 
 
+def test_under_one_light_the_fields_white_is_shipped_as_one_gain(capsys):
+    """Model only what the scene needs: where the maps show one light, a supported field's
+    white becomes one gain (the white the field undoes on average); under lights that mix,
+    or a spread in the doubt band, the field is shipped."""
+    from dataclasses import replace
+
+    from gridnerf import colour_target
+
+    light = np.array([0.7, 0.65, 0.3])
+    out = _render(light, illuminant.gains_from_illuminant(light * [1.05, 1.0, 0.95]))
+    one = colour_target.LIGHT_DOUBT_DEG[0] - 0.1
+    colour, record = shipped_colour.check(out, replace(_colour(light), light_spread_deg=one))
+    assert record["shipped"] == "one_gain" and "one light" in capsys.readouterr().out
+    white = shipped_colour.shipped_white(out)
+    assert colour.shipped_gains == pytest.approx(tuple(illuminant.gains_from_illuminant(white)))
+    for spread in (colour_target.LIGHT_DOUBT_DEG[0], colour_target.LIGHT_DOUBT_DEG[1] + 1.0):
+        colour, record = shipped_colour.check(out, replace(_colour(light),
+                                                           light_spread_deg=spread))
+        assert record["shipped"] == "field" and colour.shipped_gains is None
+
+
 def test_a_field_no_estimate_supports_falls_back_to_one_grey_world_gain(capsys, tmp_path):
     light = np.array([0.7, 0.65, 0.3])
     drifted = light * np.array([1.0, 1.0, 3.0])  # the field's white: three times the blue
