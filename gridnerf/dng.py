@@ -26,7 +26,8 @@ Tag numbers and types follow the DNG 1.4 specification and TIFF/EP:
 | 50728 | AsShotNeutral        | RATIONAL 3 |
 | 50778 | CalibrationIlluminant1 | SHORT   |
 
-Optional, off by default (what a raw converter writes; no part of gridnerf reads them):
+Optional, off by default (what a raw converter writes; gridnerf.raw applies them on
+reading, gridnerf.raw_layout):
 
 | tag   | name                 | type      |
 |-------|----------------------|-----------|
@@ -35,8 +36,9 @@ Optional, off by default (what a raw converter writes; no part of gridnerf reads
 | 50720 | DefaultCropSize      | LONG 2 (width, height) |
 | 50730 | BaselineExposure     | SRATIONAL (EV) |
 | 51022 | OpcodeList3          | UNDEFINED (big-endian opcode list) |
+| 51008, 51009 | OpcodeList1, OpcodeList2 | UNDEFINED, given verbatim (opcode_lists) |
 
-The opcode list holds one FixVignetteRadial opcode (ID 3, DNG 1.3): the gain
+The vignetting opcode list holds one FixVignetteRadial opcode (ID 3, DNG 1.3): the gain
 g(r) = 1 + k0 r^2 + k1 r^4 + k2 r^6 + k3 r^8 + k4 r^10 that undoes a lens's falloff, r the
 distance from the optical centre (cx, cy, fractions of the image width and height) over
 its distance to the farthest image corner.
@@ -161,7 +163,7 @@ def _check_inputs(raw_bayer, cfa, black_level, white_level, xyz_to_cam, as_shot_
 
 
 def _converter_tags(shape, default_crop, orientation, baseline_exposure, vignette_k,
-                    vignette_centre) -> list[tuple]:
+                    vignette_centre, opcode_lists=None) -> list[tuple]:
     """The optional tags (module docstring) as tifffile extratags; Orientation always."""
     if int(orientation) != orientation or not 1 <= orientation <= 8:
         raise ValueError(f"orientation must be a TIFF Orientation 1..8, got {orientation}")
@@ -176,9 +178,16 @@ def _converter_tags(shape, default_crop, orientation, baseline_exposure, vignett
     if baseline_exposure is not None:
         tags.append((TAG_BASELINE_EXPOSURE, _SRATIONAL, 1,
                      _rationals([baseline_exposure], signed=True), True))
+    lists = dict(opcode_lists or {})
+    if not set(lists) <= {51008, 51009, TAG_OPCODE_LIST_3}:
+        raise ValueError(f"opcode_lists takes tags 51008, 51009, 51022, got {sorted(lists)}")
     if vignette_k is not None:
-        opcodes = opcode_list([fix_vignette_radial(vignette_k, vignette_centre)])
-        tags.append((TAG_OPCODE_LIST_3, _UNDEFINED, len(opcodes), opcodes, True))
+        if TAG_OPCODE_LIST_3 in lists:
+            raise ValueError("give OpcodeList3 either as vignette_k or in opcode_lists")
+        lists[TAG_OPCODE_LIST_3] = opcode_list([fix_vignette_radial(vignette_k,
+                                                                    vignette_centre)])
+    for code, opcodes in sorted(lists.items()):
+        tags.append((code, _UNDEFINED, len(opcodes), bytes(opcodes), True))
     return tags
 
 
@@ -198,6 +207,7 @@ def write_dng(
     baseline_exposure: float | None = None,
     vignette_k=None,
     vignette_centre: tuple[float, float] = (0.5, 0.5),
+    opcode_lists: dict[int, bytes] | None = None,
 ) -> None:
     """Write a Bayer mosaic as an uncompressed 16-bit DNG, atomically.
 
@@ -218,6 +228,9 @@ def write_dng(
       baseline_exposure: optional EV a converter adds (BaselineExposure).
       vignette_k: optional (<= 5,) FixVignetteRadial coefficients k0..k4, written as
         OpcodeList3 with the optical centre vignette_centre (fractions of width, height).
+      opcode_lists: optional {tag: opcode list bytes} for OpcodeList1 (51008), OpcodeList2
+        (51009) or OpcodeList3 (51022, not with vignette_k), written as given
+        (opcode_list, gridnerf.dng_opcodes.encode).
     """
     raw_bayer, cfa, black_level, xyz_to_cam, as_shot_neutral = _check_inputs(
         raw_bayer, cfa, black_level, white_level, xyz_to_cam, as_shot_neutral
@@ -248,7 +261,7 @@ def write_dng(
     if iso is not None:
         extratags.append((TAG_ISO, _SHORT, 1, int(round(float(iso))), True))
     extratags += _converter_tags(raw_bayer.shape, default_crop, orientation, baseline_exposure,
-                                 vignette_k, vignette_centre)
+                                 vignette_k, vignette_centre, opcode_lists)
 
     def fill(tmp: Path) -> None:
         with open(tmp, "wb") as fh:

@@ -10,7 +10,9 @@ training decides at run time from the capture goes here instead, is saved as
   noise sigma it was capped against;
 - the colour (ColourPlan): which estimator "consistent" picked, the capture's illuminant
   (the L_ca target's anchor, where the gains start), one gain or the gain field;
-- per stage: the opacity prior's weight and the fitted candidate count of the step.
+- per stage: the opacity prior's weight and the fitted candidate count of the step;
+- the lens falloff: estimated from the frames and taken off (gridnerf.vignetting), or
+  corrected by the raw files' own opcodes on loading (gridnerf.raw_layout).
 
 The plan is built once before the first step (candidate counts are filled in as each
 stage's grid is made: `with_candidates`); a resumed run reads it back and keeps it.
@@ -77,7 +79,10 @@ class RunPlan:
     measurable); data_eps: the data term's eps the steps use; opacity: the opacity prior's
     weight in each stage; n_candidates: each stage's static candidate count per ray (0:
     not decided yet); vignetting: (k1, k2) the lens falloff exp(k1 r^2 + k2 r^4) taken off
-    the training pixels (gridnerf.vignetting), None where none was found.
+    the training pixels (gridnerf.vignetting), None where none was found; file_falloff: the
+    raw files' own falloff correction the loader applied (Scene.lens_correction, e.g.
+    "FixVignetteRadial (OpcodeList3)"), None where they carried none. Where set, the
+    frame-based estimate is skipped (train._vignetting), so vignetting stays None.
     """
 
     method: str
@@ -88,6 +93,7 @@ class RunPlan:
     opacity: tuple[float, ...]
     n_candidates: tuple[int, ...]
     vignetting: tuple[float, float] | None = None
+    file_falloff: str | None = None
 
     @property
     def one_gain(self) -> tuple[float, float, float] | None:

@@ -17,6 +17,9 @@ Where the metadata comes from (behaviour of rawpy 0.28 / LibRaw 0.22, checked he
 - as-shot neutral: the DNG AsShotNeutral tag, else `1 / camera_whitebalance` from LibRaw,
   else (1, 1, 1); always normalised so that G = 1.
 - exposure time and ISO: the TIFF/EXIF tags (exact rationals), else LibRaw, else None.
+- a converter's tags (DNG gain opcodes, DefaultCrop, BaselineExposure: tifffile; the
+  orientation: LibRaw's sizes.flip, for every format): the mosaic is returned as displayed,
+  its CFA and black levels remapped alike (gridnerf.raw_layout, gridnerf.dng_opcodes).
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ import numpy as np
 import rawpy
 import tifffile
 
-from gridnerf import color
+from gridnerf import color, dng_opcodes, raw_layout
 from gridnerf.errors import RawError
 
 _FIX_CORRUPT = "re-export or re-copy the file from the camera/card; it may be truncated"
@@ -44,13 +47,15 @@ _PHOTOMETRIC_CFA = 32803
 class RawFrame:
     """One RAW exposure with the metadata needed to normalise it and map it to colour.
 
-    raw_bayer: (H, W) uint16 visible mosaic, black level NOT removed.
-    cfa: (2, 2) int, colour index per CFA position (0=R, 1=G, 2=B).
-    black_level: (2, 2) float32 per CFA position.
+    raw_bayer: (H, W) uint16 visible mosaic as displayed (the file's gain opcodes,
+      DefaultCrop and Orientation applied: gridnerf.raw_layout), black level NOT removed.
+    cfa: (2, 2) int, colour index per CFA position (0=R, 1=G, 2=B) of the displayed mosaic.
+    black_level: (2, 2) float32 per CFA position of the displayed mosaic.
     xyz_to_cam: (3, 3) float64 XYZ -> camera matrix for D65.
     as_shot_neutral: (3,) float64 camera RGB of a neutral, G normalised to 1.
     has_color_matrix: False when the file gave no colour matrix and sRGB primaries stand in.
     camera_model: the file's UniqueCameraModel (else Model) tag, None where it has none.
+    converted: what the file's converter tags did (raw_layout.Converted).
     """
 
     path: str
@@ -64,6 +69,7 @@ class RawFrame:
     iso: float | None
     has_color_matrix: bool = True
     camera_model: str | None = None
+    converted: raw_layout.Converted = raw_layout.Converted()
 
 
 def check_cfa(cfa) -> np.ndarray:
@@ -137,7 +143,9 @@ def _dng_tags(path: Path) -> dict:
 
     Returns {} for files tifffile cannot parse (CR3, RAF...): those rely on LibRaw.
     Keys present only when found: black (2, 2), color_matrix (9,), neutral (3,),
-    exposure_time, iso, model (UniqueCameraModel, else Model).
+    exposure_time, iso, model (UniqueCameraModel, else Model); in a DNG (DNGVersion set)
+    also crop (x, y, w, h) floats (DefaultCropOrigin, DefaultCropSize), opcodes {list name:
+    bytes} (OpcodeList1/2/3 of the raw IFD) and baseline_exposure (EV, IFD 0).
     """
     out: dict = {}
     try:
@@ -180,17 +188,41 @@ def _dng_tags(path: Path) -> dict:
                 out["exposure_time"] = float(exposure)
             if iso:
                 out["iso"] = float(np.ravel(iso)[0])
+            if 50706 in ifd0.tags:  # DNGVersion: the converter's tags
+                out.update(_converter_tags(ifd0, cfa_pages[0] if cfa_pages else ifd0))
     except (tifffile.TiffFileError, OSError, ValueError, KeyError, IndexError, TypeError):
         # Not a TIFF container or malformed tags: LibRaw's values are used instead.
         return {}
     return out
 
 
+def _converter_tags(ifd0, raw_ifd) -> dict:
+    """DefaultCrop (50719, 50720) and OpcodeList1/2/3 of the raw IFD, BaselineExposure
+    (50730) of IFD 0 (DNG 1.4 spec, Chapter 4: where each tag lives)."""
+    out: dict = {}
+    if 50719 in raw_ifd.tags or 50720 in raw_ifd.tags:
+        origin = _tag_floats(raw_ifd.tags[50719]) if 50719 in raw_ifd.tags else np.zeros(2)
+        size = _tag_floats(raw_ifd.tags[50720]) if 50720 in raw_ifd.tags else None
+        width, length = raw_ifd.imagewidth, raw_ifd.imagelength
+        if size is None:
+            size = np.array([width - origin[0], length - origin[1]])
+        out["crop"] = (*origin[:2].tolist(), *size[:2].tolist())
+    lists = {name: bytes(raw_ifd.tags[code].value) for code, name in dng_opcodes.LISTS.items()
+             if code in raw_ifd.tags}
+    if lists:
+        out["opcodes"] = lists
+    if 50730 in ifd0.tags:
+        out["baseline_exposure"] = float(_tag_floats(ifd0.tags[50730])[0])
+    return out
+
+
 def read_raw(path) -> RawFrame:
     """Read a DNG or any LibRaw-supported raw file into a RawFrame.
 
-    Raises RawError (naming the file) when it is missing, unreadable/corrupt, or has a
-    CFA other than a 2x2 RGB Bayer pattern.
+    The mosaic comes as displayed (gridnerf.raw_layout: gain opcodes, DefaultCrop,
+    Orientation). Raises RawError (naming the file) when it is missing, unreadable/corrupt,
+    has a CFA other than a 2x2 RGB Bayer pattern, or carries a converter tag this reader
+    must refuse (a required opcode it does not apply, a crop that does not fit).
     """
     p = Path(path)
     if not p.exists():
@@ -210,6 +242,7 @@ def read_raw(path) -> RawFrame:
             shutter = float(raw.other.shutter_speed)
             iso = float(raw.other.iso_speed)
             raw_bayer = np.array(raw.raw_image_visible, dtype=np.uint16, copy=True)
+            flip = int(raw.sizes.flip)
     except rawpy.LibRawError as e:
         msg = e.args[0].decode("utf-8", "replace") if e.args and isinstance(e.args[0], bytes) else e
         raise RawError(p, f"LibRaw cannot read it ({type(e).__name__}: {msg})", _FIX_CORRUPT) from e
@@ -228,6 +261,10 @@ def read_raw(path) -> RawFrame:
             f"white level {white_level} is not above the black level {black_level.tolist()}",
             _FIX_CORRUPT,
         )
+
+    raw_bayer, cfa, black_level, converted = raw_layout.display(
+        p, raw_bayer, cfa, black_level, white_level, tags,
+        raw_layout.FLIP_TO_ORIENTATION.get(flip, 1))
 
     if "color_matrix" in tags:  # the file's own tag wins (DNG)
         xyz_to_cam = tags["color_matrix"].reshape(3, 3)
@@ -256,6 +293,7 @@ def read_raw(path) -> RawFrame:
         iso=tags.get("iso", iso if iso > 0 else None),
         has_color_matrix=bool(np.any(rgb_xyz != 0) or "color_matrix" in tags),
         camera_model=tags.get("model"),
+        converted=converted,
     )
 
 

@@ -9,7 +9,9 @@ poses_bounds bounds, else the depths of the COLMAP points, else BoundsMissing (c
 cameras, so gridnerf.bounds can estimate them). Without a split, every 8th frame
 (0, 8, 16, ...) is a test frame. Exposure: exposure time x ISO from the raw metadata or an
 exiftool `raw/<name>.json`, relative to the median; a factor unknown for some frame is
-left out for all frames (1.0 when nothing is known).
+left out for all frames (1.0 when nothing is known). Frames are read as displayed (the raw
+files' gain opcodes, DefaultCrop and Orientation applied: gridnerf.raw_layout, each decision
+printed once), the size transforms.json must describe.
 """
 
 from __future__ import annotations
@@ -22,9 +24,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from gridnerf import cameras as cam_mod
-from gridnerf import defects, pose_files, raw, rays, white_reference
+from gridnerf import defects, pose_files, raw, raw_layout, rays, white_reference
 from gridnerf.cameras import Cameras
 from gridnerf.errors import PoseError, SceneError
+from gridnerf.frame_checks import metadata_outliers, unusable_frames
 from gridnerf.white_reference import WhiteRef
 
 RAW_EXTENSIONS = (".dng", ".arw", ".cr2", ".cr3", ".nef", ".nrw", ".raf", ".orf", ".rw2",
@@ -36,7 +39,8 @@ _POSES_FIX = "run `gridnerf poses <scene>` to estimate poses from images/"
 class Scene:
     """A loaded scene. Arrays are indexed like `names`.
 
-    raw_bayer: (N, H, W) uint16 mosaics, black NOT removed; black_level: (N, 2, 2) float32
+    raw_bayer: (N, H, W) uint16 mosaics as displayed, black NOT removed (any gain opcode of
+    the files applied: lens_correction); black_level: (N, 2, 2) float32
     per CFA position; white_level: (N,) float32; cfa: (2, 2) int; xyz_to_cam: (3, 3) of
     frame 0; as_shot_neutral: (N, 3); exposure: (N,) relative exposure; cameras and
     near/far live in the normalised world (rays.normalize_world), which maps back to the
@@ -66,6 +70,11 @@ class Scene:
     white_reference: WhiteRef | None = None
     # (H, W) bool: defective sensor positions (gridnerf.defects), None where none is found
     defects: np.ndarray | None = None
+    # the gain opcodes the files carried, applied on loading (the files' own lens falloff
+    # correction, e.g. "FixVignetteRadial (OpcodeList3)"), None where none: gridnerf.raw_layout
+    lens_correction: str | None = None
+    # (N,) the files' BaselineExposure tags (EV), recorded, not applied; None where absent
+    baseline_exposure: np.ndarray | None = None
 
     def raw_normalized(self, i: int) -> np.ndarray:
         """raw_bayer (H, W) float32: (raw - black) / (white - black), negatives kept."""
@@ -153,38 +162,11 @@ def _relative_exposure(times, isos, names=None) -> np.ndarray:
     return exposure / np.median(exposure)
 
 
-def metadata_outliers(meta: dict, first_range: float) -> dict[int, str]:
-    """Frames whose header disagrees with the scene's other frames (a corrupted header
-    reads as a different white level, black level or colour matrix): {index: reason}.
-
-    meta: per-frame lists "white" (N,), "black" (N, 2, 2), "matrix" (N, 3, 3). The
-    reference is the most common white level and matrix and the median black level; black
-    levels may drift by 1 % of the white-black range (cameras that measure it per frame).
-    """
-    white = np.asarray(meta["white"], np.float64)
-    black = np.asarray(meta["black"], np.float64)
-    matrix = np.asarray(meta["matrix"], np.float64)
-    values, counts = np.unique(white, return_counts=True)
-    white_ref = values[np.argmax(counts)]
-    keys = [m.round(4).tobytes() for m in matrix]
-    matrix_ref = matrix[max(range(len(keys)), key=keys.count)]
-    black_ref = np.median(black, axis=0)
-    bad = {}
-    for k in range(len(white)):
-        if white[k] != white_ref:
-            bad[k] = f"white level {white[k]:g} differs from the other frames' {white_ref:g}"
-        elif np.abs(black[k] - black_ref).max() > 0.01 * first_range:
-            bad[k] = (f"black level {black[k].ravel().tolist()} differs from the other "
-                      f"frames' {black_ref.ravel().tolist()}")
-        elif not np.allclose(matrix[k], matrix_ref, rtol=1e-3, atol=1e-4):
-            bad[k] = "colour matrix differs from the other frames'"
-    return {k: f"{why} (corrupt header?)" for k, why in bad.items()}
-
-
 def _read_frames(names, files: dict[str, pathlib.Path]):
     """Read every frame into one (N, H, W) uint16 array plus per-frame metadata."""
     first = None
-    meta = {"black": [], "white": [], "neutral": [], "time": [], "iso": [], "matrix": []}
+    meta = {"black": [], "white": [], "neutral": [], "time": [], "iso": [], "matrix": [],
+            "converted": []}
     raw_bayer = None
     for k, name in enumerate(names):
         frame = raw.read_raw(files[name])
@@ -205,9 +187,12 @@ def _read_frames(names, files: dict[str, pathlib.Path]):
                              f"is {ow}x{oh}",
                              "all frames must have one size: remove or re-export this frame")
         elif not np.array_equal(frame.cfa, first.cfa):
+            turned = (f" (Orientation {frame.converted.orientation}, that frame's "
+                      f"{first.converted.orientation})" if frame.converted.orientation
+                      != first.converted.orientation else "")
             raise SceneError(frame.path, f"CFA pattern {frame.cfa.tolist()} differs from "
-                             f"{first.cfa.tolist()} of {pathlib.Path(first.path).name}",
-                             "use frames from one camera (one CFA layout)")
+                             f"{first.cfa.tolist()} of {pathlib.Path(first.path).name}{turned}",
+                             "use frames from one camera (one CFA layout) held one way up")
         raw_bayer[k] = frame.raw_bayer
         sidecar_time, sidecar_iso = _exiftool_exposure(files[name].with_suffix(".json"))
         meta["black"].append(frame.black_level)
@@ -216,7 +201,21 @@ def _read_frames(names, files: dict[str, pathlib.Path]):
         meta["neutral"].append(frame.as_shot_neutral)
         meta["time"].append(sidecar_time or frame.exposure_time)
         meta["iso"].append(sidecar_iso or frame.iso)
+        meta["converted"].append(frame.converted)
     return first, raw_bayer, meta
+
+
+def _check_displayed_size(source: pathlib.Path, cams: Cameras, width: int, height: int):
+    """SceneError naming transforms.json unless its w x h is the frames' size as displayed
+    (the files' DefaultCrop and Orientation applied), or that size uniformly scaled to
+    within a pixel (intrinsics given for previews)."""
+    if (cams.width, cams.height) == (width, height):
+        return
+    if abs(cams.height * width / cams.width - height) > 1.0:
+        raise SceneError(source, f"it describes {cams.width}x{cams.height} images but the raw "
+                         f"frames are {width}x{height} as displayed (after their DefaultCrop "
+                         "and Orientation tags)", "give w, h and the intrinsics of the image "
+                         "as displayed, or re-run `gridnerf poses`")
 
 
 def _poses(scene: pathlib.Path, files):
@@ -279,61 +278,6 @@ def _near_far(scene: pathlib.Path, near_far, colmap_points, colmap_cams) -> tupl
     raise BoundsMissing(scene, colmap_cams)
 
 
-def impossible_values(raw_bayer: np.ndarray, black: np.ndarray, white: np.ndarray,
-                      below: float = 0.05) -> np.ndarray:
-    """(N,) count of pixel values no sensor reading can have: above the white level, or
-    more than `below` x (white - black) under the black level (read noise is a few DN;
-    14-bit frames have ~16k DN of range). Overwritten bytes in a frame's pixel data read
-    as random 16-bit values, most of them above a 12- or 14-bit white level.
-    raw_bayer: (N, H, W) uint16; black: (N, 2, 2); white: (N,)."""
-    counts = np.zeros(len(raw_bayer), np.int64)
-    for k, frame in enumerate(raw_bayer):
-        low = float(black[k].min()) - below * float(white[k] - black[k].max())
-        counts[k] = np.count_nonzero(frame > white[k]) + np.count_nonzero(frame < low)
-    return counts
-
-
-def unusable_frames(raw_bayer: np.ndarray, black: np.ndarray, white: np.ndarray,
-                    dark_ratio: float = 0.25, bright_ratio: float = 4.0,
-                    clipped_max: float = 0.2, corrupt_max: float = 1e-4,
-                    where: str | pathlib.Path | None = None) -> dict[int, str]:
-    """Frames that are readable but wrong, compared with the scene's other frames.
-
-    raw_bayer: (N, H, W) uint16; black: (N, 2, 2); white: (N,). Per frame, on every 4th
-    pixel: the mean normalised signal and the clipped fraction; on every pixel: the values
-    outside what a sensor can read (impossible_values). A frame is unusable when more than
-    corrupt_max of its pixels are impossible (corrupt data), its signal is below dark_ratio
-    or above bright_ratio times the median frame's (a black frame, a frame from another
-    exposure), or more than clipped_max of it is clipped.
-    Returns {frame index: reason}. Raises SceneError naming `where` (the frames' folder)
-    when every frame is at the black level (nothing to learn from).
-    """
-    sub = raw_bayer[:, ::4, ::4].astype(np.float32)
-    level = (sub - black[:, :1, :1]) / (white - black[:, 0, 0])[:, None, None]
-    mean = level.reshape(len(sub), -1).mean(axis=1)
-    clipped = (sub >= white[:, None, None]).reshape(len(sub), -1).mean(axis=1)
-    # one DN above black on average: below that there is no signal at all
-    floor = 1.0 / float(np.max(white - black[:, 0, 0]))
-    if np.all(mean < floor):
-        raise SceneError(where, f"every frame is at the black level (mean signal "
-                         f"{float(mean.max()):.2g} of the white level)",
-                         "check the exposure, the lens cap and the black level in the RAW files")
-    med = float(np.median(mean))
-    impossible = impossible_values(raw_bayer, black, white)
-    bad = {}
-    for k in range(len(sub)):
-        if impossible[k] > corrupt_max * raw_bayer[k].size:
-            bad[k] = (f"{impossible[k]} pixel values lie outside the sensor's range "
-                      "(above the white level or far below black): corrupt pixel data")
-        elif clipped[k] > clipped_max:
-            bad[k] = f"{100 * clipped[k]:.0f}% of the pixels are clipped"
-        elif mean[k] < dark_ratio * med:
-            bad[k] = f"signal {mean[k]:.3g} is below {dark_ratio} x the scene median {med:.3g}"
-        elif mean[k] > bright_ratio * med:
-            bad[k] = f"signal {mean[k]:.3g} is above {bright_ratio} x the scene median {med:.3g}"
-    return bad
-
-
 def load_scene(path, near_far: tuple[float, float] | None = None) -> Scene:
     """Load a scene folder (module docstring). Raises SceneError/PoseError/RawError.
 
@@ -350,10 +294,16 @@ def load_scene(path, near_far: tuple[float, float] | None = None) -> Scene:
     if cams is not None:
         near, far = near_far or _near_far(scene, file_near_far, points, cams)
     first, raw_bayer, meta = _read_frames(names, files)
+    tag_lines, lens_correction = raw_layout.describe(meta["converted"], first.cfa,
+                                                     scene / "raw")
+    for line in tag_lines:
+        print(line)
     height, width = raw_bayer.shape[1:]
     if cams is None:
         cams, _ = pose_files.load_llff(source, names, width, height)
         near, far = near_far or _near_far(scene, file_near_far, points, cams)
+    if source.name == "transforms.json":
+        _check_displayed_size(source, cams, width, height)
     cams = cam_mod.resize_to(cams, width, height, source)
     cam_mod.validate(cams, source)
 
@@ -387,6 +337,7 @@ def load_scene(path, near_far: tuple[float, float] | None = None) -> Scene:
         raw.normalize_mosaic(raw_bayer[k], black[k], white[k]) for k in usable)
     if why:
         print(f"sensor: {why}")
+    levels = [c.baseline_exposure for c in meta["converted"]]
     gt = scene / "gt"
     return Scene(
         path=scene,
@@ -411,4 +362,7 @@ def load_scene(path, near_far: tuple[float, float] | None = None) -> Scene:
         white_reference=(white_reference.from_transforms(scene / "transforms.json")
                          if (scene / "transforms.json").is_file() else None),
         defects=defect_mask,
+        lens_correction=lens_correction,
+        baseline_exposure=(np.asarray(levels, np.float64)
+                           if all(v is not None for v in levels) else None),
     )

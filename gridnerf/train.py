@@ -104,7 +104,15 @@ def _vignetting(run: Path, plan, stage: int, structure, params, data, near_t, fa
     frames is estimated from the coarse fit's correspondences (gridnerf.vignetting) and,
     over vignetting.MIN_STOPS at the corners, taken off the data and kept in the plan;
     after the second, where one was found, what is left of it (the finer depth matches
-    fewer pixels wrongly) is added. Only for a method that fits the raw, binned."""
+    fewer pixels wrongly) is added. Only for a method that fits the raw, binned.
+
+    Skipped where the raw files carried their own falloff correction, applied on loading
+    (plan.file_falloff: a FixVignetteRadial or GainMap opcode, gridnerf.raw_layout): that
+    is the lens's calibration, which the pair estimate (scatter up to 0.4 stop on captures
+    without falloff) could only blur, and taking a falloff off twice would brighten the
+    corners; not running it also saves its renders."""
+    if plan.file_falloff is not None:
+        return data, plan
     first = stage == 1 and plan.vignetting is None
     refine = stage == 2 and plan.vignetting is not None
     if not fits_raw or data.mosaic or not (first or refine):
@@ -213,7 +221,10 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
             colour=colour,
             opacity=planmod.opacity_schedule(cfg.loss.opacity, n_stages,
                                              cfg.loss.opacity_stages),
-            n_candidates=(0,) * n_stages)
+            n_candidates=(0,) * n_stages, file_falloff=scene.lens_correction)
+        if scene.lens_correction and method.fits_raw(cfg):
+            print(f"lens falloff: corrected on loading by the raw files' "
+                  f"{scene.lens_correction}; the frame-based estimate is skipped")
 
     # Training really starts: save the config and the plan, drop metrics logged after the
     # checkpoint.

@@ -46,6 +46,7 @@ from gridnerf.color import (
     srgb_from_cam,
     tinted_xyz_white,
 )
+from gridnerf.sim.converter import ConverterTags
 
 BLACK_LEVEL = 512
 WHITE_LEVEL = 16383
@@ -106,6 +107,9 @@ class SensorParams:
     exposure_jitter_stops: float = 0.0
     # defective photosites, the same in every frame of a capture (half hot, half stuck)
     hot_pixels: int = 0
+    # what a raw converter writes into the DNGs (crop margin, orientation, falloff opcode,
+    # BaselineExposure): gridnerf.sim.converter; the default writes none of them
+    converter: ConverterTags = ConverterTags()
 
     def __post_init__(self):
         if self.bits not in BLACK_BY_BITS:
@@ -116,6 +120,8 @@ class SensorParams:
                 raise ValueError(f"{field} must be finite and >= 0, got {value}")
         if self.hot_pixels != int(self.hot_pixels):
             raise ValueError(f"hot_pixels must be a whole number, got {self.hot_pixels}")
+        if self.converter.vignette_opcode and not self.vignette_stops:
+            raise ValueError("converter.vignette_opcode undoes vignette_stops: set it > 0")
 
     @property
     def dn_scale(self) -> float:

@@ -29,7 +29,9 @@ hot_pixels; all off by default, and then nothing about them is drawn or written)
 recorded in sim.json: "bits", "vignetting" (model and parameters), "exposure_jitter" (each
 frame's exposure time) and "defects" (the positions and values of the hot and stuck
 photosites). Vignetting darkens raw/ only; the references in gt/ stay the scene's
-radiance, and the lens-cap frames see no light.
+radiance, and the lens-cap frames see no light. The converter's tags
+(sensor.SensorParams.converter: crop margin, orientation, falloff opcode, BaselineExposure;
+gridnerf.sim.converter) change how raw/ and dark/ store the same view ("converter_tags").
 
 The folder is built in `<out_dir>.tmp-<pid>` and renamed into place at the end, so a
 half-written scene never looks valid.
@@ -52,7 +54,7 @@ from gridnerf.color import luminance, srgb_encode
 from gridnerf.dng import MIN_SIZE, write_dng
 from gridnerf.errors import SceneError
 from gridnerf.image_io import write_exr, write_png
-from gridnerf.sim import sensor
+from gridnerf.sim import converter, sensor
 from gridnerf.sim.capture import (
     HFOV_DEG,
     camera_path,
@@ -249,6 +251,8 @@ def _build(folder: Path, name: str, width: int, height: int, n_frames: int, seed
                                    else sensor.illuminant_neutral(params).tolist()),
         **mixed,
         **sensor_manifest(params, e_scale, gt_scale, near_far, quirks),
+        **converter.manifest(params.converter, (height, width), sensor.vignette_coefficient(
+            params.vignette_stops) if params.vignette_stops else None),
     })
 
 
@@ -280,7 +284,10 @@ def write_capture(folder: Path, params, poses, intr, frames, rgb_cam_of, e_scale
     here when None; frame i's electrons are times sensor.vignette_gain and factors[i], its
     ExposureTime params.exposure_time * factors[i]; the defects are in every raw/ and dark/
     frame (dark/ ExposureTime: the first frame's), concealed in the previews as a camera's
-    JPEG engine would (sensor.conceal_defects). Returns the test views' indices."""
+    JPEG engine would (sensor.conceal_defects). raw/ and dark/ store the frames as
+    params.converter asks (gridnerf.sim.converter: turned, padded, tagged; nothing at the
+    defaults); images/ and transforms.json stay the view as displayed. Returns the test
+    views' indices."""
     n_frames = len(poses)
     height, width = intr.h, intr.w
     names = frame_names(n_frames)
@@ -288,6 +295,23 @@ def write_capture(folder: Path, params, poses, intr, frames, rgb_cam_of, e_scale
                         else draw_quirks(params, n_frames, height, width, seed, salt))
     falloff = (sensor.vignette_gain(height, width, params.vignette_stops)
                if params.vignette_stops else None)  # (H, W) on the electrons
+    tags = params.converter  # the converter's tags: the files store the view turned, padded
+    c = sensor.vignette_coefficient(params.vignette_stops) if params.vignette_stops else None
+
+    def write_raw(path, raw_bayer, neutral, time, rng_key, frame):
+        """One DNG of the displayed raw_bayer (H, W), stored as params.converter asks; the
+        crop margin's photosites from the stream [seed, salt, *rng_key]."""
+        cfa, margin = params.cfa, None
+        if any(tags.crop_margin):
+            margin = sensor.expose(np.zeros(converter.stored_shape((height, width), tags)),
+                                   params, np.random.default_rng([seed, salt, *rng_key]))
+        if not tags.is_default:
+            raw_bayer, cfa = converter.stored(raw_bayer, params.cfa, tags, margin)
+        write_dng(path, raw_bayer, cfa, black, params.white_level, params.file_xyz_to_cam,
+                  neutral, exposure_time=time, iso=params.iso,
+                  camera_model=params.camera_model,
+                  **converter.dng_kwargs(tags, (height, width), c, frame))
+
     for sub in ("raw", "images", "gt", "dark", *(("illuminant",) if share is not None else ())):
         (folder / sub).mkdir(parents=True)
     black = np.full((2, 2), float(params.black_level))
@@ -303,11 +327,8 @@ def write_capture(folder: Path, params, poses, intr, frames, rgb_cam_of, e_scale
             electrons = electrons * factors[i]
         raw_bayer = sensor.expose(electrons, params, np.random.default_rng([seed, salt, 1, i]),
                                   defects)
-        write_dng(folder / "raw" / f"{stem}.dng", raw_bayer, params.cfa, black,
-                  params.white_level, params.file_xyz_to_cam,
-                  sensor.grey_world_neutral(rgb_cam),
-                  exposure_time=float(params.exposure_time * factors[i]), iso=params.iso,
-                  camera_model=params.camera_model)
+        write_raw(folder / "raw" / f"{stem}.dng", raw_bayer, sensor.grey_world_neutral(rgb_cam),
+                  float(params.exposure_time * factors[i]), (5, i), i)
         preview = sensor.preview_srgb(sensor.conceal_defects(raw_bayer, defects), params.cfa,
                                       black, params.white_level, params.xyz_to_cam)
         iio.imwrite(folder / "images" / f"{stem}.jpg", sensor.to_uint8(preview),
@@ -321,10 +342,8 @@ def write_capture(folder: Path, params, poses, intr, frames, rgb_cam_of, e_scale
     for j, stem in enumerate(dark_names()):
         raw_bayer = sensor.expose(np.zeros((height, width)), params,
                                   np.random.default_rng([seed, salt, 2, j]), defects)
-        write_dng(folder / "dark" / f"{stem}.dng", raw_bayer, params.cfa, black,
-                  params.white_level, params.file_xyz_to_cam, np.ones(3),
-                  exposure_time=float(params.exposure_time * factors[0]), iso=params.iso,
-                  camera_model=params.camera_model)
+        write_raw(folder / "dark" / f"{stem}.dng", raw_bayer, np.ones(3),
+                  float(params.exposure_time * factors[0]), (6, j), 0)
 
     test = [i for i in range(n_frames) if i % TEST_EVERY == 0]
     paths = [f"raw/{stem}.dng" for stem in names]
@@ -389,7 +408,9 @@ def quirks_manifest(params, quirks=None) -> dict:
         out["vignetting"] = {
             "model": "gain(r) = 1 / (1 + c r^2)^2 (cos^4 law), r = distance from the image "
                      "centre / distance from the centre to a corner; on the electrons of "
-                     "raw/ only (not gt/, not dark/), no correction in the files",
+                     "raw/ only (not gt/, not dark/), " + (
+                         "undone by the files' FixVignetteRadial (converter_tags)"
+                         if params.converter.vignette_opcode else "no correction in the files"),
             "stops_at_corners": params.vignette_stops, "c": c,
             "fix_vignette_radial_k": [2.0 * c, c * c, 0.0, 0.0, 0.0],
         }
