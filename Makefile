@@ -18,16 +18,22 @@ SCENE_DIR := $(if $(findstring /,$(SCENE)),$(SCENE),data/sim/$(SCENE))
 SCENE_NAME := $(shell basename -- "$(SCENE_DIR)")
 RUN_DIR := runs/$(SCENE_NAME)/$(PRESET)
 
-.PHONY: venv system-deps data cycles poses train eval render ablate report recon bench test lint clean
+.PHONY: venv system-deps data cycles poses train eval render view ablate report recon bench test lint clean
 
 venv: $(STAMP)
 
-# Debian packages: tcmalloc only. Skipped when already present or when not root.
+# Debian packages: tcmalloc, and chromium for the viewer's browser test (tests/test_viewer.py
+# skips without it). Each skipped when already present or when not root.
 system-deps:
 	@if [ ! -e $(TCMALLOC) ] && [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
 	  echo "installing libtcmalloc-minimal4"; \
 	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libtcmalloc-minimal4 >/dev/null) \
 	    || echo "warning: could not install libtcmalloc-minimal4; continuing with glibc malloc"; \
+	fi
+	@if ! command -v chromium >/dev/null && [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
+	  echo "installing chromium"; \
+	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
+	    || echo "warning: could not install chromium; the viewer's browser test will be skipped"; \
 	fi
 
 $(STAMP): pyproject.toml
@@ -56,6 +62,10 @@ eval: $(STAMP)
 
 render: $(STAMP)
 	$(RUN)gridnerf render "$(RUN_DIR)" --path spiral
+
+# one self-contained HTML file: $(RUN_DIR)/viewer.html (docs/viewer.md)
+view: $(STAMP)
+	$(RUN)gridnerf view "$(RUN_DIR)"
 
 # every scene unless SCENE is given on the command line (make ablate SCENE=bucket)
 ABLATE_SCENES = $(if $(filter command line,$(origin SCENE)),$(SCENE),all)
