@@ -95,3 +95,27 @@ def test_umeyama_and_pose_agreement():
     assert agree["compared_frames"] == 6 and agree["position_error"] < 1e-9
     assert agree["rotation_error_deg_max"] == pytest.approx(2.0, abs=0.4)
     assert agree["rotation_error_deg"] < agree["rotation_error_deg_max"] / 2
+
+
+def test_raw_previews_conceal_the_sensors_defects(tmp_path, capsys):
+    """A hot pixel at one sensor position in every frame is found across the frames and
+    concealed in the SfM previews: its blurred dot would be a feature that matches in every
+    view with no motion."""
+    from gridnerf.poses import raw_defects, raw_preview
+
+    rng = np.random.default_rng(0)
+    files = []
+    for k in range(6):
+        mosaic = rng.normal(2000.0, 20.0, (48, 64)).clip(0, 16383).astype(np.uint16)
+        mosaic[20, 30] = 16000  # hot: the same photosite in every frame
+        files.append(tmp_path / f"f{k}.dng")
+        write_dng(files[-1], mosaic, np.array([[0, 1], [1, 2]]), np.full((2, 2), 512.0),
+                  16383, np.eye(3), np.ones(3))
+    defects = raw_defects(files)
+    assert defects is not None and defects[20, 30] and defects.sum() == 1
+    assert "1 defective pixels" in capsys.readouterr().out
+    plain = raw_preview(files[0]).astype(float)
+    concealed = raw_preview(files[0], defects).astype(float)
+    background = np.median(concealed)
+    assert plain[19:22, 29:32].max() > background + 30  # the blurred dot
+    assert np.abs(concealed[17:24, 27:34] - background).max() < 25
