@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 from pathlib import Path
 
 from gridnerf.errors import GridNerfError
@@ -257,7 +258,14 @@ def _one_line(message: str) -> str:
     return " ".join(str(message).split())
 
 
+def _warning_line(message, category, filename, lineno, line=None) -> str:
+    """A warning as the command line shows it: one line, "warning: <message>" (Python's
+    default adds the file, line and source of the call that warned)."""
+    return f"warning: {message}\n"
+
+
 def main(argv: list[str] | None = None) -> int:
+    warnings.formatwarning = _warning_line
     try:
         args = build_parser().parse_args(argv)
         if getattr(args, "full_hd", False):

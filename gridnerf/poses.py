@@ -68,6 +68,9 @@ def run_colmap(images_dir: Path, image_names: list[str], work: Path, camera_mode
     """
     import pycolmap
 
+    # COLMAP logs every registration step at INFO (hundreds of lines per capture); its
+    # warnings and errors still show
+    pycolmap.logging.minloglevel = max(int(pycolmap.logging.minloglevel), 1)
     max_error = float(np.clip(max(_preview_size(images_dir, image_names[0])) / 160.0, 2.0, 4.0))
 
     db = work / "database.db"
@@ -314,7 +317,8 @@ def estimate_poses(scene_dir, min_registered_fraction: float = 0.5,
         dropped.update({n: "COLMAP could not register it (too few feature matches with the "
                         "other frames)" for n in usable if n not in registered})
         for name, why in dropped.items():
-            warnings.warn(f"{where / previews.get(name, name)}: {why}; the frame is left out "
+            named = files[name] if source == "raw" else where / previews.get(name, name)
+            warnings.warn(f"{named}: {why}; the frame is left out "
                           "of the poses", stacklevel=2)
         k, n = len(registered_names), len(names)
         if k < 2 or k < min_registered_fraction * n:
