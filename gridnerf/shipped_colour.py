@@ -74,17 +74,20 @@ def check(out: dict, colour: ColourPlan) -> tuple[ColourPlan, dict]:
         if spread is None or spread >= colour_target.LIGHT_DOUBT_DEG[0]:
             print(f"colour check: {supported}: the field is shipped")
             return colour, record
-        gains = tuple(float(v) for v in illuminant.gains_from_illuminant(white))
-        why = (f"{supported} and the frames show one light (the maps stray {spread:.2f} deg, "
-               f"under {colour_target.LIGHT_DOUBT_DEG[0]:g}): the field's white is shipped as "
-               "one gain for the capture")
-        print(f"colour check: {why}")
-        record.update(shipped="one_gain", gains=list(gains), why=why)
-        return replace(colour, shipped_gains=gains, shipped_why=why), record
-    gains = tuple(float(v) for v in outputs.global_gains(out))
-    why = (f"the gain field's white lies {dist:.2f} in log chromaticity from the nearest of "
-           f"the frames' estimates ({name}), over {SHIP_TRUST:g}: no estimate supports it, so "
-           "one grey-world gain on the same field is shipped instead")
+        return _one_gain(colour, record, illuminant.gains_from_illuminant(white), (
+            f"{supported} and the frames show one light (the maps stray {spread:.2f} deg, "
+            f"under {colour_target.LIGHT_DOUBT_DEG[0]:g}): the field's white is shipped as "
+            "one gain for the capture"))
+    return _one_gain(colour, record, outputs.global_gains(out), (
+        f"the gain field's white lies {dist:.2f} in log chromaticity from the nearest of "
+        f"the frames' estimates ({name}), over {SHIP_TRUST:g}: no estimate supports it, so "
+        "one grey-world gain on the same field is shipped instead"))
+
+
+def _one_gain(colour: ColourPlan, record: dict, gains, why: str) -> tuple[ColourPlan, dict]:
+    """check's answer where one gain (3,) is shipped in place of the field: printed, in the
+    record and in the plan."""
+    gains = tuple(float(v) for v in gains)
     print(f"colour check: {why}")
     record.update(shipped="one_gain", gains=list(gains), why=why)
     return replace(colour, shipped_gains=gains, shipped_why=why), record
