@@ -39,6 +39,10 @@ class Cameras:
     def __len__(self) -> int:
         return len(self.names)
 
+    def intrinsics(self, i: int) -> np.ndarray:
+        """(4,) fx, fy, cx, cy of frame i in pixels."""
+        return np.array([self.fx[i], self.fy[i], self.cx[i], self.cy[i]], np.float64)
+
     def scaled(self, factor: float) -> Cameras:
         """Cameras for the image scaled by `factor` (0.5 for 2x2 binning); sizes are floored."""
         return dataclasses.replace(

@@ -114,7 +114,7 @@ def evaluate_run(run: Path) -> dict:
     h, w = cams.height // ds, cams.width // ds
     for i in scene.test_idx:
         name = scene.names[i]
-        intr = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]]) / ds
+        intr = cams.intrinsics(i) / ds
         out = render_view(structure, params, scene, cfg, cams.c2w[i], intr, h, w)
         gt_linear = reference_linear(scene, name, h, w)
         for method, output in shown.items():
@@ -262,7 +262,7 @@ def render_run(run: Path, settings: RenderSettings | None = None) -> Path:
     h, w = max(int(round(cams.height * size)), 1), max(int(round(cams.width * size)), 1)
 
     def frame_intrinsics(i: int) -> np.ndarray:
-        return np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]]) * size
+        return cams.intrinsics(i) * size
 
     def render_frame(i: int) -> dict:
         return render_view(structure, params, scene, cfg, cams.c2w[i], frame_intrinsics(i),

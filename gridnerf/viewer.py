@@ -123,7 +123,7 @@ def initial_view(scene, cfg) -> dict:
     size: name, index, c2w (3, 4), intrinsics (4,) fx, fy, cx, cy, width, height."""
     i = int(scene.test_idx[0] if len(scene.test_idx) else scene.train_idx[0])
     cams, ds = scene.cameras, cfg.data.eval_downscale
-    intrinsics = np.array([cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]]) / ds
+    intrinsics = cams.intrinsics(i) / ds
     return {"name": scene.names[i], "index": i, "c2w": cams.c2w[i].tolist(),
             "intrinsics": intrinsics.tolist(), "width": cams.width // ds,
             "height": cams.height // ds}
