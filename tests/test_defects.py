@@ -79,6 +79,21 @@ def test_frames_that_do_not_move_cannot_tell_defects_from_detail():
     assert mask is None and "move too little" in why
 
 
+def test_a_short_sharp_line_on_a_still_camera_is_not_a_row_of_defects():
+    """Four frames of a camera that barely moves over a thin bright line: its pixels recur
+    at the same sensor positions (fewer than MAX_ALWAYS of them, so the share guard does
+    not act), but each has neighbours that stand out with it: none is a defect. A pair of
+    adjacent hot pixels beside it is still found."""
+    rng = np.random.default_rng(4)
+    frames = _frames(rng, n=4, move=False, electrons=400.0)
+    for f in frames:
+        f[20:40, 50] += 0.2  # the line: 20 pixels, 10 of each CFA colour in its column
+        f[70, 90:92] += 0.3  # a hot pair
+    mask, _ = defects.defective_pixels(frames)
+    assert mask is not None
+    assert sorted(map(tuple, np.argwhere(mask).tolist())) == [(70, 90), (70, 91)]
+
+
 def test_too_few_frames_decide_nothing():
     rng = np.random.default_rng(3)
     frames = _frames(rng, n=2)
