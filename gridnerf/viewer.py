@@ -36,8 +36,10 @@ product (render: exp of a cumulative sum). The renderer fits its candidate count
 image, the shader loops to the box diagonal's count: both give every ray the step
 1 / samples_per_voxel voxels, so the samples are the same. Other window sizes keep the
 initial view's vertical field of view. The white-balance sliders are a diagonal in the
-output's linear sRGB (6500 K, duv 0: none). Runs whose shown output is not a matrix of
-gained colour (loss.method = "llnerf": a per-ray enhancement in sRGB) are refused.
+output's linear sRGB (6500 K, duv 0: none); a picked neutral replaces them by the diagonal
+that turns the drawn 5x5 patch grey at its luminance (read back from the 8-bit canvas).
+Runs whose shown output is not a matrix of gained colour (loss.method = "llnerf": a per-ray
+enhancement in sRGB) are refused.
 """
 
 from __future__ import annotations

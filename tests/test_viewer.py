@@ -90,9 +90,10 @@ def chromium() -> str:
 
 
 def _browser_render(chromium: str, html: Path, width: int, height: int, tmp_path: Path,
-                    **controls):
+                    status: bool = False, **controls):
     """(H, W, 3) rgb_srgb in [0, 1]: the page's canvas at width x height, controls as in its
-    query string (output, stops, kelvin, tint)."""
+    query string (output, stops, kelvin, tint, pick); with `status`, also the page's line
+    on the picked neutral."""
     query = "&".join(f"{k}={v}" for k, v in
                      {"ui": 0, "w": width, "h": height, "snapshot": 1, **controls}.items())
     argv = [chromium, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'chromium'}",
@@ -102,7 +103,52 @@ def _browser_render(chromium: str, html: Path, width: int, height: int, tmp_path
     assert m, f"no canvas in the page (status {done.returncode}): {done.stderr[-2000:]}"
     import imageio.v3 as iio
 
-    return iio.imread(io.BytesIO(base64.b64decode(m.group(1))))[..., :3] / 255.0
+    rgb_srgb = iio.imread(io.BytesIO(base64.b64decode(m.group(1))))[..., :3] / 255.0
+    if not status:
+        return rgb_srgb
+    line = re.search(r'<div id="pickStatus">([^<]*)</div>', done.stdout)
+    return rgb_srgb, line.group(1) if line else ""
+
+
+def _box_means(rgb_linear: np.ndarray, box: int = 5) -> np.ndarray:
+    """(H - box + 1, W - box + 1, 3) means of every box x box patch."""
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    return sliding_window_view(rgb_linear, (box, box), axis=(0, 1)).mean(axis=(-2, -1))
+
+
+@pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")
+def test_a_picked_neutral_turns_its_patch_grey(chromium, run, tmp_path):
+    """?pick=X,Y (a shift-click there): the 5x5 patch around (X, Y), the most coloured
+    well-exposed patch of the view, is drawn grey at its luminance (8-bit sRGB and float16
+    features: within 3 % per colour); a patch too dark to tell its hue is refused with a
+    line saying so, and the view is left as it was."""
+    from gridnerf import color, viewer
+
+    html = viewer.write_viewer(run, tmp_path / "pick.html")
+    cam = _payload(html.read_text())["camera"]
+    w, h = cam["width"], cam["height"]
+    before_srgb = _browser_render(chromium, html, w, h, tmp_path)
+    lo, hi = [_box_means((before_srgb > t).astype(float)) for t in (0.15, 0.9)]
+    usable = (lo.min(-1) == 1.0) & (hi.max(-1) == 0.0)  # every pixel exposed, none clipped
+    assert usable.any()
+    means = _box_means(color.srgb_decode(before_srgb))
+    chroma = np.where(usable, np.ptp(means, -1) / means.mean(-1), -1.0)
+    y0, x0 = np.unravel_index(np.argmax(chroma), chroma.shape)
+    assert chroma[y0, x0] > 0.1  # the patch is coloured to begin with
+    after_srgb, line = _browser_render(chromium, html, w, h, tmp_path, status=True,
+                                       pick=f"{x0 + 2},{y0 + 2}")
+    assert line.startswith(f"neutral picked at ({x0 + 2}, {y0 + 2})"), line
+    patch = _box_means(color.srgb_decode(after_srgb))[y0, x0]
+    np.testing.assert_allclose(patch / patch.mean(), 1.0, atol=0.03)
+    weights = np.array([0.2126729, 0.7151522, 0.072175])
+    assert weights @ patch == pytest.approx(weights @ means[y0, x0], rel=0.03)
+
+    dark = _box_means(before_srgb).max(-1)
+    yd, xd = np.unravel_index(np.argmin(dark), dark.shape)
+    _, line = _browser_render(chromium, html, w, h, tmp_path, status=True, stops=-5,
+                              pick=f"{xd + 2},{yd + 2}")
+    assert line.startswith(f"not picked: the patch at ({xd + 2}, {yd + 2}) is too dark"), line
 
 
 @pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")  # chromium's subprocess
