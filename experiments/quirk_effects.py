@@ -15,7 +15,9 @@ random draw the twin's) and trained with the default preset twice:
 
 Rows: test-view PSNR / CIEDE2000 of the default output, the twin's kept result beside
 them. Writes reports/quirk_effects.md/.json; each run is kept under
-runs/<scene>+<quirk>/{after,before}.
+runs/<scene>+<quirk>/{after,before}, its numbers in reports/quirk_runs.json (both share the
+default config, so they are kept apart from reports/results.json, whose entries are one per
+config).
 
     python -m experiments.quirk_effects [--scenes held_arc_brick] [--quirks vignette,hot]
 """
@@ -89,19 +91,23 @@ def handling_off(what: str | None):
         yield
 
 
+# the evaluated runs' numbers, under the default config's fingerprint
+RUNS = Path("reports/quirk_runs.json")
+
+
 def run(scene: str, quirk: str, when: str) -> dict:
     """{psnr, delta_e} of the default output on runs/<scene>+<quirk>/<when>."""
     folder = shoot(scene, quirk)
     out = Path("runs") / f"{scene}+{quirk}" / when
     cfg = cfgmod.preset("default")
     key = f"{scene}+{quirk}"
-    hit = common.cached_result(key, when, cfg)
+    hit = common.cached_result(key, when, cfg, common.load_results(RUNS))
     if hit is None:
         with handling_off(QUIRKS[quirk][1] if when == "before" else None):
             if not (out / "summary.json").exists():
                 train(folder, out, cfg)
             metrics = evaluate_run(out)
-        common.record_result(key, when, cfg, metrics)
+        common.record_result(key, when, cfg, metrics, RUNS)
         hit = {"summary": metrics["summary"]}
     m = hit["summary"]["gridnerf"]
     return {"psnr": m["psnr"], "delta_e": m["delta_e"],
