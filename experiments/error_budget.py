@@ -83,11 +83,8 @@ def per_view(folder: Path) -> dict[str, list[float]]:
     for i in scene.test_idx:
         name = scene.names[i]
         clean = mean(name)  # (H, W) normalised raw
-        var_raw = (nt["K_dn_per_electron"] * clean * nt["scale"] + nt["read_var_dn2"]) / (
-            nt["scale"] ** 2)
         cam = raw.bin2x2(clean, scene.cfa, np.float64)
-        var = raw.bin2x2(var_raw, scene.cfa, np.float64)
-        var[..., 1] *= 0.5  # the mean of two greens
+        var = truth.binned_noise_var(nt, clean, scene.cfa)
         gt = image_io.read_exr(scene.gt_linear_paths[name]).astype(np.float64)
         h2, w2 = cam.shape[:2]
         gt_b = raw.downscale(gt[: 2 * h2, : 2 * w2], 2)

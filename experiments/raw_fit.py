@@ -60,10 +60,7 @@ def fit_errors(run: Path) -> dict:
         for i in idx:
             clean = mean(scene.names[i])  # (H, W) normalised raw, this frame's exposure
             cam = raw.bin2x2(clean, scene.cfa, np.float64) / scene.exposure[i]
-            var_raw = (nt["K_dn_per_electron"] * clean * nt["scale"]
-                       + nt["read_var_dn2"]) / nt["scale"] ** 2
-            var = raw.bin2x2(var_raw, scene.cfa, np.float64) / scene.exposure[i] ** 2
-            var[..., 1] *= 0.5  # the mean of two greens
+            var = truth.binned_noise_var(nt, clean, scene.cfa) / scene.exposure[i] ** 2
             h, w = cam.shape[:2]
             intr = np.asarray(scene.cameras.intrinsics(i), np.float64) * 0.5
             render = eval_run.render_view(structure, params, scene, cfg,

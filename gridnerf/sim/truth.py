@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gridnerf import raw
 from gridnerf.image_io import read_exr
 from gridnerf.noisefit import tukey_lambda_variance
 from gridnerf.sim import sensor
@@ -31,6 +32,18 @@ def noise_truth(sim: dict | str | Path) -> dict:
             "black_offset_dn": [list(map(float, r))
                                 for r in noise["black_bias_dn_per_cfa_position"]],
             "scale": float(sim["white_level"] - sim["black_level"])}
+
+
+def binned_noise_var(nt: dict, clean: np.ndarray, cfa: np.ndarray) -> np.ndarray:
+    """(H/2, W/2, 3) noise variance of one 2x2-binned frame in normalised raw: K x signal +
+    read variance (noise_truth `nt`, in DN) at the clean mean `clean` (H, W), binned like
+    the frame (raw.bin2x2), the two greens of a binned pixel averaged (half their
+    variance)."""
+    var_raw = (nt["K_dn_per_electron"] * clean * nt["scale"] + nt["read_var_dn2"]) / (
+        nt["scale"] ** 2)
+    var = raw.bin2x2(var_raw, cfa, np.float64)
+    var[..., 1] *= 0.5
+    return var
 
 
 def clean_mean(scene_dir) -> Callable[[str], np.ndarray]:
