@@ -102,15 +102,19 @@ def robust_z(dev: np.ndarray, level: np.ndarray) -> np.ndarray:
 def _lone(z: np.ndarray, sign: float) -> np.ndarray:
     """(H, W) bool: sign * z > Z_DEFECT where fewer than NEIGHBOURS_MAX other pixels within
     ISOLATION pixels stand out the same way by over half as much (and over Z_DEFECT / 2):
-    module docstring, a defect stands alone, the scene's edges do not."""
+    module docstring, a defect stands alone, the scene's edges do not. Only the outliers'
+    windows are read (a few per frame)."""
     s = sign * z
-    h, w = s.shape
-    r = ISOLATION
-    padded = np.pad(s, r)
-    half = np.maximum(s, Z_DEFECT) / 2
-    count = sum((padded[r + dy:r + dy + h, r + dx:r + dx + w] > half).astype(np.int32)
-                for dy in range(-r, r + 1) for dx in range(-r, r + 1) if (dy, dx) != (0, 0))
-    return (s > Z_DEFECT) & (count < NEIGHBOURS_MAX)
+    out = s > Z_DEFECT
+    ys, xs = np.nonzero(out)
+    if ys.size:
+        r = ISOLATION
+        window = np.pad(s, r)[ys[:, None, None] + np.arange(2 * r + 1)[:, None],
+                              xs[:, None, None] + np.arange(2 * r + 1)]
+        # the outlier itself stands out by more than half its own deviation: not counted
+        count = (window > s[ys, xs, None, None] / 2).sum(axis=(1, 2)) - 1
+        out[ys, xs] = count < NEIGHBOURS_MAX
+    return out
 
 
 def defective_pixels(raw_norm_frames) -> tuple[np.ndarray | None, str]:
