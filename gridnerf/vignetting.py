@@ -9,14 +9,14 @@ falloff at the two radii.
 
 After the first, coarse stage of the fit, whose depth is good enough to match pixels
 between views, estimate takes an even sample of the training pixels, puts each at its
-rendered depth, projects it into every other training frame and pairs the two
-observations (correspondences). fit_pairs then solves log(I_i / I_j) = g(r_i) - g(r_j),
-g(r) = k1 r^2 + k2 r^4, with r the distance from the principal point over the farthest
-corner's, by least squares over 2-D bins of (r_i^2, r_j^2) each holding the ratio of its
-sums (the noise of 5-35 photo-electrons a pixel averages out; occlusions and glossy
-surfaces add scatter, not a radial trend). Comparing the frames with the fit's render
-instead does not work: the grid absorbs most of a falloff shared by all views as darker
-paint (on a 1.2-stop lens it saw 0.26 stop).
+rendered depth, projects it into every other training frame whose ray meets it at under
+MAX_PARALLAX_DEG and pairs the two observations (correspondences). fit_pairs then solves
+log(I_i / I_j) = g(r_i) - g(r_j), g(r) = k1 r^2 + k2 r^4, with r the distance from the
+principal point over the farthest corner's, by least squares over 2-D bins of (r_i^2,
+r_j^2) each holding the ratio of its sums (the noise of 5-35 photo-electrons a pixel
+averages out; occlusions and glossy surfaces add scatter, not a radial trend). Comparing
+the frames with the fit's render instead does not work: the grid absorbs most of a falloff
+shared by all views as darker paint (on a 1.2-stop lens it saw 0.26 stop).
 
 Where the fitted corner falloff exceeds MIN_STOPS, the run takes it off the training pixels
 (apply: divided by exp(k1 r^2 + k2 r^4)) for the later stages and keeps (k1, k2) in the run
@@ -51,6 +51,12 @@ MIN_ACC = 0.9
 DEPTH_TOL = 0.05
 # rays of the training frames the estimate renders (an even grid, dataset.strided_pixels)
 RAYS = 16384
+# a point is paired between two frames whose rays meet there at under this angle (deg):
+# a depth or pose error moves the match by an amount that grows with the angle, and a
+# glossy surface changes with it. With all pairs, estimated poses (0.18 deg rotation
+# error) read 0.98 stop of falloff left after the second stage where the simulator's
+# poses read 0.03; with pairs under 5 deg, 0.35 and -0.05 (docs/results.md, "Camera quirks")
+MAX_PARALLAX_DEG = 5.0
 
 
 def radius2(data: dataset.RayData, frame, v, u) -> np.ndarray:
@@ -63,6 +69,14 @@ def radius2(data: dataset.RayData, frame, v, u) -> np.ndarray:
     dv = np.asarray(v, np.float64) + 0.5 - cy
     far = np.maximum(np.maximum(cx, w - cx) ** 2 + np.maximum(cy, h - cy) ** 2, 1e-12)
     return (du * du + dv * dv) / far
+
+
+def parallax_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(P,) angle in degrees between the vectors a (P, 3) and b (P, 3) (or (3,)): at a
+    surface point, between its rays to two cameras."""
+    cos = np.sum(a * b, -1) / np.maximum(np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1),
+                                         1e-30)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
 def corner_stops(k: tuple[float, float]) -> float:
@@ -138,9 +152,11 @@ def correspondences(structure, params, data: dataset.RayData, near_t: float, far
     intr = np.asarray(data.intrinsics, np.float64)
     h, w = data.image_hw
     cand = []  # (index into the points, frame j, row, column) of every projection
+    to_i = c2w[fi, :, 3] - points
     for j in range(c2w.shape[0]):
         uv = project_points(c2w[j], intr[j], points)  # NaN behind the camera
         ok = np.all(np.isfinite(uv), axis=-1)
+        ok &= parallax_deg(to_i, c2w[j, :, 3] - points) <= MAX_PARALLAX_DEG
         uj = np.floor(np.where(ok, uv[:, 0], -1.0)).astype(np.int64)
         vj = np.floor(np.where(ok, uv[:, 1], -1.0)).astype(np.int64)
         inside = ok & (fi != j) & (uj >= 0) & (uj < w) & (vj >= 0) & (vj < h)
