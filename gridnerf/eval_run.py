@@ -39,6 +39,7 @@ from gridnerf import (
     look,
     methods,
     outputs,
+    pose_refine,
     raw,
     rays,
     render,
@@ -93,10 +94,19 @@ def main_output(cfg) -> str:
     return methods.get(cfg.loss.method).MAIN_OUTPUT
 
 
-def evaluate_run(run: Path) -> dict:
-    """Render the test views, compare with gt/, write eval/ images and eval/metrics.json."""
+def evaluate_run(run: Path, refine_poses: bool = False) -> dict:
+    """Render the test views, compare with gt/, write eval/ images and eval/metrics.json.
+
+    refine_poses: each test view is rendered at the pose that best explains its own raw
+    frame through the field (gridnerf.pose_refine), for poses estimated by structure from
+    motion; metrics.json records how far each moved."""
     t0 = time.perf_counter()
     cfg, plan, scene, structure, params, summary = load_run(run)
+    if refine_poses and not pose_refine.applies(cfg):
+        raise SceneError(run / "config.json", "eval --refine-poses aligns each test view to "
+                         "its own raw frame, and this run does not fit the binned raw "
+                         f"(data.target={cfg.data.target}, data.binning={cfg.data.binning})",
+                         "evaluate it without --refine-poses")
     if len(scene.test_idx) == 0:
         raise SceneError(scene.path, "the scene's test split is empty: there is nothing to "
                          "score", "list frames in test_filenames of transforms.json (or "
@@ -112,10 +122,20 @@ def evaluate_run(run: Path) -> dict:
     cams = scene.cameras
     ds = cfg.data.eval_downscale
     h, w = cams.height // ds, cams.width // ds
+    refined = {}
     for i in scene.test_idx:
         name = scene.names[i]
         intr = cams.intrinsics(i) / ds
-        out = render_view(structure, params, scene, cfg, cams.c2w[i], intr, h, w)
+        c2w = cams.c2w[i]
+        if refine_poses:
+            r = pose_refine.refine(structure, params, scene, cfg, plan, int(i))
+            c2w = r.c2w
+            refined[name] = {"rotation_deg": r.rotation_deg, "translation_near": r.translation,
+                             "data_loss": [r.loss_before, r.loss_after]}
+            print(f"eval: {name}'s pose refined against its raw frame: turned "
+                  f"{r.rotation_deg:.3f} deg, moved {r.translation:.4f} x the near bound, "
+                  f"data term {r.loss_before:.4g} -> {r.loss_after:.4g}")
+        out = render_view(structure, params, scene, cfg, c2w, intr, h, w)
         gt_linear = reference_linear(scene, name, h, w)
         for method, output in shown.items():
             pred_linear, pred_srgb = output.show(out)
@@ -155,6 +175,9 @@ def evaluate_run(run: Path) -> dict:
         "scene": str(scene.path),
         "run": str(run),
         "test_views": [scene.names[i] for i in scene.test_idx],
+        # the test views' poses: as the scene gives them, or refined (gridnerf.pose_refine)
+        "test_poses": "refined" if refine_poses else "given",
+        **({"pose_refined": refined} if refine_poses else {}),
         "alpha": {k: o.alpha for k, o in shown.items()},
         # what carried the colour: the gain field, or one gain for the capture (its gains)
         "colour": plan.colour.model if one_gain is None else {"one_gain": list(one_gain)},
