@@ -8,15 +8,17 @@ files alone: its two test views whose estimated positions were 8-10 % of the arc
 off (after a similarity fit to the simulator's poses) scored 1.0 and 1.6 dB under the clean
 twin's, the third (0.6 % off) 0.23 dB; their renders sat 0.4-0.9 pixel off the references
 (phase correlation). Methods that estimate their own poses are scored after a test-time
-pose refinement for this reason (BARF, Lin et al., ICCV 2021, section 4: the test poses
-are optimised against the test images with the network frozen; NoPe-NeRF likewise).
+pose refinement for this reason (BARF, Lin et al., ICCV 2021: the test poses
+are optimised against the test images with the network frozen; NoPe-NeRF, Bian et al.,
+CVPR 2023, the same).
 
 Here the test view's own dark raw frame is what its pose is aligned to, never the
 reference: the frame is part of the capture (training only left it out), so a user with
 nothing but raw files can do the same. refine optimises 6 numbers, a rotation vector about
-the camera centre (radians) and a translation in units of the scene's near bound, with Adam
-on the training data term (losses.data_loss at the run's eps) over every STRIDE-th binned
-pixel of the frame, the field fixed; the pose with the lowest loss seen is kept.
+the camera centre (radians) and a translation in units of the scene's near bound, with
+Adam on the training data term (losses.data_loss at the run's eps) over every STRIDE-th
+binned pixel of the frame (at most MAX_RAYS), the field fixed; the pose with the lowest
+loss seen is kept.
 
 Only for runs that fit the binned raw (data.target raw, data.binning true): the data term
 then compares the field with the frame directly.
@@ -25,6 +27,7 @@ then compares the field with the frame directly.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -36,8 +39,10 @@ from gridnerf import dataset, losses, render, vignetting
 # Adam steps of one view's refinement, and their rate (in radians, and in near bounds)
 STEPS = 100
 LR = 1e-3
-# every STRIDE-th binned pixel across and down takes part
+# every STRIDE-th binned pixel across and down takes part, or a wider stride that keeps
+# the rays under MAX_RAYS (a 1920x1080 capture's 960x540 binned pixels: every 6th)
 STRIDE = 2
+MAX_RAYS = 16384
 
 
 @dataclass(frozen=True)
@@ -72,6 +77,35 @@ def moved(c2w: jax.Array, delta: jax.Array, unit: float) -> jax.Array:
                             (c2w[:, 3] + delta[3:] * unit)[:, None]], axis=1)
 
 
+def _rays(delta, view: dict, ndc: bool):
+    """(origins, directions) (n, 3) in grid space of the view's pixels (view: c2w (3, 4),
+    unit, intr (n, 4), u, v (n,), ndc_intrinsics (4,)) from its camera moved by delta."""
+    n = view["u"].shape[0]
+    c2w = jnp.broadcast_to(moved(view["c2w"], delta, view["unit"]), (n, 3, 4))
+    o, d = dataset.pixel_rays(c2w, view["intr"], view["u"], view["v"])
+    return dataset.to_grid_space(ndc, view["ndc_intrinsics"], o, d)
+
+
+def _loss(delta, structure, params, view: dict, cfg, n_cand: int, ndc: bool):
+    o, d = _rays(delta, view, ndc)
+    out = render.render_rays(structure, params, o, d, view["near_t"], view["far_t"], cfg,
+                             n_cand=n_cand)
+    return losses.data_loss(out["rgb_low"], view["target"], view["mask"], view["eps"])
+
+
+def _optimiser():
+    return optax.adam(LR)
+
+
+@partial(jax.jit, static_argnames=("cfg", "n_cand", "ndc"))
+def _step(delta, state, structure, params, view: dict, cfg, n_cand: int, ndc: bool):
+    """One Adam step on the view's data term: (delta, state, the loss at the given delta).
+    Compiled once for every view of a size (the rays are arguments, not constants)."""
+    value, grad = jax.value_and_grad(_loss)(delta, structure, params, view, cfg, n_cand, ndc)
+    updates, state = _optimiser().update(grad, state)
+    return optax.apply_updates(delta, updates), state, value
+
+
 def refine(structure, params, scene, cfg, plan, frame: int,
            start: np.ndarray | None = None) -> Refined:
     """The pose of `frame` (an index into scene.names) that best explains its own binned raw
@@ -81,54 +115,36 @@ def refine(structure, params, scene, cfg, plan, frame: int,
                          cfg.data.exposure_ratio)
     data = vignetting.apply(data, plan.vignetting)
     h, w = data.image_hw
-    v, u = jnp.meshgrid(jnp.arange(STRIDE // 2, h, STRIDE), jnp.arange(STRIDE // 2, w, STRIDE),
+    stride = max(STRIDE, int(np.ceil(np.sqrt(h * w / MAX_RAYS))))
+    v, u = jnp.meshgrid(jnp.arange(stride // 2, h, stride), jnp.arange(stride // 2, w, stride),
                         indexing="ij")
-    zero = jnp.zeros_like(v)
-    target, mask = dataset.targets(data, zero, v, u)
-    target, mask = target.reshape(-1, 3), mask.reshape(-1, 3)
-    uf, vf = u.reshape(-1).astype(jnp.float32), v.reshape(-1).astype(jnp.float32)
-    intr = jnp.broadcast_to(data.intrinsics[0], (uf.size, 4))
+    target, mask = dataset.targets(data, jnp.zeros_like(v), v, u)
     near_t, far_t = dataset.grid_box(scene)[2:]
-    c2w0 = jnp.asarray(data.c2w[0] if start is None else start, jnp.float32)
-    unit = float(scene.near)
-    eps = float(plan.data_eps)
-
-    def rays_of(delta):
-        c2w = jnp.broadcast_to(moved(c2w0, delta, unit), (uf.size, 3, 4))
-        o, d = dataset.pixel_rays(c2w, intr, uf, vf)
-        return dataset.to_grid_space(data.ndc, data.ndc_intrinsics, o, d)
-
-    o, d = rays_of(jnp.zeros(6))
+    view = {"c2w": jnp.asarray(data.c2w[0] if start is None else start, jnp.float32),
+            "unit": jnp.float32(scene.near), "u": u.reshape(-1).astype(jnp.float32),
+            "v": v.reshape(-1).astype(jnp.float32),
+            "intr": jnp.broadcast_to(data.intrinsics[0], (u.size, 4)),
+            "ndc_intrinsics": jnp.asarray(data.ndc_intrinsics),
+            "target": target.reshape(-1, 3), "mask": mask.reshape(-1, 3),
+            "near_t": jnp.float32(near_t), "far_t": jnp.float32(far_t),
+            "eps": jnp.float32(plan.data_eps)}
+    o, d = _rays(jnp.zeros(6), view, data.ndc)
     n_cand = render.image_candidates(structure, cfg.render, np.asarray(o), np.asarray(d),
                                      near_t, far_t)
-
-    def loss(delta):
-        o, d = rays_of(delta)
-        out = render.render_rays(structure, params, o, d, near_t, far_t, cfg.render,
-                                 n_cand=n_cand)
-        return losses.data_loss(out["rgb_low"], target, mask, eps)
-
-    opt = optax.adam(LR)
-
-    @jax.jit
-    def step(delta, state):
-        value, grad = jax.value_and_grad(loss)(delta)
-        updates, state = opt.update(grad, state)
-        return optax.apply_updates(delta, updates), state, value
-
     delta = jnp.zeros(6)
-    state = opt.init(delta)
+    state = _optimiser().init(delta)
     best, best_loss, first = delta, np.inf, None
     for _ in range(STEPS):
-        new, state, value = step(delta, state)
+        new, state, value = _step(delta, state, structure, params, view, cfg.render, n_cand,
+                                  data.ndc)
         value = float(value)  # the loss at delta, before this step's update
         first = value if first is None else first
         if value < best_loss:
             best, best_loss = delta, value
         delta = new
     best = np.asarray(best, np.float64)
-    return Refined(c2w=np.asarray(moved(c2w0, jnp.asarray(best, jnp.float32), unit),
-                                  np.float64),
+    return Refined(c2w=np.asarray(moved(view["c2w"], jnp.asarray(best, jnp.float32),
+                                        view["unit"]), np.float64),
                    rotation_deg=float(np.degrees(np.linalg.norm(best[:3]))),
                    translation=float(np.linalg.norm(best[3:])),
                    loss_before=float(first), loss_after=float(best_loss))

@@ -34,7 +34,7 @@ def test_a_test_camera_off_its_pose_is_brought_back(small_scene, tmp_path, monke
     from gridnerf.errors import SceneError
     from gridnerf.train import train
 
-    cfg = cfgmod.override(cfgmod.preset("tiny"), ["train.steps_per_stage=[300,100]"])
+    cfg = cfgmod.override(cfgmod.preset("tiny"), ["train.steps_per_stage=[120,40]"])
     run = tmp_path / "run"
     train(small_scene, run, cfg)
     cfg, plan, scene, structure, params, _ = eval_run.load_run(run)

@@ -103,3 +103,13 @@ def test_training_takes_a_lens_falloff_off_and_leaves_a_clean_lens_alone(small_s
     assert k is not None and vignetting.corner_stops(k) == pytest.approx(1.5, abs=0.5)
     train(small_scene, tmp_path / "clean", cfg)
     assert planmod.load(tmp_path / "clean").vignetting is None
+
+
+def test_parallax_is_the_angle_between_the_rays_at_the_point():
+    """Two cameras 1 apart, a point 1 in front of the first: 45 deg; straight ahead of both
+    (the same ray): 0; a camera behind the point: 180."""
+    point = np.array([[0.0, 0.0, 1.0]])
+    assert vignetting.parallax_deg(np.zeros(3) - point, np.array([1.0, 0.0, 0.0]) - point
+                                   ) == pytest.approx([45.0])
+    assert vignetting.parallax_deg(-point, -2 * point) == pytest.approx([0.0], abs=1e-6)
+    assert vignetting.parallax_deg(-point, point) == pytest.approx([180.0])
