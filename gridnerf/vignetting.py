@@ -32,7 +32,7 @@ from dataclasses import replace
 import jax.numpy as jnp
 import numpy as np
 
-from gridnerf import consistency, dataset, render
+from gridnerf import consistency, dataset, illuminant, render
 from gridnerf.cameras import project_points
 
 # the corner falloff (stops) above which it is taken off the data (29 % at the corners).
@@ -73,10 +73,10 @@ def radius2(data: dataset.RayData, frame, v, u) -> np.ndarray:
 
 def parallax_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(P,) angle in degrees between the vectors a (P, 3) and b (P, 3) (or (3,)): at a
-    surface point, between its rays to two cameras."""
-    cos = np.sum(a * b, -1) / np.maximum(np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1),
-                                         1e-30)
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    surface point, between its rays to two cameras (illuminant.angular_error_deg, the one
+    scale-free angle between 3-vectors)."""
+    return np.asarray(illuminant.angular_error_deg(np.asarray(a, np.float64),
+                                                   np.asarray(b, np.float64)))
 
 
 def corner_stops(k: tuple[float, float]) -> float:
