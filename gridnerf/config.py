@@ -117,7 +117,9 @@ class DataConfig(_Section):
     # "processed" (each frame through the 2D pipeline with a denoiser: 2D + NeRF) or "clean"
     # (a simulated capture's noise-free raw: the error budget)
     target: Literal["raw", "reference", "processed", "clean"] = "raw"
-    black_offset: Literal["file", "dark"] = "file"  # black level: file tags, or + lens-cap dark/
+    # black level: + lens-cap frames of <scene>/dark/ where there are some ("auto"), the
+    # file's tags alone ("file"), or the lens-cap frames required ("dark")
+    black_offset: Literal["auto", "file", "dark"] = "auto"
     exposure_ratio: float = 1.0  # raw targets times this after black-level removal (darkness)
 
     def _check(self) -> None:

@@ -12,7 +12,8 @@ position, less the file's black level, is the offset (2 frames of 480x270 photos
 ~7 DN of read noise and row noise: within 0.13 DN of the simulator's offsets on all 21
 simulated scenes; docs/results.md).
 
-`data.black_offset = "dark"` reads `<scene>/dark/*` (any RAW format `raw/` takes),
+Where `<scene>/dark/` holds such frames (any RAW format `raw/` takes), training uses them
+(`data.black_offset = "auto"`, the default; "dark" requires them, "file" ignores them):
 measures the offsets once (`measure`), keeps them in `<run>/black_level.json` and every
 later load of the run's scene under that config (training, resume, evaluation:
 runfolder.open_scene) adds them to the scene's black level (`apply`), so the data term,
@@ -53,8 +54,8 @@ def _raw_files(folder: Path) -> list[Path]:
 
 
 def has_dark_frames(scene_dir) -> bool:
-    """Whether <scene>/dark holds RAW files (for the trainer's hint under
-    data.black_offset=file: the default, since captures such as the paper's have none)."""
+    """Whether <scene>/dark holds RAW files (data.black_offset "auto" uses them where it
+    does; captures such as the paper's have none)."""
     return bool(_raw_files(Path(scene_dir) / DARK_DIR))
 
 

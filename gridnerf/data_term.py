@@ -2,9 +2,8 @@
 
 Decided once per run by gridnerf.train, before the first step, and kept in the run plan
 (gridnerf.plan):
-- `black_level`: the file's black level, or the lens-cap frames' (data.black_offset =
-  "dark", or where an unknown offset would be a large share of the weakest colour's
-  signal);
+- `black_level`: the lens-cap frames' where the capture has them (data.black_offset =
+  "auto"), else the file's;
 - `data_noise`, `capped_eps`, `data_eps_note`: the training frames' noise sigma and the
   data term's eps (RawNeRF's relative MSE, (C - y)^2 / (sg(C) + eps)^2), capped at a few
   sigmas;
@@ -49,9 +48,9 @@ EPS_NOTE_SIGMAS = 2.5
 
 
 # where an unknown black offset of darkframes.OFFSET_DN (4 DN, the ELD model's largest)
-# would be more than this share of the weakest colour's mean signal, the frames take the
-# lens-cap black level when the scene has lens-cap frames (training warns when it has none).
-# At their own light the 21 simulated scenes sit at 0.08-0.35: it binds on none of them
+# would be more than this share of the weakest colour's mean signal and the capture has no
+# lens-cap frames, training warns that the colour will follow the offset. At their own
+# light the simulated scenes sit at 0.08-0.45 (held_deep_hall the highest)
 LENS_CAP_SHARE = 0.5
 
 
@@ -60,48 +59,46 @@ def black_level(scene_dir, run: Path, cfg: Config, scene) -> str:
     measured from <scene>/dark/, kept in <run>/black_level.json: darkframes.measure/save)
     or "file".
 
-    data.black_offset = "dark": the lens-cap frames (SceneError where they cannot serve).
-    "file": the file's, except where an unknown black offset of darkframes.OFFSET_DN (4 DN)
-    would be more than LENS_CAP_SHARE of the weakest colour's mean signal
-    (darkframes.offset_share): there the colour follows the offset (the capture's
-    illuminant estimate on held_deep_hall at a tenth of its light came out red > green, no
-    light's colour), and where the scene has lens-cap frames their offsets are taken;
-    without them, or with frames that cannot serve, training warns and keeps the file's.
-    One line either way; a note naming data.black_offset=dark where the gate does not
-    bind but the scene has lens-cap frames. scene: the scene with the file's black level
-    (not read under "dark", which measures before the scene loads).
+    data.black_offset = "auto" (the default): the lens-cap frames wherever the capture has
+    them. The dark signal of a sensor sits a few DN off the file's tag per CFA position, a
+    cast of the dark parts and a shift of every illuminant estimate; measured, the offsets
+    are known to a tenth of a DN. Trained both ways, the lens-cap level scored higher on
+    13 of 15 single-light simulated scenes (docs/results.md, "Black level"). Lens-cap
+    frames that cannot serve (another size, lit): one warning naming the frame, and the
+    file's. "dark": the lens-cap frames, SceneError where they cannot serve. "file": the
+    file's. Without lens-cap frames, where an unknown black offset of
+    darkframes.OFFSET_DN would be more than LENS_CAP_SHARE of the weakest colour's mean
+    signal (darkframes.offset_share), training warns: the colour follows the offset there
+    (held_deep_hall at a tenth of its light: its illuminant estimate came out red > green,
+    no light's colour). One line whenever the lens-cap frames are used or wanted. scene:
+    the scene with the file's black level (not read under "dark", which measures before
+    the scene loads).
     """
-    if cfg.data.black_offset == "dark":
-        measured = darkframes.measure(scene_dir)
+    mode = cfg.data.black_offset
+    has_dark = mode != "file" and darkframes.has_dark_frames(scene_dir)
+    if mode == "dark" or has_dark:
+        try:
+            measured = darkframes.measure(scene_dir)
+        except GridNerfError as err:  # e.g. a frame in dark/ of another size or lit
+            if mode == "dark":
+                raise
+            print(f"warning: the lens-cap frames cannot serve ({err}); training with the "
+                  "file's black level")
+            return "file"
         darkframes.save(run, measured)
-        print("black level from the dark frames: offsets (DN, CFA order) "
+        print(f"black level from the lens-cap frames in {Path(scene_dir) / darkframes.DARK_DIR}"
+              ": offsets (DN, CFA order) "
               f"{np.round(np.ravel(measured['offset_dn']), 2).tolist()}")
         return "lens_cap"
     signal = darkframes.signal_dn(scene)
-    has_dark = darkframes.has_dark_frames(scene_dir)
-    if not darkframes.too_weak(signal, LENS_CAP_SHARE):
-        if has_dark:
-            print(f"note: {Path(scene_dir) / darkframes.DARK_DIR} has lens-cap frames; "
-                  "--set data.black_offset=dark uses them for the black level")
-        return "file"
-    what = (f"the weakest colour's mean signal is {float(np.min(signal)):.1f} DN above the "
-            f"file's black level: an unknown black offset of {darkframes.OFFSET_DN:g} DN "
-            f"would be {darkframes.offset_share(signal):.0%} of it")
-    if not has_dark:
-        print(f"warning: {what}, and the colour would follow it; shoot 1-4 frames with the "
-              f"lens cap on at the capture's ISO and exposure time into "
+    if darkframes.too_weak(signal, LENS_CAP_SHARE):
+        print(f"warning: the weakest colour's mean signal is {float(np.min(signal)):.1f} DN "
+              f"above the file's black level: an unknown black offset of "
+              f"{darkframes.OFFSET_DN:g} DN would be {darkframes.offset_share(signal):.0%} of "
+              "it, and the colour would follow it; shoot 1-4 frames with the lens cap on at "
+              f"the capture's ISO and exposure time into "
               f"{Path(scene_dir) / darkframes.DARK_DIR} (used automatically)")
-        return "file"
-    try:
-        measured = darkframes.measure(scene_dir)
-    except GridNerfError as err:  # e.g. a frame in dark/ of another size or lit
-        print(f"warning: {what}, but the lens-cap frames cannot serve ({err}); training "
-              "with the file's black level")
-        return "file"
-    darkframes.save(run, measured)
-    print(f"black level from the lens-cap frames, since {what}: offsets (DN, CFA order) "
-          f"{np.round(np.ravel(measured['offset_dn']), 2).tolist()}")
-    return "lens_cap"
+    return "file"
 
 
 def data_noise(data: dataset.RayData, key, n_patches: int = 256) -> float:

@@ -117,7 +117,7 @@ def test_training_without_dark_frames_stops_with_one_line(scene_copy, tmp_path, 
     assert not run.exists()  # nothing half-written
 
 
-# ---------------------------------------------------------------- the weak-signal gate
+# ---------------------------------------------------------------- which black level
 
 
 def test_signal_per_colour_and_the_offsets_share_of_it():
@@ -148,7 +148,7 @@ def _gate(folder, run, capsys, *overrides):
     return what, scene, capsys.readouterr().out
 
 
-def test_a_weak_signal_takes_the_lens_cap_black_level(tmp_path, capsys, monkeypatch):
+def test_lens_cap_frames_set_the_black_level_where_the_capture_has_them(tmp_path, capsys):
     from gridnerf.sim import simulate_scene
 
     folder = simulate_scene("bucket", tmp_path / "dim", width=128, height=72, n_frames=3,
@@ -159,19 +159,26 @@ def test_a_weak_signal_takes_the_lens_cap_black_level(tmp_path, capsys, monkeypa
     assert share > data_term.LENS_CAP_SHARE
     run = tmp_path / "run"
     run.mkdir()
-    what, scene, out = _gate(folder, run, capsys)
+    what, scene, out = _gate(folder, run, capsys)  # the default, "auto"
     assert what == "lens_cap"
     assert "black level from the lens-cap frames" in out and len(out.splitlines()) == 1
     offset = darkframes.load(run)  # kept for training, resume and eval
     np.testing.assert_allclose(scene.black_level - _loaded(folder).black_level,
                                np.broadcast_to(offset, scene.black_level.shape), atol=1e-3)
     np.testing.assert_allclose(offset, truth, atol=1.0)
-    # data.black_offset = dark: the lens-cap frames whatever the signal
+    # data.black_offset = dark: the same frames, the same offsets
     dark = tmp_path / "dark"
     dark.mkdir()
     what, _, out = _gate(folder, dark, capsys, "data.black_offset=dark")
-    assert what == "lens_cap" and out.startswith("black level from the dark frames")
+    assert what == "lens_cap" and out.startswith("black level from the lens-cap frames")
     np.testing.assert_allclose(darkframes.load(dark), offset, atol=1e-9)
+    # data.black_offset = file: the file's level, the weak signal named in one warning
+    asked = tmp_path / "asked"
+    asked.mkdir()
+    what, scene, out = _gate(folder, asked, capsys, "data.black_offset=file")
+    assert what == "file" and darkframes.load(asked) is None
+    assert out.startswith("warning:") and len(out.splitlines()) == 1
+    assert np.array_equal(scene.black_level, _loaded(folder).black_level)
     # lens-cap frames that cannot serve: one warning naming the frame, the file's level
     like = next((folder / "raw").iterdir())
     _write_dark(folder, "dark_000.dng", np.full((36, 64), 512, np.uint16), like)
@@ -184,7 +191,7 @@ def test_a_weak_signal_takes_the_lens_cap_black_level(tmp_path, capsys, monkeypa
     # with data.black_offset = dark such frames stop the run
     with pytest.raises(SceneError, match="dark_000.dng"):
         _gate(folder, tmp_path / "odd", capsys, "data.black_offset=dark")
-    # no lens-cap frames: one warning naming the folder to shoot them into
+    # no lens-cap frames under a weak signal: one warning naming the folder to shoot them into
     shutil.rmtree(folder / "dark")
     bare = tmp_path / "bare"
     bare.mkdir()
@@ -192,22 +199,20 @@ def test_a_weak_signal_takes_the_lens_cap_black_level(tmp_path, capsys, monkeypa
     assert what == "file"
     assert out.startswith("warning:") and str(folder / "dark") in out
     assert darkframes.load(bare) is None
-    # the gate off (a share of 0: never): the file's black level, nothing said or kept
-    monkeypatch.setattr(data_term, "LENS_CAP_SHARE", 0.0)
-    off = tmp_path / "off"
-    off.mkdir()
-    what, scene, out = _gate(folder, off, capsys)
-    assert what == "file" and out == "" and darkframes.load(off) is None
-    assert np.array_equal(scene.black_level, _loaded(folder).black_level)
 
 
-def test_the_gate_does_not_bind_at_a_scenes_own_light(small_scene, tmp_path, capsys):
+def test_at_a_scenes_own_light_lens_cap_frames_are_used_and_file_ignores_them(
+        small_scene, tmp_path, capsys):
     assert darkframes.offset_share(darkframes.signal_dn(_loaded(small_scene))) < 0.5
-    what, scene, out = _gate(small_scene, tmp_path, capsys)
-    assert what == "file"
-    assert out.startswith("note:") and "data.black_offset=dark" in out
+    (tmp_path / "auto").mkdir()
+    (tmp_path / "file").mkdir()
+    what, scene, out = _gate(small_scene, tmp_path / "auto", capsys)
+    assert what == "lens_cap" and out.startswith("black level from the lens-cap frames")
+    plain = tmp_path / "file"
+    what, scene, out = _gate(small_scene, plain, capsys, "data.black_offset=file")
+    assert what == "file" and out == ""  # a signal strong enough: nothing to say
     assert np.array_equal(scene.black_level, _loaded(small_scene).black_level)
-    assert darkframes.load(tmp_path) is None
+    assert darkframes.load(plain) is None
 
 
 def test_a_dim_capture_trains_and_evaluates_with_its_lens_cap_black_level(tmp_path, capsys):
