@@ -8,7 +8,9 @@ matched to the reference); one frame denoised by non-local means. "margin" is de
 gain; "colour" what the run shipped where its run folder is here (the end-of-training check
 of gridnerf.shipped_colour: the field, or one grey-world gain, and the gain distance of the
 field's white from the nearest of the frames' estimates), "kept result" where only the
-numbers are kept (reports/results.json).
+numbers are kept (reports/results.json); "black level" the one the run's plan took (the
+lens-cap frames' or the file's: a run trained before the lens-cap frames became the
+default says "file").
 
     python -m experiments.colour_groups [--scenes all] [--runs runs]
 """
@@ -49,6 +51,14 @@ def shipped(run: Path) -> str:
     return f"{record['shipped']} ({record['distance']:.2f})"
 
 
+def black_level(run: Path) -> str:
+    """The black level the run's plan took ("lens cap", "file"), or "kept result"."""
+    path = run / "plan.json"
+    if not path.is_file():
+        return "kept result"
+    return json.loads(path.read_text()).get("black_level", "file").replace("_", " ")
+
+
 def main() -> None:
     ap = study_parser(__doc__, "reports/colour_groups", scenes="all", runs=True)
     args = ap.parse_args()
@@ -64,13 +74,14 @@ def main() -> None:
                    ("gridnerf", "global_grey_world", "baseline_binned_matched",
                     "baseline_denoised")}
             row["colour"] = shipped(Path(args.runs) / name / "default")
+            row["black"] = black_level(Path(args.runs) / name / "default")
             record["scenes"][name] = {"group": g, **row}
             vals.append(row)
             margin = row["gridnerf"][0] - row["global_grey_world"][0]
             rows.append([name, *(f"{row[k][0]:.2f} / {row[k][1]:.2f}" for k in
                                  ("gridnerf", "global_grey_world")),
                          f"{margin:+.2f}", f"{row['baseline_binned_matched'][0]:.2f}",
-                         f"{row['baseline_denoised'][0]:.2f}", row["colour"]])
+                         f"{row['baseline_denoised'][0]:.2f}", row["colour"], row["black"]])
             print(name, rows[-1], flush=True)
         if not vals:
             continue
@@ -84,17 +95,19 @@ def main() -> None:
                      f"{mean('gridnerf', 0):.2f} / {mean('gridnerf', 1):.2f}",
                      f"{mean('global_grey_world', 0):.2f} / {mean('global_grey_world', 1):.2f}",
                      f"{np.mean(margins):+.2f}", f"{mean('baseline_binned_matched', 0):.2f}",
-                     f"{mean('baseline_denoised', 0):.2f}", ""])
+                     f"{mean('baseline_denoised', 0):.2f}", "", ""])
         summary_rows.append([LABELS[g], str(len(vals)),
                              f"{mean('gridnerf', 0):.2f} / {mean('gridnerf', 1):.2f}",
                              f"{mean('global_grey_world', 0):.2f} / "
                              f"{mean('global_grey_world', 1):.2f}",
-                             f"{min(margins):+.2f}", f"{min(over_frame):+.2f}"])
+                             f"{min(margins):+.2f}", f"{min(over_frame):+.2f}",
+                             f"{sum(v['black'] == 'lens cap' for v in vals)}"])
         sections.append(f"### {LABELS[g]}\n\n" + markdown_table(
             ["scene", "default", "one grey-world gain", "margin", "per-frame PSNR",
-             "one frame + NLM PSNR", "colour shipped (gain distance)"], rows))
+             "one frame + NLM PSNR", "colour shipped (gain distance)", "black level"], rows))
     table = markdown_table(["group", "scenes", "default", "one grey-world gain",
-                            "worst margin", "worst default - per-frame"], summary_rows)
+                            "worst margin", "worst default - per-frame",
+                            "lens-cap black level"], summary_rows)
     md = ("# The default against one grey-world gain, per group\n\n"
           f"`python -m experiments.colour_groups --scenes {args.scenes}`: PSNR (dB) / "
           "CIEDE2000 of the test views.\n\n" + table + "\n\n" + "\n\n".join(sections) + "\n")

@@ -23,8 +23,9 @@ camera RGB, non-negative. The estimators (colour constancy by image statistics):
 night scenes (tungsten, sodium-free street lamps, daylight through a window) lie near the
 Planckian (blackbody) locus, whose camera-RGB colours follow from the raw file's own
 XYZ->camera ColorMatrix (`color.blackbody_xyz_white`, Wyman-Sloan-Shirley CIE fit). An
-estimate projected onto the locus keeps its colour temperature and loses its green-magenta
-error, the part that statistics of a not-grey scene get most wrong. It needs nothing a real
+estimate projected onto the locus (its entry nearest in log chromaticity) keeps its colour
+temperature and loses its green-magenta error, the part that statistics of a not-grey scene
+get most wrong. It needs nothing a real
 capture lacks (DNGs carry ColorMatrix). It is on by default (`loss.ca_locus`): on the raw
 frames of the nine built-in scenes it lowers shades of grey's mean angular error from 4.76
 to 3.10 deg (reports/illuminants.md); fluorescent and LED light sit slightly off the locus
@@ -365,12 +366,13 @@ def to_locus(illuminant, locus):
     (n, 3) unit -> (..., 3).
 
     Nearest in log chromaticity (the metric of gain_distance, channels floored the same
-    way), not in angle: under a warm light the angle hardly sees the weak blue, so the
-    entry nearest in angle keeps the red/green ratio and whatever blue error the estimate
-    had. On the frames of the 32 simulated scenes (both black levels), shades of grey
-    projected in angle lay 0.001-0.97 in gain_distance from the true light, in log
-    chromaticity 0.005-0.92, lower on 26 of 32 with the file's black level; scoreboard's,
-    0.33 and 0.05 (docs/results.md, "The locus projection").
+    way), not in angle: the angle weighs each channel by its size, so under a warm light
+    the entry nearest in angle is the one with the estimate's red/green ratio, and an error
+    in that ratio passes whole into the projection while the weak blue, which the gains
+    scale most, is hardly looked at. On the frames of the 29 scenes of data/sim, shades of
+    grey projected lay 0.173 from the true light on average (illuminant.gain_distance)
+    nearest in angle and 0.133 nearest in log chromaticity (closer on 23 of 29); the
+    estimate the default takes, 0.108 and 0.084 (docs/results.md, "The locus projection").
 
     numpy or jax (jittable; the choice is an argmin, so no gradient flows through it).
     """

@@ -186,6 +186,11 @@ def test_planckian_locus_projection_keeps_temperature_and_drops_green_magenta():
     np.testing.assert_allclose(il.to_locus(1e-4 * cast, locus), il.to_locus(cast, locus))
     j = jax.jit(il.to_locus)(jnp.asarray(cast, jnp.float32), jnp.asarray(locus, jnp.float32))
     np.testing.assert_allclose(np.asarray(j), il.to_locus(cast, locus), rtol=1e-5)
+    # the entry it takes is the one nearest in what the gains do (gain_distance), for any cast
+    rng = np.random.default_rng(0)
+    for e in truth * rng.uniform(0.5, 2.0, size=(20, 3)):
+        nearest = min(il.gain_distance(row, e) for row in locus)
+        assert il.gain_distance(il.to_locus(e, locus), e) == pytest.approx(nearest, abs=1e-9)
 
 
 def test_frames_estimate_recovers_a_light_on_several_frames():
