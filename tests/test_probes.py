@@ -158,7 +158,8 @@ def test_train_saves_the_config_it_ran_with(trained):
     assert cfgmod.load(trained / "config.json") == cfgmod.preset("tiny")
     # what training decided from the frames is the run plan beside it
     plan = planmod.load(trained)
-    assert plan.method == "brightnerf" and plan.black_level == "file"
+    # the simulated capture has lens-cap frames in dark/: the default takes its black level there
+    assert plan.method == "brightnerf" and plan.black_level == "lens_cap"
     assert len(plan.n_candidates) == len(cfgmod.preset("tiny").grid.resolutions)
     assert all(n > 0 for n in plan.n_candidates)  # every stage's count was fitted
     assert not (trained / "one_gain.json").exists() and not (trained / "sensor_fit.json").exists()
