@@ -117,9 +117,10 @@ class DataConfig(_Section):
     # "processed" (each frame through the 2D pipeline with a denoiser: 2D + NeRF) or "clean"
     # (a simulated capture's noise-free raw: the error budget)
     target: Literal["raw", "reference", "processed", "clean"] = "raw"
-    # black level: + lens-cap frames of <scene>/dark/ where there are some ("auto"), the
-    # file's tags alone ("file"), or the lens-cap frames required ("dark")
-    black_offset: Literal["auto", "file", "dark"] = "auto"
+    # black level: the file's tags, checked against the lens-cap frames of <scene>/dark/
+    # where there are some (they replace the tags where they show them off), or "dark": the
+    # lens-cap frames required
+    black_offset: Literal["file", "dark"] = "file"
     exposure_ratio: float = 1.0  # raw targets times this after black-level removal (darkness)
 
     def _check(self) -> None:

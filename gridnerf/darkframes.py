@@ -12,8 +12,9 @@ position, less the file's black level, is the offset (2 frames of 480x270 photos
 ~7 DN of read noise and row noise: within 0.13 DN of the simulator's offsets on all 21
 simulated scenes; docs/results.md).
 
-Where `<scene>/dark/` holds such frames (any RAW format `raw/` takes), training uses them
-(`data.black_offset = "auto"`, the default; "dark" requires them, "file" ignores them):
+Where `<scene>/dark/` holds such frames (any RAW format `raw/` takes), training checks the
+file's black level against them (`data.black_offset = "file"`, the default: they replace it
+where their offsets matter, data_term.black_level; "dark" requires them):
 measures the offsets once (`measure`), keeps them in `<run>/black_level.json` and every
 later load of the run's scene under that config (training, resume, evaluation:
 runfolder.open_scene) adds them to the scene's black level (`apply`), so the data term,
@@ -54,8 +55,8 @@ def _raw_files(folder: Path) -> list[Path]:
 
 
 def has_dark_frames(scene_dir) -> bool:
-    """Whether <scene>/dark holds RAW files (data.black_offset "auto" uses them where it
-    does; captures such as the paper's have none)."""
+    """Whether <scene>/dark holds RAW files (training checks the file's black level against
+    them where it does; captures such as the paper's have none)."""
     return bool(_raw_files(Path(scene_dir) / DARK_DIR))
 
 
@@ -117,6 +118,20 @@ def signal_dn(scene) -> np.ndarray:
         np.add.at(sums, colour, blocks.sum(axis=1))
         np.add.at(counts, colour, blocks.shape[1])
     return sums / np.maximum(counts, 1)
+
+
+def offset_shift(offset_dn, cfa, signal) -> float:
+    """The largest share of a colour's mean signal that measured offsets move it by:
+    max_c |mean offset over c's CFA positions| / signal_c (offset_dn: (2, 2) of measure;
+    cfa: (2, 2) colour index per position; signal: (3,) of signal_dn, the file's level;
+    inf where a colour's mean is <= 0)."""
+    colour = np.asarray(cfa).ravel()
+    sums, counts = np.zeros(3), np.zeros(3)
+    np.add.at(sums, colour, np.ravel(offset_dn))
+    np.add.at(counts, colour, 1)
+    shift = np.abs(sums / np.maximum(counts, 1))
+    signal = np.asarray(signal, np.float64)
+    return float(np.max(np.where(signal > 0, shift / np.maximum(signal, 1e-12), np.inf)))
 
 
 def offset_share(signal) -> float:

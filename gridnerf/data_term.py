@@ -2,8 +2,8 @@
 
 Decided once per run by gridnerf.train, before the first step, and kept in the run plan
 (gridnerf.plan):
-- `black_level`: the lens-cap frames' where the capture has them (data.black_offset =
-  "auto"), else the file's;
+- `black_level`: the file's black level, or the lens-cap frames' where the capture has
+  them and they show the file's off (or data.black_offset = "dark");
 - `data_noise`, `capped_eps`, `data_eps_note`: the training frames' noise sigma and the
   data term's eps (RawNeRF's relative MSE, (C - y)^2 / (sg(C) + eps)^2), capped at a few
   sigmas;
@@ -52,6 +52,13 @@ EPS_NOTE_SIGMAS = 2.5
 # lens-cap frames, training warns that the colour will follow the offset. At their own
 # light the simulated scenes sit at 0.08-0.45 (held_deep_hall the highest)
 LENS_CAP_SHARE = 0.5
+# the lens-cap frames replace the file's black level where the offset they measure is more
+# than this share of some colour's mean signal (darkframes.offset_shift): a 1 % shift of a
+# colour's mean moves the gains by about 0.01 in log chromaticity, a ninth of the
+# estimate's mean error from the light (0.086 on the 32 simulated scenes), so below it the
+# correction cannot matter; in the dark parts of a frame the same offset is a larger share.
+# The simulated captures: 0.2-0.4 % on the three path-traced ones, 1.4-23 % on the others
+OFFSET_MATTERS = 0.01
 
 
 def black_level(scene_dir, run: Path, cfg: Config, scene) -> str:
@@ -59,46 +66,54 @@ def black_level(scene_dir, run: Path, cfg: Config, scene) -> str:
     measured from <scene>/dark/, kept in <run>/black_level.json: darkframes.measure/save)
     or "file".
 
-    data.black_offset = "auto" (the default): the lens-cap frames wherever the capture has
-    them. The dark signal of a sensor sits a few DN off the file's tag per CFA position, a
-    cast of the dark parts and a shift of every illuminant estimate; measured, the offsets
-    are known to a tenth of a DN. Trained both ways, the lens-cap level scored higher on
-    13 of 15 single-light simulated scenes (docs/results.md, "Black level"). Lens-cap
-    frames that cannot serve (another size, lit): one warning naming the frame, and the
-    file's. "dark": the lens-cap frames, SceneError where they cannot serve. "file": the
-    file's. Without lens-cap frames, where an unknown black offset of
-    darkframes.OFFSET_DN would be more than LENS_CAP_SHARE of the weakest colour's mean
-    signal (darkframes.offset_share), training warns: the colour follows the offset there
-    (held_deep_hall at a tenth of its light: its illuminant estimate came out red > green,
-    no light's colour). One line whenever the lens-cap frames are used or wanted. scene:
-    the scene with the file's black level (not read under "dark", which measures before
-    the scene loads).
+    data.black_offset = "file" (the default): the file's, checked against the lens-cap
+    frames wherever the capture has them. A sensor's dark signal sits a few DN off the
+    file's tag per CFA position: a cast of the dark parts and a shift of every illuminant
+    estimate. Where the offsets the frames measure are more than OFFSET_MATTERS of some
+    colour's mean signal (darkframes.offset_shift), the tag contradicts the pixels and the
+    lens-cap level is taken (on every simulated scene; held_deep_hall 19.22 -> 21.22 dB,
+    docs/results.md, "Black level"). Lens-cap frames that cannot serve (another size,
+    lit): one warning naming the frame, and the file's. Without lens-cap frames, where an
+    unknown offset of darkframes.OFFSET_DN would be more than LENS_CAP_SHARE of the
+    weakest colour's mean signal (darkframes.offset_share), training warns: the colour
+    follows the offset there (held_deep_hall at a tenth of its light: its illuminant
+    estimate came out red > green, no light's colour). "dark": the lens-cap frames,
+    SceneError where they cannot serve. One line whenever lens-cap frames are there or
+    wanted. scene: the scene with the file's black level (not read under "dark", which
+    measures before the scene loads).
     """
-    mode = cfg.data.black_offset
-    has_dark = mode != "file" and darkframes.has_dark_frames(scene_dir)
-    if mode == "dark" or has_dark:
-        try:
-            measured = darkframes.measure(scene_dir)
-        except GridNerfError as err:  # e.g. a frame in dark/ of another size or lit
-            if mode == "dark":
-                raise
-            print(f"warning: the lens-cap frames cannot serve ({err}); training with the "
-                  "file's black level")
-            return "file"
+    if cfg.data.black_offset == "dark":
+        measured = darkframes.measure(scene_dir)
         darkframes.save(run, measured)
-        print(f"black level from the lens-cap frames in {Path(scene_dir) / darkframes.DARK_DIR}"
-              ": offsets (DN, CFA order) "
+        print("black level from the lens-cap frames: offsets (DN, CFA order) "
               f"{np.round(np.ravel(measured['offset_dn']), 2).tolist()}")
         return "lens_cap"
     signal = darkframes.signal_dn(scene)
-    if darkframes.too_weak(signal, LENS_CAP_SHARE):
-        print(f"warning: the weakest colour's mean signal is {float(np.min(signal)):.1f} DN "
-              f"above the file's black level: an unknown black offset of "
-              f"{darkframes.OFFSET_DN:g} DN would be {darkframes.offset_share(signal):.0%} of "
-              "it, and the colour would follow it; shoot 1-4 frames with the lens cap on at "
-              f"the capture's ISO and exposure time into "
-              f"{Path(scene_dir) / darkframes.DARK_DIR} (used automatically)")
-    return "file"
+    where = Path(scene_dir) / darkframes.DARK_DIR
+    if not darkframes.has_dark_frames(scene_dir):
+        if darkframes.too_weak(signal, LENS_CAP_SHARE):
+            print(f"warning: the weakest colour's mean signal is {float(np.min(signal)):.1f} "
+                  f"DN above the file's black level: an unknown black offset of "
+                  f"{darkframes.OFFSET_DN:g} DN would be {darkframes.offset_share(signal):.0%} "
+                  "of it, and the colour would follow it; shoot 1-4 frames with the lens cap "
+                  f"on at the capture's ISO and exposure time into {where} (used automatically)")
+        return "file"
+    try:
+        measured = darkframes.measure(scene_dir)
+    except GridNerfError as err:  # e.g. a frame in dark/ of another size or lit
+        print(f"warning: the lens-cap frames cannot serve ({err}); training with the file's "
+              "black level")
+        return "file"
+    shift = darkframes.offset_shift(measured["offset_dn"], scene.cfa, signal)
+    offsets = np.round(np.ravel(measured["offset_dn"]), 2).tolist()
+    if shift <= OFFSET_MATTERS:
+        print(f"black level: the file's (the lens-cap frames in {where} measure offsets "
+              f"{offsets} DN, at most {shift:.1%} of a colour's mean signal)")
+        return "file"
+    darkframes.save(run, measured)
+    print(f"black level from the lens-cap frames in {where}: offsets (DN, CFA order) "
+          f"{offsets}, up to {shift:.0%} of a colour's mean signal off the file's")
+    return "lens_cap"
 
 
 def data_noise(data: dataset.RayData, key, n_patches: int = 256) -> float:

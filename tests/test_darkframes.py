@@ -148,7 +148,8 @@ def _gate(folder, run, capsys, *overrides):
     return what, scene, capsys.readouterr().out
 
 
-def test_lens_cap_frames_set_the_black_level_where_the_capture_has_them(tmp_path, capsys):
+def test_lens_cap_frames_that_show_the_files_level_off_replace_it(tmp_path, capsys,
+                                                                 monkeypatch):
     from gridnerf.sim import simulate_scene
 
     folder = simulate_scene("bucket", tmp_path / "dim", width=128, height=72, n_frames=3,
@@ -157,9 +158,10 @@ def test_lens_cap_frames_set_the_black_level_where_the_capture_has_them(tmp_path
                      ["noise"]["black_bias_dn_per_cfa_position"])
     share = darkframes.offset_share(darkframes.signal_dn(_loaded(folder)))
     assert share > data_term.LENS_CAP_SHARE
+    for name in ("run", "dark", "within", "odd", "bare"):
+        (tmp_path / name).mkdir()
     run = tmp_path / "run"
-    run.mkdir()
-    what, scene, out = _gate(folder, run, capsys)  # the default, "auto"
+    what, scene, out = _gate(folder, run, capsys)  # the default: the file's, checked
     assert what == "lens_cap"
     assert "black level from the lens-cap frames" in out and len(out.splitlines()) == 1
     offset = darkframes.load(run)  # kept for training, resume and eval
@@ -168,22 +170,20 @@ def test_lens_cap_frames_set_the_black_level_where_the_capture_has_them(tmp_path
     np.testing.assert_allclose(offset, truth, atol=1.0)
     # data.black_offset = dark: the same frames, the same offsets
     dark = tmp_path / "dark"
-    dark.mkdir()
     what, _, out = _gate(folder, dark, capsys, "data.black_offset=dark")
     assert what == "lens_cap" and out.startswith("black level from the lens-cap frames")
     np.testing.assert_allclose(darkframes.load(dark), offset, atol=1e-9)
-    # data.black_offset = file: the file's level, the weak signal named in one warning
-    asked = tmp_path / "asked"
-    asked.mkdir()
-    what, scene, out = _gate(folder, asked, capsys, "data.black_offset=file")
-    assert what == "file" and darkframes.load(asked) is None
-    assert out.startswith("warning:") and len(out.splitlines()) == 1
+    # offsets that move no colour's mean by more than OFFSET_MATTERS: the file's, said once
+    monkeypatch.setattr(data_term, "OFFSET_MATTERS", 1e9)
+    what, scene, out = _gate(folder, tmp_path / "within", capsys)
+    assert what == "file" and out.startswith("black level: the file's")
+    assert len(out.splitlines()) == 1 and darkframes.load(tmp_path / "within") is None
     assert np.array_equal(scene.black_level, _loaded(folder).black_level)
+    monkeypatch.undo()
     # lens-cap frames that cannot serve: one warning naming the frame, the file's level
     like = next((folder / "raw").iterdir())
     _write_dark(folder, "dark_000.dng", np.full((36, 64), 512, np.uint16), like)
     odd = tmp_path / "odd"
-    odd.mkdir()
     what, scene, out = _gate(folder, odd, capsys)
     assert what == "file"
     assert out.startswith("warning:") and "dark_000.dng" in out and "cannot serve" in out
@@ -194,25 +194,25 @@ def test_lens_cap_frames_set_the_black_level_where_the_capture_has_them(tmp_path
     # no lens-cap frames under a weak signal: one warning naming the folder to shoot them into
     shutil.rmtree(folder / "dark")
     bare = tmp_path / "bare"
-    bare.mkdir()
     what, scene, out = _gate(folder, bare, capsys)
     assert what == "file"
     assert out.startswith("warning:") and str(folder / "dark") in out
     assert darkframes.load(bare) is None
 
 
-def test_at_a_scenes_own_light_lens_cap_frames_are_used_and_file_ignores_them(
+def test_a_colours_shift_is_its_mean_offset_over_its_mean_signal():
+    cfa = np.array([[0, 1], [1, 2]])  # RGGB
+    offset = np.array([[1.0, 2.0], [-1.0, 3.0]])  # green's two positions average to 0.5
+    assert darkframes.offset_shift(offset, cfa, [100.0, 10.0, 60.0]) == pytest.approx(0.05)
+    assert darkframes.offset_shift(offset, cfa, [100.0, 10.0, 0.0]) == float("inf")
+
+
+def test_at_a_scenes_own_light_its_lens_cap_frames_are_checked_and_used(
         small_scene, tmp_path, capsys):
     assert darkframes.offset_share(darkframes.signal_dn(_loaded(small_scene))) < 0.5
-    (tmp_path / "auto").mkdir()
-    (tmp_path / "file").mkdir()
-    what, scene, out = _gate(small_scene, tmp_path / "auto", capsys)
+    what, scene, out = _gate(small_scene, tmp_path, capsys)
     assert what == "lens_cap" and out.startswith("black level from the lens-cap frames")
-    plain = tmp_path / "file"
-    what, scene, out = _gate(small_scene, plain, capsys, "data.black_offset=file")
-    assert what == "file" and out == ""  # a signal strong enough: nothing to say
-    assert np.array_equal(scene.black_level, _loaded(small_scene).black_level)
-    assert darkframes.load(plain) is None
+    assert "of a colour's mean signal off the file's" in out
 
 
 def test_a_dim_capture_trains_and_evaluates_with_its_lens_cap_black_level(tmp_path, capsys):

@@ -158,7 +158,7 @@ def test_train_saves_the_config_it_ran_with(trained):
     assert cfgmod.load(trained / "config.json") == cfgmod.preset("tiny")
     # what training decided from the frames is the run plan beside it
     plan = planmod.load(trained)
-    # the simulated capture has lens-cap frames in dark/: the default takes its black level there
+    # the simulated capture's lens-cap frames show its files' black level off
     assert plan.method == "brightnerf" and plan.black_level == "lens_cap"
     assert len(plan.n_candidates) == len(cfgmod.preset("tiny").grid.resolutions)
     assert all(n > 0 for n in plan.n_candidates)  # every stage's count was fitted
