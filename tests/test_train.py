@@ -129,9 +129,13 @@ def test_checkpoint_refuses_non_finite(tmp_path):
     assert not (tmp_path / "c.npz").exists()
 
 
-def test_nan_loss_stops_training_without_checkpoint(small_scene, tmp_path):
+def test_nan_loss_stops_training_without_checkpoint(small_scene, tmp_path, monkeypatch):
+    from gridnerf import train as train_mod
     from gridnerf.train import train
 
+    # a loaded machine may take over CHECKPOINT_SECONDS for the first (compiling) step: the
+    # checkpoint's own refusal would then speak first
+    monkeypatch.setattr(train_mod, "CHECKPOINT_SECONDS", 1e9)
     cfg = cfgmod.preset("tiny")
     object.__setattr__(cfg.train, "lr_rgb", float("nan"))  # the config refuses NaN itself
     # the loss is checked at the first log step (10), naming the step it first failed at
