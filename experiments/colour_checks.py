@@ -1,8 +1,8 @@
 """The colour path's self-checks on every simulated scene, from the frames alone (no training).
 
 For each scene (its training frames, 2x2-binned, as the default's training sees them: with
-the lens-cap black level where the scene has lens-cap frames): the file's matrix
-against its camera's reference (colour_target.matrix_check), the frames' own estimate's
+the lens-cap black level where the scene's lens-cap frames show the file's off): the file's
+matrix against its camera's reference (colour_target.matrix_check), the frames' own estimate's
 angle to the file's Planckian locus and its nearest temperature (colour_target.locus_check),
 how far the three estimators disagree (colour_target.estimators_disagree), the decisions
 (locus kept or given up, the estimator "consistent" takes), and the angular error against
@@ -35,7 +35,7 @@ from experiments.common import (
     study_parser,
     write_report,
 )
-from gridnerf import colour_target, darkframes, dataset, illuminant
+from gridnerf import colour_target, darkframes, data_term, dataset, illuminant
 from gridnerf import config as cfgmod
 from gridnerf.scene import load_scene
 
@@ -45,8 +45,11 @@ def scene_row(folder) -> dict:
     sim = json.loads((folder / "sim.json").read_text())
     truth = np.asarray(sim["illuminant_neutral_cam"], np.float64)
     scene = load_scene(folder, near_far=tuple(sim["near_far"]))
-    if darkframes.has_dark_frames(folder):  # data.black_offset = "auto"
-        scene = darkframes.apply(scene, darkframes.measure(folder)["offset_dn"])
+    if darkframes.has_dark_frames(folder):  # data_term.black_level's check
+        offset = darkframes.measure(folder)["offset_dn"]
+        shift = darkframes.offset_shift(offset, scene.cfa, darkframes.signal_dn(scene))
+        if shift > data_term.OFFSET_MATTERS:
+            scene = darkframes.apply(scene, offset)
     data = dataset.build(scene, scene.train_idx, True)
     frames = colour_target.estimate_frames(data, scene)
     d = colour_target.estimate_downscale(frames, colour_target.NOISE_RATIO)
