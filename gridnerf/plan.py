@@ -4,8 +4,9 @@ The config (gridnerf.config) is what the user asked for; it is never rewritten. 
 training decides at run time from the capture goes here instead, is saved as
 <run>/plan.json beside config.json, and is what the step, a resume, eval and render read:
 
-- the black level the frames take (the file's, or the lens-cap frames' offsets on top:
-  data.black_offset = "dark", or the weak-signal gate of gridnerf.data_term);
+- the black level the frames take (the file's, or the lens-cap frames' offsets on top
+  where they show the file's off, gridnerf.data_term.black_level, or under
+  data.black_offset = "dark");
 - the data term's eps (loss.data_eps capped at loss.data_eps_sigmas noise sigmas) and the
   noise sigma it was capped against;
 - the colour (ColourPlan): which estimator "consistent" picked, the capture's illuminant
