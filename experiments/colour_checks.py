@@ -47,8 +47,7 @@ def scene_row(folder) -> dict:
     scene = load_scene(folder, near_far=tuple(sim["near_far"]))
     if darkframes.has_dark_frames(folder):  # data_term.black_level's check
         offset = darkframes.measure(folder)["offset_dn"]
-        shift = darkframes.offset_shift(offset, scene.cfa, darkframes.signal_dn(scene))
-        if shift > data_term.OFFSET_MATTERS:
+        if data_term.offsets_matter(offset, scene)[0]:
             scene = darkframes.apply(scene, offset)
     data = dataset.build(scene, scene.train_idx, True)
     frames = colour_target.estimate_frames(data, scene)

@@ -88,9 +88,9 @@ def black_level(scene_dir, run: Path, cfg: Config, scene) -> str:
         print("black level from the lens-cap frames: offsets (DN, CFA order) "
               f"{np.round(np.ravel(measured['offset_dn']), 2).tolist()}")
         return "lens_cap"
-    signal = darkframes.signal_dn(scene)
     where = Path(scene_dir) / darkframes.DARK_DIR
     if not darkframes.has_dark_frames(scene_dir):
+        signal = darkframes.signal_dn(scene)
         if darkframes.too_weak(signal, LENS_CAP_SHARE):
             print(f"warning: the weakest colour's mean signal is {float(np.min(signal)):.1f} "
                   f"DN above the file's black level: an unknown black offset of "
@@ -104,9 +104,9 @@ def black_level(scene_dir, run: Path, cfg: Config, scene) -> str:
         print(f"warning: the lens-cap frames cannot serve ({err}); training with the file's "
               "black level")
         return "file"
-    shift = darkframes.offset_shift(measured["offset_dn"], scene.cfa, signal)
+    matters, shift = offsets_matter(measured["offset_dn"], scene)
     offsets = np.round(np.ravel(measured["offset_dn"]), 2).tolist()
-    if shift <= OFFSET_MATTERS:
+    if not matters:
         print(f"black level: the file's (the lens-cap frames in {where} measure offsets "
               f"{offsets} DN, at most {shift:.1%} of a colour's mean signal)")
         return "file"
@@ -114,6 +114,14 @@ def black_level(scene_dir, run: Path, cfg: Config, scene) -> str:
     print(f"black level from the lens-cap frames in {where}: offsets (DN, CFA order) "
           f"{offsets}, up to {shift:.0%} of a colour's mean signal off the file's")
     return "lens_cap"
+
+
+def offsets_matter(offset_dn, scene) -> tuple[bool, float]:
+    """(whether offsets measured by lens-cap frames replace the file's black level, the
+    share of a colour's mean signal they move it by: darkframes.offset_shift against the
+    scene's signal above the file's level). offset_dn: (2, 2) of darkframes.measure."""
+    shift = darkframes.offset_shift(offset_dn, scene.cfa, darkframes.signal_dn(scene))
+    return shift > OFFSET_MATTERS, shift
 
 
 def data_noise(data: dataset.RayData, key, n_patches: int = 256) -> float:
