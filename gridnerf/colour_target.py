@@ -43,7 +43,7 @@ ONE_LIGHT_DEG = 3.0
 # built-in and tuning scenes the single-light spreads end at 2.42 (head) and the mixed-light
 # ones start at 4.05 (mixed_desk_daylight), so a capture between says little about its
 # light, and "consistent" takes grey world, the most conservative, instead of trusting the
-# quadrant pick (one light) or the consensus (lights mix). Written after the held-out
+# quadrant pick (one light). Written after the held-out
 # held_mixed_hall (two lights read as one at 2.75 deg: the quadrant pick grey edge landed
 # 0.19 from the lights' mix, grey world 0.07) had been seen
 LIGHT_DOUBT_DEG = (2.5, 4.0)
@@ -280,10 +280,13 @@ def consistent_estimator(frames, downscale: int = 1, spread: tuple[float, dict] 
     capture that breaks one assumption may break another, and the consensus's worst case
     was far worse (a sodium-like lamp: 0.88 against 0.11, shades of grey and grey edge
     measuring the noise of its weak blue); where the spread lies in LIGHT_DOUBT_DEG (neither
-    one light nor several is clear), grey world too; where lights mix,
-    "consensus" (under two lights the quadrants see different lights, and their spread
-    would measure them); else the one of the consensus's three whose quadrant estimates
-    agree best (illuminant.quadrant_spreads). frames: (images, masks) of estimate_frames;
+    one light nor several is clear), grey world too; where lights mix, grey world as well:
+    the anchor then stands for the lights' mix, which grey world weighs by each light's
+    share of the signal, where shades of grey and grey edge lean to the light of the bright
+    pixels and the edges (mixed_desk_daylight: the consensus 0.201 from the mix in
+    illuminant.gain_distance, grey world 0.027; mixed_lamp_window 0.087 and 0.119;
+    reports/colour_checks.md); else the one of the consensus's three whose quadrant
+    estimates agree best (illuminant.quadrant_spreads). frames: (images, masks) of estimate_frames;
     the estimates run on them downscaled by `downscale`, the maps at full size; spread:
     light_spread's result when the caller has it. Prints the choice."""
     spread, wholes = light_spread(frames, downscale, locus) if spread is None else spread
@@ -303,8 +306,9 @@ def consistent_estimator(frames, downscale: int = 1, spread: tuple[float, dict] 
               "estimate, unprojected, is taken)")
         return "grey_world"
     if spread >= ONE_LIGHT_DEG:
-        print(f"L_ca estimator: consensus (the maps stray {spread:.2f} deg: lights mix)")
-        return "consensus"
+        print(f"L_ca estimator: grey_world (the maps stray {spread:.2f} deg: lights mix, and "
+              "grey world weighs each light by its share of the signal)")
+        return "grey_world"
     small, small_masks = downscaled(frames, downscale)
     spreads = illuminant.quadrant_spreads(small, small_masks, locus, ESTIMATOR_P, wholes)
     name = illuminant.least_spread(spreads)

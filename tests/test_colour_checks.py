@@ -105,15 +105,15 @@ def test_the_locus_prior_yields_to_estimators_that_agree_off_it():
 
 
 def test_consistent_takes_grey_world_where_one_light_or_several_cannot_be_told(capsys):
-    """A light spread inside LIGHT_DOUBT_DEG: neither the quadrant pick nor the consensus,
-    grey world, with one printed line; just outside the band the usual choices."""
+    """A light spread inside LIGHT_DOUBT_DEG: not the quadrant pick, grey world, with one
+    printed line; above the band grey world for the lights' mix, below it the pick."""
     frames = _uniform_frames(np.ones(3))
     lo, hi = colour_target.LIGHT_DOUBT_DEG
     for spread in (lo, 0.5 * (lo + hi), hi - 1e-3):
         assert colour_target.consistent_estimator(frames, spread=(spread, {})) == "grey_world"
         assert "cannot be told" in capsys.readouterr().out
-    assert colour_target.consistent_estimator(frames, spread=(hi, {})) == "consensus"
-    capsys.readouterr()
+    assert colour_target.consistent_estimator(frames, spread=(hi, {})) == "grey_world"
+    assert "lights mix" in capsys.readouterr().out
     wholes = {n: np.ones(3) for n in illuminant.CONSENSUS}
     name = colour_target.consistent_estimator(frames, spread=(lo - 0.1, wholes))
     assert name in illuminant.CONSENSUS and "one light" in capsys.readouterr().out
@@ -129,11 +129,11 @@ def test_consistent_takes_grey_world_where_the_estimators_disagree(capsys):
         assert name == "grey_world"
     name = colour_target.consistent_estimator(frames, given_up=True)
     assert name == "grey_world" and "given up" in capsys.readouterr().out
-    # under mixed light the consensus stays whatever the disagreement
-    mixed = ({}, 2 * colour_target.ONE_LIGHT_DEG)
-    name = colour_target.consistent_estimator(
-        frames, spread=(mixed[1], mixed[0]), disagreement=colour_target.ESTIMATORS_AGREE + 1)
-    assert name == "consensus"
+    # under mixed light grey world, for the lights' mix, whatever the disagreement
+    for disagreement in (0.0, colour_target.ESTIMATORS_AGREE + 1):
+        name = colour_target.consistent_estimator(
+            frames, spread=(2 * colour_target.ONE_LIGHT_DEG, {}), disagreement=disagreement)
+        assert name == "grey_world" and "lights mix" in capsys.readouterr().out
 
 
 @pytest.fixture(scope="module")

@@ -161,7 +161,7 @@ def test_map_spread_tells_one_light_from_two():
 
 def test_consistent_estimator_picks_per_light_count():
     """colour_target.consistent_estimator: under one light the estimator whose quadrants agree
-    (quadrant_spreads' least), under two the consensus; the quadrant spreads do not change
+    (quadrant_spreads' least), under two grey world; the quadrant spreads do not change
     with the frames' scale."""
     from gridnerf import colour_target
 
@@ -177,7 +177,7 @@ def test_consistent_estimator_picks_per_light_count():
         np.testing.assert_allclose(scaled[n][0], est, atol=1e-9)
         assert scaled[n][1] == pytest.approx(s, abs=1e-6)
     two = [_paint(s) * _light(WARM, COOL) for s in range(2)]
-    assert colour_target.consistent_estimator((two, masks)) == "consensus"
+    assert colour_target.consistent_estimator((two, masks)) == "grey_world"
 
 
 def test_estimates_run_downscaled_where_the_noise_rivals_the_signal():
