@@ -285,10 +285,10 @@ def consistent_estimator(frames, downscale: int = 1, spread: tuple[float, dict] 
     share of the signal, where shades of grey and grey edge lean to the light of the bright
     pixels and the edges (mixed_desk_daylight: the consensus 0.201 from the mix in
     illuminant.gain_distance, grey world 0.027, on the locus 0.051; mixed_lamp_window 0.087,
-    0.119 and 0.127; reports/colour_checks.md); else the one of the consensus's three whose quadrant
-    estimates agree best (illuminant.quadrant_spreads). frames: (images, masks) of estimate_frames;
-    the estimates run on them downscaled by `downscale`, the maps at full size; spread:
-    light_spread's result when the caller has it. Prints the choice."""
+    0.119 and 0.127; reports/colour_checks.md); else the one of the consensus's three
+    whose quadrant estimates agree best (illuminant.quadrant_spreads). frames: (images,
+    masks) of estimate_frames; the estimates run on them downscaled by `downscale`, the maps
+    at full size; spread: light_spread's result when the caller has it. Prints the choice."""
     spread, wholes = light_spread(frames, downscale, locus) if spread is None else spread
     if spread < ONE_LIGHT_DEG and disagreement > ESTIMATORS_AGREE:
         print(f"L_ca estimator: grey_world (one light, but the estimators disagree: "
