@@ -39,6 +39,9 @@ class RayData:
     cfa: jax.Array  # (2, 2) int32 colour index per CFA position
     # (N, hb, wb, 3) per-frame L_ca illuminant map (loss.ca_target = "map", with_map) or None
     illuminant_map: jax.Array | None = None
+    # (2,) k1, k2 of a lens falloff exp(k1 r^2 + k2 r^4) the mosaic targets are divided by
+    # (gridnerf.vignetting; binned pixels are divided once, in place), or None
+    falloff: jax.Array | None = None
     mosaic: bool = field(default=False, metadata={"static": True})
     ndc: bool = field(default=True, metadata={"static": True})
 
@@ -200,9 +203,26 @@ def targets(data: RayData, frame, v, u):
     black = data.black[frame, v % 2, u % 2]
     y = (raw - black) / (data.white[frame] - black)
     y = y * data.inv_exposure[frame]
+    if data.falloff is not None:
+        r2 = radius2(data.image_hw, data.intrinsics[frame], v, u, xp=jnp)
+        y = y * jnp.exp(-(data.falloff[0] * r2 + data.falloff[1] * r2 * r2))
     ok = (raw < data.white[frame]).astype(jnp.float32)
     mask = jax.nn.one_hot(data.cfa[v % 2, u % 2], 3) * ok[..., None]
     return y[..., None] * mask, mask
+
+
+def radius2(image_hw: tuple[int, int], intrinsics, v, u, xp=np):
+    """(...) squared distance of pixels (v, u) from their frame's principal point, over that
+    of the frame's farthest corner: 0 at the centre, 1 there. intrinsics (..., 4) fx, fy, cx,
+    cy of each pixel's frame at the pixels' resolution; the lens falloff's radius
+    (gridnerf.vignetting)."""
+    h, w = image_hw
+    cx, cy = intrinsics[..., 2], intrinsics[..., 3]
+    real = np.float64 if xp is np else jnp.float32
+    du = xp.asarray(u, real) + 0.5 - cx
+    dv = xp.asarray(v, real) + 0.5 - cy
+    far = xp.maximum(xp.maximum(cx, w - cx) ** 2 + xp.maximum(cy, h - cy) ** 2, 1e-12)
+    return (du * du + dv * dv) / far
 
 
 def sample_patches(data: RayData, key, n_patches: int, patch: int):

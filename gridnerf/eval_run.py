@@ -104,8 +104,8 @@ def evaluate_run(run: Path, refine_poses: bool = False) -> dict:
     cfg, plan, scene, structure, params, summary = load_run(run)
     if refine_poses and not pose_refine.applies(cfg):
         raise SceneError(run / "config.json", "eval --refine-poses aligns each test view to "
-                         "its own raw frame, and this run does not fit the binned raw "
-                         f"(data.target={cfg.data.target}, data.binning={cfg.data.binning})",
+                         "its own raw frame, and this run does not fit the raw "
+                         f"(data.target={cfg.data.target})",
                          "evaluate it without --refine-poses")
     if len(scene.test_idx) == 0:
         raise SceneError(scene.path, "the scene's test split is empty: there is nothing to "

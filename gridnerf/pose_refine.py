@@ -20,8 +20,9 @@ Adam on the training data term (losses.data_loss at the run's eps) over every ST
 binned pixel of the frame (at most MAX_RAYS), the field fixed; the pose with the lowest
 loss seen is kept.
 
-Only for runs that fit the binned raw (data.target raw, data.binning true): the data term
-then compares the field with the frame directly.
+Only for runs that fit the raw (data.target raw): the data term then compares the field
+with the frame directly. A run that fits the mosaic is refined against the same binned
+frame: its field is the same camera RGB, sampled at the binned pixels' centres.
 """
 
 from __future__ import annotations
@@ -58,8 +59,9 @@ class Refined:
 
 
 def applies(cfg) -> bool:
-    """Whether a run's data term compares the field with the binned raw frames."""
-    return cfg.data.target == "raw" and cfg.data.binning
+    """Whether a run's field is fitted to the raw frames (binned or mosaic): the binned
+    frame then tells its pose."""
+    return cfg.data.target == "raw"
 
 
 def rotation(omega: jax.Array) -> jax.Array:

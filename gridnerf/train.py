@@ -98,13 +98,14 @@ def _checked_loss(pending: list, run: Path, stage: int, step: int) -> float:
     return float(values[-1])
 
 
-def _vignetting(run: Path, plan, stage: int, structure, params, data, near_t, far_t,
+def _vignetting(run: Path, plan, stage: int, structure, params, data, scene, near_t, far_t,
                 cfg: Config, fits_raw: bool):
     """(data, plan) at the start of `stage`: after the first stage the lens falloff of the
     frames is estimated from the coarse fit's correspondences (gridnerf.vignetting) and,
     over vignetting.MIN_STOPS at the corners, taken off the data and kept in the plan;
     after the second, where one was found, what is left of it (the finer depth matches
-    fewer pixels wrongly) is added. Only for a method that fits the raw, binned.
+    fewer pixels wrongly) is added. Only for a method that fits the raw; a run that fits the
+    mosaic estimates it on the frames' binned raw and divides the mosaic's targets by it.
 
     Skipped where the raw files carried their own falloff correction, applied on loading
     (plan.file_falloff: a FixVignetteRadial or GainMap opcode, gridnerf.raw_layout): that
@@ -115,9 +116,12 @@ def _vignetting(run: Path, plan, stage: int, structure, params, data, near_t, fa
         return data, plan
     first = stage == 1 and plan.vignetting is None
     refine = stage == 2 and plan.vignetting is not None
-    if not fits_raw or data.mosaic or not (first or refine):
+    if not fits_raw or not (first or refine):
         return data, plan
-    k = vignetting.estimate(structure, params, data, near_t, far_t, cfg.render)
+    # the pairs compare binned pixels: a mosaic run pairs its frames' binned raw
+    binned = data if not data.mosaic else vignetting.apply(
+        dataset.training_data(scene, replace(cfg.data, binning=True)), plan.vignetting)
+    k = vignetting.estimate(structure, params, binned, near_t, far_t, cfg.render)
     stops = vignetting.corner_stops(k)
     if first and abs(stops) <= vignetting.MIN_STOPS:
         return data, plan
@@ -243,8 +247,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     while stage < len(schedule):
         res, steps = schedule[stage]
         if stage > 0 and start == 0 and not opt_leaves:
-            data, plan = _vignetting(run, plan, stage, structure, params, data, near_t, far_t,
-                                     cfg, method.fits_raw(cfg))
+            data, plan = _vignetting(run, plan, stage, structure, params, data, scene, near_t,
+                                     far_t, cfg, method.fits_raw(cfg))
             structure, params, info = stages.next_stage_grid(
                 structure, params, res, data, cfg, near_t, far_t,
                 fit=cfg.grid.fit_box and stage == 1, forward_facing=scene.forward_facing)

@@ -61,14 +61,9 @@ MAX_PARALLAX_DEG = 5.0
 
 def radius2(data: dataset.RayData, frame, v, u) -> np.ndarray:
     """(...) squared distance of pixels (v, u) of training frames `frame` from their frame's
-    principal point, over that of the frame's farthest corner: 0 at the centre, 1 there."""
-    h, w = data.image_hw
+    principal point, over that of the frame's farthest corner (dataset.radius2)."""
     intr = np.asarray(data.intrinsics)[np.asarray(frame)]
-    cx, cy = intr[..., 2], intr[..., 3]
-    du = np.asarray(u, np.float64) + 0.5 - cx
-    dv = np.asarray(v, np.float64) + 0.5 - cy
-    far = np.maximum(np.maximum(cx, w - cx) ** 2 + np.maximum(cy, h - cy) ** 2, 1e-12)
-    return (du * du + dv * dv) / far
+    return dataset.radius2(data.image_hw, intr, v, u)
 
 
 def parallax_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -203,10 +198,16 @@ def estimate(structure, params, data: dataset.RayData, near_t: float, far_t: flo
 
 
 def apply(data: dataset.RayData, k: tuple[float, float] | None) -> dataset.RayData:
-    """data with its binned pixels divided by the falloff exp(k1 r^2 + k2 r^4) (k None or
-    zero: data itself). The mosaic mode is not corrected (its pixels are the raw integers)."""
-    if k is None or (k[0] == 0 and k[1] == 0) or data.mosaic:
+    """data with its pixels divided by the falloff exp(k1 r^2 + k2 r^4) (k None or zero:
+    data itself): binned pixels in place; the mosaic's raw integers are kept, and k is added
+    to the falloff its targets are divided by as they are read (dataset.targets)."""
+    if k is None or (k[0] == 0 and k[1] == 0):
         return data
+    if data.mosaic:
+        total = np.asarray(k, np.float32)
+        if data.falloff is not None:
+            total = total + np.asarray(data.falloff, np.float32)
+        return replace(data, falloff=jnp.asarray(total))
     n = data.c2w.shape[0]
     h, w = data.image_hw
     frame, v, u = np.meshgrid(np.arange(n), np.arange(h), np.arange(w), indexing="ij")

@@ -28,7 +28,7 @@ def test_a_test_camera_off_its_pose_is_brought_back(small_scene, tmp_path, monke
     near bound, aligned to the field's own noise-free render at the simulator's pose (so
     that the pose which explains the frame is known exactly): it ends within a tenth of
     that rotation and translation. Then eval with refine_poses records each view's move,
-    and refuses a run that does not fit the raw."""
+    also for a run that fits the mosaic, and refuses a run that does not fit the raw."""
     from gridnerf import config as cfgmod
     from gridnerf import dataset, eval_run, render
     from gridnerf.errors import SceneError
@@ -75,11 +75,17 @@ def test_a_test_camera_off_its_pose_is_brought_back(small_scene, tmp_path, monke
                for v in moved.values())
     assert json.loads((run / "eval" / "metrics.json").read_text())["test_poses"] == "refined"
 
-    other = run.parent / "processed"
-    other.mkdir()
-    for f in run.iterdir():
-        if f.is_file():
-            (other / f.name).write_bytes(f.read_bytes())
-    cfgmod.save(cfgmod.override(cfg, ["data.target=processed"]), other / "config.json")
+    def copy_as(name, change):  # the run's files under a config with `change`
+        other = run.parent / name
+        other.mkdir()
+        for f in run.iterdir():
+            if f.is_file():
+                (other / f.name).write_bytes(f.read_bytes())
+        cfgmod.save(cfgmod.override(cfg, [change]), other / "config.json")
+        return other
+
+    # a field fitted to the mosaic is the same camera RGB: aligned to the binned frame
+    mosaic = eval_run.evaluate_run(copy_as("mosaic", "data.binning=false"), refine_poses=True)
+    assert mosaic["test_poses"] == "refined"
     with pytest.raises(SceneError, match="refine-poses"):
-        eval_run.evaluate_run(other, refine_poses=True)
+        eval_run.evaluate_run(copy_as("processed", "data.target=processed"), refine_poses=True)

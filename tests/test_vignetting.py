@@ -4,6 +4,8 @@ it."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -66,6 +68,31 @@ def test_apply_divides_the_binned_pixels_by_the_falloff():
     assert vignetting.apply(data, None) is data and vignetting.apply(data, (0.0, 0.0)) is data
 
 
+def test_apply_divides_the_mosaic_targets_as_they_are_read():
+    """A mosaic keeps its raw integers: its targets are divided by the falloff when a batch
+    reads them, and a second estimate (what is left after the second stage) adds to it."""
+    import jax.numpy as jnp
+
+    n, h, w = 2, 30, 40
+    raw_bayer = np.full((n, h, w), 500, np.uint16)
+    data = replace(_data(n, h, w), pixels=jnp.asarray(raw_bayer), valid=jnp.ones(n, bool),
+                   white=jnp.full(n, 1000.0), mosaic=True)
+    f, v, u = np.meshgrid(np.arange(n), np.arange(h), np.arange(w), indexing="ij")
+    r2 = vignetting.radius2(data, f, v, u)
+
+    def level(d):  # the one measured channel of each target
+        y, m = dataset.targets(d, jnp.asarray(f), jnp.asarray(v), jnp.asarray(u))
+        return np.asarray(y).sum(-1)
+
+    np.testing.assert_allclose(level(data), 0.5, rtol=1e-6)
+    once = vignetting.apply(data, (-0.6, -0.1))
+    assert once.pixels is data.pixels
+    np.testing.assert_allclose(level(once), 0.5 * np.exp(0.6 * r2 + 0.1 * r2**2), rtol=1e-5)
+    twice = vignetting.apply(once, (-0.2, 0.0))
+    np.testing.assert_allclose(np.asarray(twice.falloff), [-0.8, -0.1], rtol=1e-6)
+    np.testing.assert_allclose(level(twice), 0.5 * np.exp(0.8 * r2 + 0.1 * r2**2), rtol=1e-5)
+
+
 def test_plan_round_trip_keeps_the_falloff():
     colour = planmod.ColourPlan(model="none")
     plan = planmod.RunPlan(method="brightnerf", black_level="file", data_noise=None,
@@ -82,9 +109,8 @@ def test_training_takes_a_lens_falloff_off_and_leaves_a_clean_lens_alone(small_s
                                                                            tmp_path):
     """bucket shot through a lens 1.5 stops down at the corners (the simulator's cos^4 law,
     otherwise the same capture as small_scene): a small training finds the falloff after
-    its first stage and keeps it in the plan; the clean capture keeps none."""
-    from dataclasses import replace
-
+    its first stage and keeps it in the plan, fitting the binned raw or the mosaic; the
+    clean capture keeps none."""
     from gridnerf import config as cfgmod
     from gridnerf.sim import scenes, simulate_scene, writer
     from gridnerf.train import train
@@ -100,6 +126,9 @@ def test_training_takes_a_lens_falloff_off_and_leaves_a_clean_lens_alone(small_s
     cfg = cfgmod.override(cfgmod.preset("tiny"), ["train.steps_per_stage=[400,20]"])
     train(folder, tmp_path / "run", cfg)
     k = planmod.load(tmp_path / "run").vignetting
+    assert k is not None and vignetting.corner_stops(k) == pytest.approx(1.5, abs=0.5)
+    train(folder, tmp_path / "mosaic", cfgmod.override(cfg, ["data.binning=false"]))
+    k = planmod.load(tmp_path / "mosaic").vignetting
     assert k is not None and vignetting.corner_stops(k) == pytest.approx(1.5, abs=0.5)
     train(small_scene, tmp_path / "clean", cfg)
     assert planmod.load(tmp_path / "clean").vignetting is None
