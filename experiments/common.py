@@ -65,9 +65,14 @@ def preset_config(preset: str, quick: bool = False) -> cfgmod.Config:
 
 
 def fingerprint(cfg: cfgmod.Config) -> str:
-    """A short hash of the config a run trains (every field, cfgmod.to_dict): two runs with
-    the same fingerprint were trained alike. RESULTS stores it beside each run's numbers."""
-    blob = json.dumps(cfgmod.to_dict(cfg), sort_keys=True, default=str)
+    """A short hash of the config a run trains (every field, cfgmod.to_dict, but those of
+    cfgmod.ADDED_FIELDS at their old behaviour's value): two runs with the same fingerprint
+    were trained alike. RESULTS stores it beside each run's numbers."""
+    fields = cfgmod.to_dict(cfg)
+    for (section, name), old in cfgmod.ADDED_FIELDS.items():
+        if fields[section].get(name) == old:
+            del fields[section][name]
+    blob = json.dumps(fields, sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 

@@ -110,7 +110,12 @@ class _Section:
 @dataclass(frozen=True)
 class DataConfig(_Section):
     _SECTION = "data"
-    binning: bool = True  # train on 2x2-binned camera RGB (true) or on the Bayer mosaic (false)
+    # train on 2x2-binned camera RGB (true; but see mosaic_stages) or on the Bayer mosaic in
+    # every stage (false)
+    binning: bool = True
+    # the last this many stages fit the raw Bayer mosaic photosite by photosite, the earlier
+    # (coarse) ones the binned raw (0: binned throughout; target raw at downscale 1 only)
+    mosaic_stages: int = 0
     downscale: int = 1  # extra box downscale of the training frames (1 = binned/raw size)
     eval_downscale: int = 1  # downscale of eval renders relative to the full frame and gt/
     # training frames: "raw" (the capture), "reference" (gt/, clean: the oracle),
@@ -126,6 +131,15 @@ class DataConfig(_Section):
     def _check(self) -> None:
         self._range("exposure_ratio", 0.0, lo_open=True)
         self._require("downscale", self.downscale >= 1, "a whole number >= 1")
+        self._require("mosaic_stages", self.mosaic_stages >= 0, "a whole number >= 0")
+
+    def mosaic_from(self, n_stages: int) -> int:
+        """The first stage (0-based) that fits the Bayer mosaic: n_stages where none does.
+        Only the raw capture at its own size has a mosaic (target raw, downscale 1); every
+        other target is a binned image, fitted binned throughout."""
+        if self.target != "raw" or self.downscale != 1:
+            return n_stages
+        return 0 if not self.binning else max(n_stages - self.mosaic_stages, 0)
         self._require("eval_downscale", self.eval_downscale >= 1, "a whole number >= 1")
 
 
@@ -284,6 +298,7 @@ def _preset_tiny() -> Config:
     c = Config()
     return replace(
         c,
+        data=replace(c.data, mosaic_stages=0),  # binned throughout: the fastest
         # 40 coarse steps leave fog, not surfaces: carving at the default 0.05 would cut
         # the content (stage-1 loss x8), so carve only what no ray weighs by 1%
         grid=replace(c.grid, resolutions=((24, 24, 16), (40, 40, 24)), prune_threshold=0.01),
@@ -298,7 +313,7 @@ def _preset_oracle() -> Config:
     """The representational ceiling: the default grid trained (supervised) on the clean
     normal-light references of the training views, no gains, no colour matrix."""
     c = Config()
-    return replace(c, data=replace(c.data, target="reference"),
+    return replace(c, data=replace(c.data, target="reference", mosaic_stages=0),
                    loss=replace(c.loss, gain_model="none"),
                    output=replace(c.output, use_color_matrix=False))
 
@@ -335,7 +350,8 @@ def _preset_llnerf() -> Config:
     enhanced per voxel (alpha v^gamma in the gain field) under LLNeRF's enhancement losses
     (gridnerf.methods.llnerf); shown as enhanced, with no auto exposure."""
     c = Config()
-    return replace(c, loss=replace(c.loss, method="llnerf"))
+    return replace(c, data=replace(c.data, mosaic_stages=0),
+                   loss=replace(c.loss, method="llnerf"))
 
 
 PRESETS: dict[str, Any] = {
@@ -431,9 +447,17 @@ def get(cfg: Config, dotted: str) -> Any:
     return getattr(getattr(cfg, section), name)
 
 
+# fields added after configs were saved, each with the value that trains as the code did
+# before it: a saved config without the field is read with that value (from_dict), and
+# experiments.common.fingerprint leaves the field out at that value, so the kept results
+# of configs that do not use it stay valid
+ADDED_FIELDS = {("data", "mosaic_stages"): 0}
+
+
 def from_dict(d: dict, source: Path | None = None) -> Config:
-    """Config from `to_dict` output; unknown keys are ignored, missing ones take defaults.
-    ConfigError (naming `source`) for a value that does not validate."""
+    """Config from `to_dict` output; unknown keys are ignored, missing ones take defaults
+    (a field of ADDED_FIELDS its old behaviour's value). ConfigError (naming `source`) for
+    a value that does not validate."""
     if not isinstance(d, dict):
         raise ConfigError(source, "the config is not a JSON object",
                           "delete it (train writes it again) or restore it")
@@ -445,8 +469,9 @@ def from_dict(d: dict, source: Path | None = None) -> Config:
             vals = d.get(f.name) or {}
             if not isinstance(vals, dict):
                 raise ConfigError(None, f"section {f.name} is not an object", "restore it")
-            kwargs[f.name] = sub_cls(**{k: _tupleize(v) for k, v in vals.items()
-                                        if k in known})
+            old = {k: v for (sec, k), v in ADDED_FIELDS.items() if sec == f.name}
+            kwargs[f.name] = sub_cls(**{**old, **{k: _tupleize(v) for k, v in vals.items()
+                                                  if k in known}})
         return Config(**kwargs)
     except ConfigError as e:
         if source is None:

@@ -111,7 +111,7 @@ def test_the_method_checks_its_config():
     assert (llnerf.W_EXPOSURE, llnerf.EXPOSURE_LEVEL) == (0.1, 0.55)
     llnerf.check(cfg)
     for sets in (["data.target=reference"], ["loss.gain_model=none"], ["train.patch_size=6"],
-                 ["data.binning=false"]):
+                 ["data.binning=false"], ["data.mosaic_stages=1"]):
         with pytest.raises(ConfigError):
             llnerf.check(cfgmod.override(cfg, sets))
     # one gain is Bright-NeRF's L_ca target: the method refuses it

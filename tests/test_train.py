@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import replace
 
@@ -10,7 +11,7 @@ import pytest
 
 from gridnerf import checkpoint, data_term, optim, stages
 from gridnerf import config as cfgmod
-from gridnerf.errors import NumericsError
+from gridnerf.errors import ConfigError, NumericsError
 
 
 @pytest.fixture(scope="module")
@@ -101,12 +102,17 @@ def _crash_after(monkeypatch, n_steps: int) -> None:
     monkeypatch.setattr(optim, "make_step", crashing_make_step)
 
 
-def test_interrupted_training_resumes_from_checkpoint(small_scene, tmp_path, monkeypatch):
+@pytest.mark.parametrize("mosaic_stages", [0, 1])
+def test_interrupted_training_resumes_from_checkpoint(small_scene, tmp_path, monkeypatch,
+                                                      capsys, mosaic_stages):
+    """Killed in its second stage, a run resumes there; with data.mosaic_stages=1 that
+    stage fits the raw mosaic, before the crash and again on the resume."""
     from gridnerf import train as trainmod
 
     monkeypatch.setattr(trainmod, "CHECKPOINT_SECONDS", float("inf"))
     cfg = cfgmod.override(cfgmod.preset("tiny"), [
-        "train.steps_per_stage=[20,20]", "train.checkpoint_every=10", "train.log_every=4"])
+        "train.steps_per_stage=[20,20]", "train.checkpoint_every=10", "train.log_every=4",
+        f"data.mosaic_stages={mosaic_stages}"])
     run = tmp_path / "run"
     real_make_step = optim.make_step
     _crash_after(monkeypatch, 33)  # dies at stage 1 step 14, after its step-10 checkpoint
@@ -115,12 +121,44 @@ def test_interrupted_training_resumes_from_checkpoint(small_scene, tmp_path, mon
     _, _, opt_leaves, header = trainmod.load_state(run)
     assert (header["stage"], header["step"]) == (1, 10)
     assert opt_leaves  # optimiser state is saved mid-stage
+    assert capsys.readouterr().out.count("stage 1: fitting the raw mosaic") == mosaic_stages
     monkeypatch.setattr(optim, "make_step", real_make_step)
     trainmod.train(small_scene, run, cfg)
+    assert capsys.readouterr().out.count("stage 1: fitting the raw mosaic") == mosaic_stages
     resumed = [r for r in _losses(run) if r["stage"] == 1]
     # 4, 8 and 12 were logged before the crash; 12 (after the checkpoint) is trimmed and redone
     assert [r["step"] for r in resumed] == [4, 8, 12, 16, 20]
+    assert all(np.isfinite(r["loss"]) for r in resumed)
     assert trainmod.load_state(run)[3]["stage"] == 2
+
+
+def test_the_mosaic_stages_are_the_last_ones_of_the_raw_capture(tmp_path):
+    """DataConfig.mosaic_from: the last data.mosaic_stages stages of a raw run at its own
+    size; none for a binned image target or a downscaled raw; all with binning off. A
+    config saved before the field existed reads as binned throughout, and the fingerprint of
+    such a config is the one it had (its kept results stay valid)."""
+    from experiments import common
+
+    def first(*sets, n=3):
+        return cfgmod.override(cfgmod.Config(), list(sets)).data.mosaic_from(n)
+
+    assert first("data.mosaic_stages=1") == 2 and first("data.mosaic_stages=2") == 1
+    assert first("data.mosaic_stages=5") == 0 and first("data.mosaic_stages=0") == 3
+    assert first("data.binning=false") == 0
+    for image in ("data.target=reference", "data.downscale=2"):
+        assert first("data.mosaic_stages=1", image) == 3
+    for name in ("oracle", "processed", "llnerf", "tiny"):
+        assert cfgmod.preset(name).data.mosaic_from(3) == 3
+    with pytest.raises(ConfigError, match="mosaic_stages"):
+        cfgmod.override(cfgmod.Config(), ["data.mosaic_stages=-1"])
+    saved = cfgmod.to_dict(cfgmod.preset("oracle"))
+    del saved["data"]["mosaic_stages"]
+    assert cfgmod.from_dict(saved) == cfgmod.preset("oracle")
+    blob = json.dumps(saved, sort_keys=True, default=str)
+    assert common.fingerprint(cfgmod.preset("oracle")) == hashlib.sha256(
+        blob.encode()).hexdigest()[:16]
+    assert common.fingerprint(cfgmod.Config()) != common.fingerprint(
+        cfgmod.override(cfgmod.Config(), ["data.mosaic_stages=1"]))
 
 
 def test_checkpoint_refuses_non_finite(tmp_path):

@@ -178,14 +178,17 @@ def loss_terms(rgb_srgb, gain, acc, target, mask, patch_shape, level: float,
 
 def check(cfg: Config) -> None:
     """ConfigError unless the config trains this row: the dark frames come from the raw
-    capture, binned, with the gains (its enhancement field) on, and EXPOSURE_POOL divides
-    the ray patches."""
-    if cfg.data.target != "raw" or not cfg.data.binning or cfg.loss.gain_model != "field":
+    capture, binned in every stage, with the gains (its enhancement field) on, and
+    EXPOSURE_POOL divides the ray patches."""
+    n_stages = len(cfg.grid.resolutions)
+    if (cfg.data.target != "raw" or cfg.data.mosaic_from(n_stages) < n_stages
+            or cfg.loss.gain_model != "field"):
         raise ConfigError(
             None, f"loss.method = 'llnerf' with data.target = {cfg.data.target!r}, "
-            f"data.binning = {str(cfg.data.binning).lower()} and loss.gain_model = "
-            f"{cfg.loss.gain_model!r}", "use the llnerf preset (data.target=raw, "
-            "data.binning=true, loss.gain_model=field: the field holds its enhancement)")
+            f"data.binning = {str(cfg.data.binning).lower()}, data.mosaic_stages = "
+            f"{cfg.data.mosaic_stages} and loss.gain_model = {cfg.loss.gain_model!r}",
+            "use the llnerf preset (data.target=raw, data.binning=true, "
+            "data.mosaic_stages=0, loss.gain_model=field: the field holds its enhancement)")
     if cfg.train.patch_size % EXPOSURE_POOL:
         raise ConfigError(None, f"train.patch_size = {cfg.train.patch_size} is not a multiple "
                           f"of the LLNeRF row's exposure pool ({EXPOSURE_POOL})",
