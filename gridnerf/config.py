@@ -131,6 +131,7 @@ class DataConfig(_Section):
     def _check(self) -> None:
         self._range("exposure_ratio", 0.0, lo_open=True)
         self._require("downscale", self.downscale >= 1, "a whole number >= 1")
+        self._require("eval_downscale", self.eval_downscale >= 1, "a whole number >= 1")
         self._require("mosaic_stages", self.mosaic_stages >= 0, "a whole number >= 0")
 
     def mosaic_from(self, n_stages: int) -> int:
@@ -140,7 +141,6 @@ class DataConfig(_Section):
         if self.target != "raw" or self.downscale != 1:
             return n_stages
         return 0 if not self.binning else max(n_stages - self.mosaic_stages, 0)
-        self._require("eval_downscale", self.eval_downscale >= 1, "a whole number >= 1")
 
 
 @dataclass(frozen=True)

@@ -149,8 +149,9 @@ def test_the_mosaic_stages_are_the_last_ones_of_the_raw_capture(tmp_path):
         assert first("data.mosaic_stages=1", image) == 3
     for name in ("oracle", "processed", "llnerf", "tiny"):
         assert cfgmod.preset(name).data.mosaic_from(3) == 3
-    with pytest.raises(ConfigError, match="mosaic_stages"):
-        cfgmod.override(cfgmod.Config(), ["data.mosaic_stages=-1"])
+    for bad in ("mosaic_stages", "eval_downscale", "downscale"):
+        with pytest.raises(ConfigError, match=bad):
+            cfgmod.override(cfgmod.Config(), [f"data.{bad}=-1"])
     saved = cfgmod.to_dict(cfgmod.preset("oracle"))
     del saved["data"]["mosaic_stages"]
     assert cfgmod.from_dict(saved) == cfgmod.preset("oracle")
