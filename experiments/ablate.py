@@ -13,13 +13,15 @@ scene (its `global_grey_world` output), which is what "no gains" vs "gains" shou
 Writes <out>.md and <out>.json: per scene, then the mean over each report group the scenes
 cover (nine built-in, tuning, held out, mixed light, held-out mixed light), each apart.
 
-Other studies (--study) compare the gains' smoothness weight, one gain against the field
-and the grid regularisers' row sample on the same footing, each in reports/ablation_<study>.
+Other studies (--study) compare the gains' smoothness weight, one gain against the field,
+the grid regularisers' row sample and the data term's targets (binned raw or mosaic) on
+the same footing, each in reports/ablation_<study>.
 The parts' means (nine built-in, held out) written to reports/ablation also go into
 docs/results.md between its ablation markers.
 
     python -m experiments.ablate [--scenes all|nine|heldout|a,b]
-                                 [--study parts|smoothness|gain_model|tv_fraction] [--quick]
+                                 [--study parts|smoothness|gain_model|tv_fraction|data_term]
+                                 [--quick]
 """
 
 from __future__ import annotations
@@ -78,8 +80,19 @@ TV_FRACTION_VARIANTS = [
     ("tv_0.1", "grid regularisers on 10 % of the rows per step", "tv0.1", "default",
      ["loss.tv_fraction=0.1"]),
 ]
+# --study data_term: what the data term compares. The 2x2-binned raw in every stage
+# (default) against the raw Bayer mosaic photosite by photosite, in every stage or in the
+# last stage only (data.mosaic_stages=1: the coarse stages binned place the geometry).
+# Nothing was chosen on the held-out scenes
+DATA_TERM_VARIANTS = [
+    ("binned", "binned raw in every stage (default)", "default", "default", []),
+    ("mosaic", "raw mosaic in every stage", "mosaic", "default", ["data.binning=false"]),
+    ("mosaic_last", "raw mosaic in the last stage, binned before", "mosaic_last",
+     "default", ["data.mosaic_stages=1"]),
+]
 STUDIES = {"parts": VARIANTS, "smoothness": SMOOTHNESS_VARIANTS,
-           "gain_model": GAIN_MODEL_VARIANTS, "tv_fraction": TV_FRACTION_VARIANTS}
+           "gain_model": GAIN_MODEL_VARIANTS, "tv_fraction": TV_FRACTION_VARIANTS,
+           "data_term": DATA_TERM_VARIANTS}
 # (column, eval summary key) shown for every variant; the no-gain run adds its global gain
 OUTPUTS = [("matrix", "gridnerf"), ("matrix_free", "gridnerf_matrix_free"),
            ("global_gain", "global_grey_world")]
@@ -162,7 +175,8 @@ def main() -> None:
     ap.add_argument("--study", default="parts", choices=list(STUDIES),
                     help="parts: Bright-NeRF's parts; smoothness: the gains' TV weight; "
                     "gain_model: one gain where one light against the field; tv_fraction: the "
-                    "grid regularisers' row sample")
+                    "grid regularisers' row sample; data_term: the binned raw against the "
+                    "mosaic")
     args = ap.parse_args()
     out = args.out or ("reports/ablation" if args.study == "parts"
                        else f"reports/ablation_{args.study}")

@@ -94,6 +94,8 @@ STUDIES = [("ablation", "Ablation", "ablate"),
             "ablate --study gain_model"),
            ("ablation_tv_fraction", "The grid regularisers' row sample (loss.tv_fraction)",
             "ablate --study tv_fraction"),
+           ("ablation_data_term", "The data term's targets: binned raw or mosaic "
+            "(data.binning, data.mosaic_stages)", "ablate --study data_term"),
            ("bench", "Speed and memory benchmark", "bench")]
 QUICK_SCENES = ["bucket", "held_arc_brick"]
 METRICS = ("psnr", "ssim", "delta_e", "psnr_aligned", "ssim_aligned", "delta_e_aligned")

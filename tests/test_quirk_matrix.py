@@ -308,7 +308,7 @@ def test_a_files_falloff_correction_skips_the_frame_estimate(monkeypatch):
                            n_candidates=(0, 0), file_falloff="FixVignetteRadial (OpcodeList3)")
     data = object()
     for stage in (1, 2):
-        assert train._vignetting(None, plan, stage, None, None, data, 0.0, 1.0, None,
+        assert train._vignetting(None, plan, stage, None, None, data, None, 0.0, 1.0, None,
                                  True) == (data, plan)
     assert planmod.from_dict(planmod.to_dict(plan)) == plan
 

@@ -235,7 +235,9 @@ def test_every_study_variant_is_a_valid_config_and_shared_folders_agree():
     assert seen["nogain"].loss.gain_model == "none" and not seen["nogain"].loss.use_gains
     assert seen["gain_auto_dark"].data.black_offset == "dark"
     assert seen["default_gamma0.3"].data.exposure_ratio == 0.3
-    assert set(ablate.STUDIES) == {"parts", "smoothness", "gain_model", "tv_fraction"}
+    assert set(ablate.STUDIES) == {"parts", "smoothness", "gain_model", "tv_fraction",
+                                   "data_term"}
+    assert seen["mosaic_last"].data.mosaic_from(3) == 2 and seen["mosaic"].data.mosaic_from(3) == 0
 
 
 def test_bench_training_key_follows_the_config_not_the_preset_name(monkeypatch, tmp_path):
