@@ -192,7 +192,10 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         black = data_term.black_level(scene_dir, run, cfg, scene)
     if black == "lens_cap":
         scene = darkframes.apply(scene, darkframes.load(run))
-    data = _stage_data(method.training_data(scene, cfg), scene, cfg, method, None, 0)
+    # the first stage's data: the binned raw, or the mosaic where every stage fits it
+    mosaic_first = cfg.data.mosaic_from(len(cfg.grid.resolutions)) == 0
+    data = method.training_data(scene, replace(cfg, data=replace(cfg.data, binning=False))
+                                if mosaic_first else cfg)
     near_t, far_t = dataset.grid_box(scene)[2:]
     data, colour = method.plan_colour(data, scene, cfg, None if saved is None else saved.colour)
     if colour.anchor is not None:
