@@ -25,6 +25,13 @@ from gridnerf.sim import (
 from gridnerf.sim.cycles import CYCLES, simulate_cycles
 from gridnerf.train import train
 
+# The data term before the mosaic stage (data.mosaic_stages=0: the 2x2-binned raw in every
+# stage), on top of a preset. The studies that measure a factor against the default (the
+# ablations, the darkness and photon sweeps, recon, consistency, the error budget) were
+# measured on it and keep their runs there, in folders of their own ("binned", ...); the
+# data-term study (ablate --study data_term) measures the mosaic stage against it.
+BINNED = ["data.mosaic_stages=0"]
+
 # Quick mode (`make report QUICK=1`): every study on 160x90, 12-frame versions of its
 # scenes (data/quick/<scene>) with each preset shrunk by quick_sets, in its own run root
 # (runs_quick/) and report folder: minutes instead of hours, to check that every figure

@@ -40,9 +40,11 @@ from pathlib import Path
 import numpy as np
 
 from experiments.common import (
+    BINNED,
     GROUPS,
     RESULTS_DOC,
     cached_result,
+    fingerprint,
     markdown_table,
     run_variant,
     scene_dir,
@@ -136,37 +138,46 @@ def truth_white(folder: Path) -> str:
     return "rgb:" + ",".join(repr(float(v)) for v in rgb)
 
 
-# fit -> (run folder name, preset, overrides): the four fits (budget)
+# fit -> (run folder name, preset, overrides): the four fits (budget). The clean raw is a
+# binned image (no mosaic): its fit is binned throughout whatever data.mosaic_stages says
 FITS = {"oracle": ("oracle", "oracle", []),
-        "clean": ("clean_truewhite", "default", ["data.target=clean"]),
+        "clean": ("clean_truewhite", "default", ["data.target=clean", *BINNED]),
         "noisy": ("truewhite", "default", []),
         "default": ("default", "default", [])}
+TRUE_WHITE = ("clean", "noisy")  # their light is not in the config: kept here, not in RESULTS
+
+
+def fit_config(fit: str) -> cfgmod.Config:
+    _, preset, sets = FITS[fit]
+    return cfgmod.override(cfgmod.preset(preset), sets)
 
 
 def kept(name: str, fit: str, runs: Path, earlier: dict) -> float | None:
-    """PSNR of a fit (kept_summary; the true-white fits, whose light is not in the config,
-    are not in RESULTS: from this study's own earlier record `earlier`), else None."""
-    variant, preset, sets = FITS[fit]
-    cfg = cfgmod.override(cfgmod.preset(preset), sets)
-    summary = kept_summary(name, variant, cfg, runs)
-    if summary is None:
-        return earlier.get(name, {}).get(fit) if fit in ("clean", "noisy") else None
-    return float(summary["gridnerf"]["psnr"])
+    """PSNR of a fit, nothing trained: a true-white fit from this study's own earlier
+    record `earlier` where the config that trained it (its fingerprint there) is the fit's
+    today; another fit from kept_summary; else None."""
+    cfg = fit_config(fit)
+    if fit in TRUE_WHITE:
+        old = earlier.get(name, {})
+        same = old.get("fingerprints", {}).get(fit) == fingerprint(cfg)
+        return old.get(fit) if same else None
+    summary = kept_summary(name, FITS[fit][0], cfg, runs)
+    return None if summary is None else float(summary["gridnerf"]["psnr"])
 
 
 def budget(name: str, runs: Path, train: bool = True, earlier: dict | None = None) -> dict:
     folder = scene_dir(name)
+    row = {k: v for k in FITS if (v := kept(name, k, runs, earlier or {})) is not None}
     if train:
         write_clean(folder)
         white = truth_white(folder)
-        summaries = {k: run_variant(name, variant, preset, sets, runs,
-                                    white_ref=white if k in ("clean", "noisy") else None,
-                                    keep=k not in ("clean", "noisy"))["summary"]
-                     for k, (variant, preset, sets) in FITS.items()}
-        row = {k: float(v["gridnerf"]["psnr"]) for k, v in summaries.items()}
-    else:
-        row = {k: kept(name, k, runs, earlier or {}) for k in FITS}
-        row = {k: v for k, v in row.items() if v is not None}
+        for k, (variant, preset, sets) in FITS.items():
+            if k not in row:
+                summary = run_variant(name, variant, preset, sets, runs,
+                                      white_ref=white if k in TRUE_WHITE else None,
+                                      keep=k not in TRUE_WHITE)["summary"]
+                row[k] = float(summary["gridnerf"]["psnr"])
+    row["fingerprints"] = {k: fingerprint(fit_config(k)) for k in TRUE_WHITE if k in row}
     default = kept_summary(name, "default", cfgmod.preset("default"), runs)
     if default is not None:  # the one-frame non-local-means row, beside the default
         row["one_frame_nlm"] = float(default["baseline_denoised"]["psnr"])
@@ -206,7 +217,7 @@ def main() -> None:
     for g in ("nine", "dev", "heldout"):
         group = [r for n, r in record.items() if n in GROUPS[g]]
         if len(group) > 1:
-            keys = set.intersection(*(set(r) for r in group))
+            keys = set.intersection(*(set(r) for r in group)) - {"fingerprints"}
             rows.append(table_row(f"**mean, {g}** ({len(group)})",
                                   {k: float(np.mean([r[k] for r in group])) for k in keys}))
     table = markdown_table(

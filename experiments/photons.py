@@ -10,8 +10,10 @@ black-level offsets stay as they are in DN, so they grow against the signal (at 
 
 Each scene is simulated at every `light` (`gridnerf simulate <scene> --light f`, folder
 data/sim/<scene>_light<f>; light 1 is the scene itself) and trained by the default preset
-with the file's black level (`default`) and, where asked, with the lens-cap black level
-(`dark_black`, `data.black_offset=dark`); every run estimates its own bounds. Scored as
+with the binned raw in every stage (common.BINNED) and the file's black level (`binned`),
+where asked with the lens-cap black level (`dark_black`, `data.black_offset=dark`) or as
+the default trains, its last stage on the mosaic (`default`); every run estimates its own
+bounds. Scored as
 `gridnerf eval` scores a run, on the test views: ours, one grey-world gain on the same
 field, the paper's 2D row (one frame, non-local means) and the generous per-frame
 pipeline (2x2 binning, exposure matched to the reference). The training summary's noise
@@ -19,7 +21,7 @@ sigma and data eps (data_term.data_noise, data_term.capped_eps: the 2-sigma cap)
 the run folder is here. Held-out scenes choose nothing; they are reported apart.
 
     python -m experiments.photons [--scenes bucket,held_deep_hall,held_mixed_toys]
-                                  [--lights 0.1,0.25,0.5,1] [--variants default,dark_black]
+                                  [--lights 0.1,0.25,0.5,1] [--variants binned,dark_black,default]
 
 Writes reports/photons.md, .json and .png.
 """
@@ -35,11 +37,13 @@ from experiments import common
 from gridnerf.sim import HELDOUT, HELDOUT_MIXED
 
 LIGHTS = (0.1, 0.25, 0.5, 1.0)
-# run folder -> overrides of the default preset: the file's black level, the lens-cap one
-VARIANTS = {"default": [], "dark_black": ["data.black_offset=dark"]}
+# run folder -> overrides of the default preset: the binned data term with the file's
+# black level, with the lens-cap one; the default (its last stage on the mosaic)
+VARIANTS = {"binned": common.BINNED, "dark_black": ["data.black_offset=dark", *common.BINNED],
+            "default": []}
 # (label, eval summary key) of the outputs compared at each light level
 OUTPUTS = (("ours", "gridnerf"), ("global_gw", "global_grey_world"),
-           ("denoised_2d", "baseline_denoised"), ("binned", "baseline_binned_matched"))
+           ("denoised_2d", "baseline_denoised"), ("per_frame", "baseline_binned_matched"))
 DEFAULT_OUT = "reports/photons"
 
 
@@ -75,7 +79,8 @@ def markdown(record: dict, lights: list[float], variants: list[str], command: st
     parts = ["# Physical darkness sweep\n",
              "Each scene simulated with `light` x its photon budget, camera settings "
              "unchanged (read noise and black-level offsets fixed in DN); trained by the "
-             "default preset from its own estimated bounds. Cells: test-view PSNR / "
+             "default preset (`binned`: the binned raw in every stage) from its own "
+             "estimated bounds. Cells: test-view PSNR / "
              "CIEDE2000. Held-out scenes chose nothing.\n",
              f"Command: `{command}`\n"]
     groups = (("tuned on", [s for s in record if s not in HELDOUT + HELDOUT_MIXED]),
@@ -89,7 +94,7 @@ def markdown(record: dict, lights: list[float], variants: list[str], command: st
                          *[common.fmt(c["electrons"], 1) if c else "-" for c in get]])
             for variant in variants:
                 for out, _ in OUTPUTS:
-                    if variant != variants[0] and out in ("denoised_2d", "binned"):
+                    if variant != variants[0] and out in ("denoised_2d", "per_frame"):
                         continue  # the 2D rows do not depend on the run's black level
                     rows.append(["", f"{variant}: {out}",
                                  *[_pair(c[variant][out]) if c else "-" for c in get]])
@@ -146,7 +151,7 @@ def main() -> None:
     ap = common.study_parser(__doc__, DEFAULT_OUT, scenes="bucket,held_deep_hall,held_mixed_toys",
                              runs=True, quick=True)
     ap.add_argument("--lights", default=",".join(f"{g:g}" for g in LIGHTS))
-    ap.add_argument("--variants", default="default",
+    ap.add_argument("--variants", default="binned",
                     help="comma-separated, of: " + ", ".join(VARIANTS))
     args = ap.parse_args()
     variants = [v for v in args.variants.split(",") if v]

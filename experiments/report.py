@@ -80,7 +80,7 @@ RUN_PRESETS = {"default": "default", "nogain": "nogain", "processed": "processed
 STUDIES = [("ablation", "Ablation", "ablate"),
            ("sweep", "Darkness sweep", "sweep"),
            ("sweep_heldout", "Darkness sweep, held-out scenes",
-            "sweep --scenes held_deep_hall,held_mixed_toys --methods default "
+            "sweep --scenes held_deep_hall,held_mixed_toys --methods binned "
             "--out reports/sweep_heldout"),
            ("photons", "Physical darkness sweep (fewer photons)", "photons"),
            ("speed", "Speed against error", "speed"),

@@ -115,7 +115,7 @@ class DataConfig(_Section):
     binning: bool = True
     # the last this many stages fit the raw Bayer mosaic photosite by photosite, the earlier
     # (coarse) ones the binned raw (0: binned throughout; target raw at downscale 1 only)
-    mosaic_stages: int = 0
+    mosaic_stages: int = 1
     downscale: int = 1  # extra box downscale of the training frames (1 = binned/raw size)
     eval_downscale: int = 1  # downscale of eval renders relative to the full frame and gt/
     # training frames: "raw" (the capture), "reference" (gt/, clean: the oracle),

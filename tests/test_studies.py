@@ -55,15 +55,17 @@ def test_sweep_table_and_plot(tmp_path):
     sweep.plot(record, [0.1, 0.3, 1.0], tmp_path / "sweep.png")
     assert (tmp_path / "sweep.png").stat().st_size > 1000
     assert sweep.variant("llnerf", 0.3) == "llnerf_gamma0.3"
-    # each method's gamma-1 run is the report's run of its preset (same folder, same config)
-    for method, (preset, _, sets) in sweep.METHODS.items():
+    # each method's gamma-1 run is its own run: llnerf the report's, binned the ablations'
+    for method in sweep.METHODS:
         assert sweep.variant(method, 1.0) == method
-        assert report.RUN_PRESETS[method] == preset and sets == []
+    assert report.RUN_PRESETS["llnerf"] == sweep.METHODS["llnerf"][0] == "llnerf"
+    assert sweep.METHODS["llnerf"][2] == [] and sweep.METHODS["binned"][2] == common.BINNED
+    assert ("full_tv", "binned") in [(k, f) for k, _, f, *_ in ablate.VARIANTS]
 
 
 def test_photon_sweep_table_differences_and_plot(tmp_path):
     def cell(electrons, ours, noise):
-        outs = {"ours": ours, "global_gw": 20.0, "denoised_2d": 19.0, "binned": 15.0}
+        outs = {"ours": ours, "global_gw": 20.0, "denoised_2d": 19.0, "per_frame": 15.0}
         run = {k: {"psnr": v, "ssim": 0.5, "delta_e": 10.0} for k, v in outs.items()}
         eps = noise and min(1e-3, 2 * noise)
         return {"electrons": electrons, "default": run | {"data_noise": noise, "data_eps": eps}}
@@ -234,10 +236,16 @@ def test_every_study_variant_is_a_valid_config_and_shared_folders_agree():
     assert seen["default"] == cfgmod.preset("default")
     assert seen["nogain"].loss.gain_model == "none" and not seen["nogain"].loss.use_gains
     assert seen["gain_auto_dark"].data.black_offset == "dark"
-    assert seen["default_gamma0.3"].data.exposure_ratio == 0.3
+    assert seen["binned_gamma0.3"].data.exposure_ratio == 0.3
+    # the factor studies' runs fit the binned raw throughout; the default and the data-term
+    # study's mosaic run are the only ones with a mosaic stage
+    mosaic = sorted(f for f, c in seen.items()
+                    if c.data.target == "raw" and c.data.mosaic_from(3) < 3)
+    assert mosaic == ["default", "mosaic", "nogain"], mosaic
     assert set(ablate.STUDIES) == {"parts", "smoothness", "gain_model", "tv_fraction",
                                    "data_term"}
-    assert seen["mosaic_last"].data.mosaic_from(3) == 2 and seen["mosaic"].data.mosaic_from(3) == 0
+    assert seen["default"].data.mosaic_from(3) == 2 and seen["mosaic"].data.mosaic_from(3) == 0
+    assert seen["binned"].data.mosaic_from(3) == 3
 
 
 def test_bench_training_key_follows_the_config_not_the_preset_name(monkeypatch, tmp_path):
