@@ -3,7 +3,8 @@
 The held-out quirky-camera scenes carry every quirk at once. Here one clean capture (by
 default held_arc_brick, held_quirk_brick's twin) is shot again with one quirk at a time
 (the clean camera changed by SensorParams fields; geometry, light, photon budget and every
-random draw the twin's) and trained with the default preset twice:
+random draw the twin's) and trained with the default preset on the binned raw in every
+stage (common.BINNED, as the runs measured) twice:
 
 - after: the trainer as it is;
 - before: its handling of that quirk switched off for the run (hot pixels: no defect map,
@@ -91,7 +92,7 @@ def handling_off(what: str | None):
         yield
 
 
-# the evaluated runs' numbers, under the default config's fingerprint
+# the evaluated runs' numbers, under their config's fingerprint
 RUNS = Path("reports/quirk_runs.json")
 
 
@@ -99,7 +100,7 @@ def run(scene: str, quirk: str, when: str) -> dict:
     """{psnr, delta_e} of the default output on runs/<scene>+<quirk>/<when>."""
     folder = shoot(scene, quirk)
     out = Path("runs") / f"{scene}+{quirk}" / when
-    cfg = cfgmod.preset("default")
+    cfg = cfgmod.override(cfgmod.preset("default"), common.BINNED)
     key = f"{scene}+{quirk}"
     hit = common.cached_result(key, when, cfg, common.load_results(RUNS))
     if hit is None:
@@ -121,7 +122,8 @@ def main() -> None:
     args = ap.parse_args()
     rows, record = [], {}
     for scene in common.scene_names(args.scenes):
-        twin = common.run_variant(scene, "default", "default", [])["summary"]["gridnerf"]
+        twin = common.run_variant(scene, "binned", "default",
+                                  common.BINNED)["summary"]["gridnerf"]
         for quirk in args.quirks.split(","):
             after = run(scene, quirk, "after")
             before = run(scene, quirk, "before") if QUIRKS[quirk][1] else None
