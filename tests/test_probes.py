@@ -166,7 +166,7 @@ def test_train_saves_the_config_it_ran_with(trained):
 
 
 @pytest.mark.parametrize("args, needles", [
-    (["--preset", "default"], ["config.json", "train.steps_per_stage", "--overwrite-config"]),
+    (["--preset", "default"], ["config.json", "grid.resolutions", "--overwrite-config"]),
     (["--preset", "tiny", "--set", "train.batch_patches=4"], ["train.batch_patches", "run 8",
                                                               "asked 4"]),
     (["--preset", "tiny", "--set", "grid.sh_degree=1", "--overwrite-config"],

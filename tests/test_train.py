@@ -159,7 +159,9 @@ def test_the_mosaic_stages_are_the_last_ones_of_the_raw_capture(tmp_path):
     assert common.fingerprint(cfgmod.preset("oracle")) == hashlib.sha256(
         blob.encode()).hexdigest()[:16]
     assert common.fingerprint(cfgmod.Config()) != common.fingerprint(
-        cfgmod.override(cfgmod.Config(), ["data.mosaic_stages=1"]))
+        cfgmod.override(cfgmod.Config(), ["data.mosaic_stages=0"]))
+    # the default: the last stage on the mosaic
+    assert cfgmod.Config().data.mosaic_from(len(cfgmod.Config().grid.resolutions)) == 2
 
 
 def test_checkpoint_refuses_non_finite(tmp_path):
