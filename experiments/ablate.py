@@ -48,8 +48,7 @@ from experiments.common import (
 
 # (key, label, run folder, preset, overrides)
 VARIANTS = [
-    ("no_cr", "no colour restoration (no gains, L_ca, smoothness)", "nogain_binned", "nogain",
-     BINNED),
+    ("no_cr", "no colour restoration (no gains, L_ca, smoothness)", "nogain", "nogain", []),
     ("cr_ca", "gains + L_ca", "ablate_cr_ca", "default", ["loss.w_smooth=0.0", *BINNED]),
     ("full_tv", "full, smoothness as grid TV (default)", "binned", "default", BINNED),
     ("full_patch", "full, smoothness as eq. 15 on ray patches", "patch", "patch", BINNED),

@@ -52,7 +52,7 @@ from gridnerf.sim import HELDOUT, SCENES
 # (row, label, run variant, key in that run's eval summary)
 ROWS = [
     ("ours", "ours (gains + L_ca + smoothness, auto exposure)", "default", "gridnerf"),
-    ("rawnerf_isp", "RawNeRF + generic ISP (no gains; one grey-world gain)", "nogain",
+    ("rawnerf_isp", "RawNeRF + generic ISP (no gains, binned raw; one grey-world gain)", "nogain",
      "global_grey_world"),
     ("global_wb", "global white balance (our field's low-light colour, one grey-world gain)",
      "default", "global_grey_world"),
@@ -152,7 +152,8 @@ def _cell(m: dict | None, suffix: str = "") -> str:
 
 
 # the README's short names of the rows
-SHORT = {"ours": "ours", "rawnerf_isp": "RawNeRF + generic ISP (one grey-world gain)",
+SHORT = {"ours": "ours", "rawnerf_isp": "RawNeRF + generic ISP (binned raw, one grey-world "
+         "gain)",
          "global_wb": "our field, one grey-world gain", "2d_denoised":
          "2D per image (one frame + non-local means)", "2d_nerf": "2D + NeRF",
          "per_frame_matched": "per-frame, exposure matched to the reference",

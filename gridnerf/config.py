@@ -354,6 +354,16 @@ def _preset_llnerf() -> Config:
                    loss=replace(c.loss, method="llnerf"))
 
 
+def _preset_nogain() -> Config:
+    """No colour restoration (no gains, no L_ca, no smoothness): RawNeRF's fit on the grid,
+    the report's RawNeRF + ISP row and the ablation's first. It fits the binned raw in
+    every stage, as it was measured; the default's mosaic stage is measured on its own
+    (`python -m experiments.ablate --study data_term`)."""
+    c = Config()
+    return replace(c, data=replace(c.data, mosaic_stages=0),
+                   loss=replace(c.loss, gain_model="none"))
+
+
 PRESETS: dict[str, Any] = {
     "llnerf": _preset_llnerf,
     "fast": _preset_fast,
@@ -362,7 +372,7 @@ PRESETS: dict[str, Any] = {
     "processed": _preset_processed,
     "default": Config,
     "tiny": _preset_tiny,
-    "nogain": lambda: replace(Config(), loss=replace(Config().loss, gain_model="none")),
+    "nogain": _preset_nogain,
     "patch": lambda: replace(Config(), loss=replace(Config().loss, smooth_mode="patch")),
 }
 

@@ -241,7 +241,7 @@ def test_every_study_variant_is_a_valid_config_and_shared_folders_agree():
     # study's mosaic run are the only ones with a mosaic stage
     mosaic = sorted(f for f, c in seen.items()
                     if c.data.target == "raw" and c.data.mosaic_from(3) < 3)
-    assert mosaic == ["default", "mosaic", "nogain"], mosaic
+    assert mosaic == ["default", "mosaic"], mosaic
     assert set(ablate.STUDIES) == {"parts", "smoothness", "gain_model", "tv_fraction",
                                    "data_term"}
     assert seen["default"].data.mosaic_from(3) == 2 and seen["mosaic"].data.mosaic_from(3) == 0

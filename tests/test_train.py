@@ -147,7 +147,7 @@ def test_the_mosaic_stages_are_the_last_ones_of_the_raw_capture(tmp_path):
     assert first("data.binning=false") == 0
     for image in ("data.target=reference", "data.downscale=2"):
         assert first("data.mosaic_stages=1", image) == 3
-    for name in ("oracle", "processed", "llnerf", "tiny"):
+    for name in ("oracle", "processed", "llnerf", "tiny", "nogain"):
         assert cfgmod.preset(name).data.mosaic_from(3) == 3
     for bad in ("mosaic_stages", "eval_downscale", "downscale"):
         with pytest.raises(ConfigError, match=bad):
