@@ -148,7 +148,8 @@ def simulated_folders(spec: str):
 # summary is also kept here (committed beside the reports), keyed by <scene>/<run> with the
 # fingerprint of the config that trained it: a study that finds a run's numbers here under
 # its config of today reuses them instead of training again. Keyed by config only: a change
-# of the simulator or of the metrics calls for deleting the entries it touches.
+# of the simulator, of the metrics or of what training does under the same config calls for
+# deleting the entries it touches (or retraining them), else old runs are read as new.
 RESULTS = Path("reports/results.json")
 # where the studies' tables are shown (update_doc): the report's in the README, the
 # reconstruction, ablation and consistency tables in docs/results.md, the benchmark's in
