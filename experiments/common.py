@@ -27,9 +27,9 @@ from gridnerf.train import train
 
 # The data term before the mosaic stage (data.mosaic_stages=0: the 2x2-binned raw in every
 # stage), on top of a preset. The studies that measure a factor against the default (the
-# ablations, the darkness and photon sweeps, recon, consistency, the error budget) were
-# measured on it and keep their runs there, in folders of their own ("binned", ...); the
-# data-term study (ablate --study data_term) measures the mosaic stage against it.
+# ablations, the darkness and photon sweeps, the camera-quirk runs) were measured on it and
+# keep their runs there, in folders of their own ("binned", ...); the data-term study
+# (ablate --study data_term) measures the mosaic stage against it.
 BINNED = ["data.mosaic_stages=0"]
 
 # Quick mode (`make report QUICK=1`): every study on 160x90, 12-frame versions of its

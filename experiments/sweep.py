@@ -36,7 +36,7 @@ from experiments.common import (
 GAMMAS = (0.3, 0.4, 0.6, 0.8, 1.0, 1.2, 1.5, 1.8)  # the paper's sweep
 EXTREME = 0.1
 # method -> (preset, eval summary key of its shown output, overrides); the method's name is
-# its gamma-1 run folder (the report's run of that preset)
+# its gamma-1 run folder (llnerf: the report's run; binned: the ablations')
 METHODS = {"binned": ("default", "gridnerf", BINNED), "llnerf": ("llnerf", "llnerf", [])}
 SWEPT = ("binned", "llnerf")  # the report's sweep (--methods' default)
 DEFAULT_OUT = "reports/sweep"
