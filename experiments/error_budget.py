@@ -5,9 +5,11 @@ Four fits of the same default grid, test views, PSNR (dB):
 - oracle: trained on the clean normal-light references (the `oracle` preset): what the
   grid holds;
 - clean raw, true white: trained on the capture's exact noise-free raw
-  (data.target=clean) through the method's own colour path, the L_ca anchor the
-  simulator's light (`--white-ref rgb:...`): representation and colour pipeline;
-- noisy raw, true white: the capture itself, the same anchor: what the noise costs;
+  (data.target=clean, kept binned: binned in every stage) through the method's own
+  colour path, the L_ca anchor the simulator's light (`--white-ref rgb:...`):
+  representation and colour pipeline;
+- noisy raw, true white: the capture itself (the default's data term: the mosaic in the
+  last stage), the same anchor: what the noise costs, less what the mosaic stage regains;
 - default: the capture, the light estimated from the frames.
 
 The gaps telescope, so every dB between the oracle and the default is assigned:
