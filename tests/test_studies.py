@@ -285,3 +285,22 @@ def test_error_budget_gaps_telescope_and_missing_fits_say_so():
     h = 1e-6
     numeric = (srgb_encode(x + h) - srgb_encode(x - h)) / (2 * h)
     np.testing.assert_allclose(eb.srgb_slope(x), numeric, rtol=1e-3)
+
+
+def test_error_budget_reuses_a_true_white_fit_only_under_its_config(tmp_path):
+    """A true-white fit (kept in the study's own record, not in RESULTS) is reused only
+    where the record's fingerprint is the fit's config today: a fit trained by another
+    config (the default before its mosaic stage, say) reads as missing, not as a number."""
+    from experiments import error_budget as eb
+
+    today = {k: common.fingerprint(eb.fit_config(k)) for k in eb.TRUE_WHITE}
+    assert today["clean"] != today["noisy"]
+    earlier = {"deer": {"clean": 25.0, "noisy": 24.0,
+                        "fingerprints": {"clean": today["clean"], "noisy": "0" * 16}},
+               "bucket": {"clean": 25.0, "noisy": 24.0}}  # a record without fingerprints
+    assert eb.kept("deer", "clean", tmp_path, earlier) == 25.0
+    assert eb.kept("deer", "noisy", tmp_path, earlier) is None
+    assert eb.kept("bucket", "clean", tmp_path, earlier) is None
+    # the clean raw is a binned image: its fit is binned throughout, the noisy one is not
+    assert eb.fit_config("clean").data.mosaic_from(3) == 3
+    assert eb.fit_config("noisy").data.mosaic_from(3) == 2
