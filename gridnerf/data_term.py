@@ -7,7 +7,9 @@ Decided once per run by gridnerf.train, before the first step, and kept in the r
 - `data_noise`, `capped_eps`, `data_eps_note`: the training frames' noise sigma and the
   data term's eps (RawNeRF's relative MSE, (C - y)^2 / (sg(C) + eps)^2), capped at a few
   sigmas;
-- `data_statistics`: the mean level and grey-world gains a grid starts from.
+- `data_statistics`: the mean level and grey-world gains a grid starts from;
+- `photosite_snr`, `planned_mosaic_stages`: the frames' photons per green photosite and
+  whether the last stages fit the raw mosaic (data.mosaic_stages) or stay binned.
 """
 
 from __future__ import annotations
@@ -128,6 +130,60 @@ def data_noise(data: dataset.RayData, key, n_patches: int = 256) -> float:
     """Noise sigma of the training targets (noisefit.neighbour_sigma of n_patches random
     8x8 patches), nan where no two neighbours share a valid channel."""
     return noisefit.neighbour_sigma(*_sample_targets(data, key, n_patches))
+
+
+def photosite_snr(data: dataset.RayData, key, n_patches: int = 256) -> float:
+    """The training frames' effective photo-electrons per green photosite: mean^2 / variance
+    of the green targets in n_patches random 8x8 patches (variance: noisefit.neighbour_sigma
+    squared), nan where it cannot be measured.
+
+    For a Poisson count of n electrons this is n; read noise lowers it (bucket: 10 electrons
+    a green photosite in the simulator's truth, 10.7 measured; scoreboard 6.0 and 4.9, the
+    read noise a larger share of its fewer photons). A binned target averages two green
+    photosites (gridnerf.raw.bin2x2), so its mean^2 / variance is halved; a mosaic's green
+    targets are one photosite each. Texture counts as noise where the median of neighbour
+    differences sees it, so a textured scene reads lower than its photons.
+    """
+    y, m = _sample_targets(data, key, n_patches)
+    g, mg = y[..., 1:2], m[..., 1:2]
+    sigma = noisefit.neighbour_sigma(g, mg)
+    mean = max(float((g * mg).sum() / max(mg.sum(), 1.0)), 0.0)
+    if sigma == 0:
+        return float("inf")
+    if not sigma > 0:
+        return float("nan")
+    return (mean / sigma) ** 2 / (1.0 if data.mosaic else 2.0)
+
+
+# The mosaic stages (data.mosaic_stages) are fitted only where the frames hold at least this
+# many effective photo-electrons per green photosite (photosite_snr): planned_mosaic_stages.
+MOSAIC_MIN_ELECTRONS = 3.0
+
+
+def planned_mosaic_stages(cfg: Config, snr: float) -> int:
+    """How many last stages fit the raw mosaic: data.mosaic_stages, or 0 (binned throughout)
+    where the frames hold fewer than MOSAIC_MIN_ELECTRONS effective photo-electrons per
+    green photosite (photosite_snr). Unmeasured (nan): the config's count. One line where
+    the photons turn the mosaic stages off (data.binning=false fits the mosaic in every
+    stage whatever the photons; data.mosaic_stages=0 never).
+
+    A photosite's own noise is twice the binned green's variance; where the photons are few
+    the fit is noise-limited and the binned raw's halved noise is worth more than the
+    mosaic's resolution. The same scenes at a tenth to a quarter of their light, both ways
+    (docs/results.md, "The mosaic data term"): the mosaic stage cost 0.11-0.50 dB at 0.7-1.7
+    effective electrons (bucket and scoreboard at 0.1 and 0.25 of their light) and gained
+    0.39-0.52 at 4.9-10.7; every simulated and path-traced scene at its own light measures
+    4.8 or more and gains or ties. The threshold, 3, lies between (chosen on bucket and
+    scoreboard; checked on other scenes and lights in docs/results.md).
+    """
+    want = cfg.data.mosaic_stages
+    if want == 0 or not snr < MOSAIC_MIN_ELECTRONS:  # nan: not <
+        return want
+    print(f"the raw mosaic is not fitted: the frames hold {snr:.2g} effective "
+          f"photo-electrons per green photosite, under {MOSAIC_MIN_ELECTRONS:g}; every stage "
+          "fits the 2x2-binned raw, whose noise is half a photosite's (data.binning=false "
+          "fits the mosaic anyway)")
+    return 0
 
 
 def capped_eps(cfg: Config, sigma: float, raw: bool = True) -> float:

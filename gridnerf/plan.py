@@ -9,6 +9,8 @@ training decides at run time from the capture goes here instead, is saved as
   data.black_offset = "dark");
 - the data term's eps (loss.data_eps capped at loss.data_eps_sigmas noise sigmas) and the
   noise sigma it was capped against;
+- how many last stages fit the raw mosaic: data.mosaic_stages, or none where the frames
+  hold too few photons per photosite (gridnerf.data_term.planned_mosaic_stages);
 - the colour (ColourPlan): which estimator "consistent" picked, the capture's illuminant
   (the L_ca target's anchor, where the gains start), one gain or the gain field;
 - per stage: the opacity prior's weight and the fitted candidate count of the step;
@@ -84,6 +86,10 @@ class RunPlan:
     raw files' own falloff correction the loader applied (Scene.lens_correction, e.g.
     "FixVignetteRadial (OpcodeList3)"), None where they carried none. Where set, the
     frame-based estimate is skipped (train._vignetting), so vignetting stays None.
+    photosite_snr: the frames' effective photo-electrons per green photosite
+    (data_term.photosite_snr; None where not measured or not measurable); mosaic_stages:
+    how many last stages fit the raw mosaic (data_term.planned_mosaic_stages), None in a
+    plan saved before it was decided: the config's data.mosaic_stages.
     """
 
     method: str
@@ -95,6 +101,8 @@ class RunPlan:
     n_candidates: tuple[int, ...]
     vignetting: tuple[float, float] | None = None
     file_falloff: str | None = None
+    photosite_snr: float | None = None
+    mosaic_stages: int | None = None
 
     @property
     def one_gain(self) -> tuple[float, float, float] | None:

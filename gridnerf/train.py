@@ -136,21 +136,22 @@ def _vignetting(run: Path, plan, stage: int, structure, params, data, scene, nea
     return vignetting.apply(data, k), plan
 
 
-def _stage_data(data, scene, cfg: Config, method, falloff, stage: int):
-    """The training data of `stage`: from the first of the last data.mosaic_stages stages
-    on (DataConfig.mosaic_from), the raw Bayer mosaic, photosite by photosite, in place of
+def _stage_data(data, scene, cfg: Config, method, plan, stage: int):
+    """The training data of `stage`: from the first of the plan's last mosaic stages on
+    (DataConfig.mosaic_from), the raw Bayer mosaic, photosite by photosite, in place of
     the binned raw, with the binned data's illuminant map and the lens falloff (the plan's
     k1, k2, or None) carried over. The coarse stages fit the binned raw: a quarter of the
     rays, with half the green noise, place the geometry (on scoreboard, the scene with the
     fewest photons, the mosaic in every stage cost 0.14 dB against binning throughout,
     the mosaic in the last stage alone gained 0.39; docs/results.md)."""
-    if data.mosaic or stage < cfg.data.mosaic_from(len(cfg.grid.resolutions)):
+    if data.mosaic or stage < cfg.data.mosaic_from(len(cfg.grid.resolutions),
+                                                   plan.mosaic_stages):
         return data
     mosaic = method.training_data(scene, replace(cfg, data=replace(cfg.data, binning=False)))
     mosaic = replace(mosaic, illuminant_map=data.illuminant_map)
     print(f"stage {stage}: fitting the raw mosaic, {mosaic.image_hw[1]}x{mosaic.image_hw[0]} "
           "photosites a frame")
-    return vignetting.apply(mosaic, falloff)
+    return vignetting.apply(mosaic, plan.vignetting)
 
 
 def train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool = False,
@@ -192,10 +193,21 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         black = data_term.black_level(scene_dir, run, cfg, scene)
     if black == "lens_cap":
         scene = darkframes.apply(scene, darkframes.load(run))
-    # the first stage's data: the binned raw, or the mosaic where every stage fits it
-    mosaic_first = cfg.data.mosaic_from(len(cfg.grid.resolutions)) == 0
+    # the first stage's data: the binned raw, or the mosaic where every stage fits it; and
+    # how many last stages fit the mosaic: the saved plan's, or decided on these frames
+    n_stages = len(cfg.grid.resolutions)
+    mosaic_stages = None if saved is None else saved.mosaic_stages
+    mosaic_first = cfg.data.mosaic_from(n_stages, mosaic_stages) == 0
     data = method.training_data(scene, replace(cfg, data=replace(cfg.data, binning=False))
                                 if mosaic_first else cfg)
+    snr = None if saved is None else saved.photosite_snr
+    if saved is None and cfg.data.binning and cfg.data.mosaic_from(n_stages) < n_stages:
+        measured = data_term.photosite_snr(
+            data, jax.random.fold_in(jax.random.PRNGKey(cfg.train.seed), 11))
+        mosaic_stages = data_term.planned_mosaic_stages(cfg, measured)
+        snr = measured if np.isfinite(measured) else None
+        if mosaic_first and cfg.data.mosaic_from(n_stages, mosaic_stages) > 0:
+            data = method.training_data(scene, cfg)  # the photons turned the mosaic off
     near_t, far_t = dataset.grid_box(scene)[2:]
     data, colour = method.plan_colour(data, scene, cfg, None if saved is None else saved.colour)
     if colour.anchor is not None:
@@ -223,7 +235,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         plan = saved
         data = vignetting.apply(data, plan.vignetting)
         if stage < len(schedule):
-            data = _stage_data(data, scene, cfg, method, plan.vignetting, stage)
+            data = _stage_data(data, scene, cfg, method, plan, stage)
     else:
         structure, params = stages.initial_grid(
             data, scene, cfg, key,
@@ -240,14 +252,14 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
                   f"{cfg.loss.data_eps_sigmas:g} sigma: {eps:.3g} (loss.data_eps_sigmas)")
         if note := data_term.data_eps_note(eps, sigma, raw):
             print(note)
-        n_stages = len(schedule)
         plan = planmod.RunPlan(
             method=method.NAME, black_level=black,
             data_noise=float(sigma) if np.isfinite(sigma) else None, data_eps=eps,
             colour=colour,
             opacity=planmod.opacity_schedule(cfg.loss.opacity, n_stages,
                                              cfg.loss.opacity_stages),
-            n_candidates=(0,) * n_stages, file_falloff=scene.lens_correction)
+            n_candidates=(0,) * n_stages, file_falloff=scene.lens_correction,
+            photosite_snr=snr, mosaic_stages=mosaic_stages)
         if scene.lens_correction and method.fits_raw(cfg):
             print(f"lens falloff: corrected on loading by the raw files' "
                   f"{scene.lens_correction}; the frame-based estimate is skipped")
@@ -271,7 +283,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         if stage > 0 and start == 0 and not opt_leaves:
             data, plan = _vignetting(run, plan, stage, structure, params, data, scene, near_t,
                                      far_t, cfg, method.fits_raw(cfg))
-            data = _stage_data(data, scene, cfg, method, plan.vignetting, stage)
+            data = _stage_data(data, scene, cfg, method, plan, stage)
             structure, params, info = stages.next_stage_grid(
                 structure, params, res, data, cfg, near_t, far_t,
                 fit=cfg.grid.fit_box and stage == 1, forward_facing=scene.forward_facing)
@@ -366,6 +378,9 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         # the training frames' noise sigma (data_noise) and the absolute eps the data term used
         "data_noise": plan.data_noise,
         "data_eps": plan.data_eps,
+        # the frames' photons per green photosite and the stages that fitted the raw mosaic
+        "photosite_snr": plan.photosite_snr,
+        "mosaic_stages": (n_stages - cfg.data.mosaic_from(n_stages, plan.mosaic_stages)),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
     if plan.black_level == "lens_cap" and (offset := darkframes.load(run)) is not None:

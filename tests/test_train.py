@@ -160,8 +160,86 @@ def test_the_mosaic_stages_are_the_last_ones_of_the_raw_capture(tmp_path):
         blob.encode()).hexdigest()[:16]
     assert common.fingerprint(cfgmod.Config()) != common.fingerprint(
         cfgmod.override(cfgmod.Config(), ["data.mosaic_stages=0"]))
+
     # the default: the last stage on the mosaic
     assert cfgmod.Config().data.mosaic_from(len(cfgmod.Config().grid.resolutions)) == 2
+
+
+@pytest.fixture(scope="module")
+def dark_scene(tmp_path_factory):
+    """small_scene's capture at a fifth of its light (2 electrons a green photosite)."""
+    from gridnerf.sim import simulate_scene
+
+    out = tmp_path_factory.mktemp("scenes") / "bucket_dark"
+    return simulate_scene("bucket", out, width=160, height=90, n_frames=12, seed=0, light=0.2)
+
+
+def test_photosite_snr_counts_the_photons(small_scene, dark_scene):
+    """data_term.photosite_snr on the binned and on the mosaic targets of one capture agree
+    (a binned green averages two photosites), read the simulator's 10 electrons a green
+    photosite within 15 %, and read a fifth of the light as fewer than the 2 electrons it
+    holds (the read noise counts against it), under the threshold: the planned mosaic
+    stages follow."""
+    import jax
+
+    from gridnerf import dataset
+    from gridnerf import scene as scenemod
+    from tests.conftest import sim_near_far
+
+    cfg = cfgmod.Config()
+    got = {}
+    for name, folder in (("bright", small_scene), ("dark", dark_scene)):
+        sc = scenemod.load_scene(folder, near_far=sim_near_far(folder))
+        for binning in (True, False):
+            data = dataset.training_data(sc, replace(cfg.data, binning=binning))
+            got[name, binning] = data_term.photosite_snr(data, jax.random.PRNGKey(3))
+        electrons = json.loads((folder / "sim.json").read_text())["electrons_mean_green"]
+        assert abs(got[name, True] / got[name, False] - 1.0) < 0.2, got
+        got[name] = electrons
+    assert abs(got["bright", True] / got["bright"] - 1.0) < 0.15, got
+    assert got["dark", True] < got["dark"] < data_term.MOSAIC_MIN_ELECTRONS, got
+    assert data_term.planned_mosaic_stages(cfg, got["bright", True]) == 1
+    assert data_term.planned_mosaic_stages(cfg, got["dark", True]) == 0
+
+
+def test_planned_mosaic_stages_keep_the_config_unless_the_photons_are_few(capsys):
+    """The config's count where the photons reach data_term.MOSAIC_MIN_ELECTRONS and where
+    they could not be measured; 0 with one line below it, and always under
+    data.mosaic_stages=0."""
+    def planned(snr, *sets):
+        return data_term.planned_mosaic_stages(cfgmod.override(cfgmod.Config(), list(sets)),
+                                               snr)
+
+    floor = data_term.MOSAIC_MIN_ELECTRONS
+    assert planned(floor) == 1 and planned(50.0, "data.mosaic_stages=2") == 2
+    assert planned(float("nan")) == 1 and planned(float("inf")) == 1
+    assert planned(50.0, "data.mosaic_stages=0") == 0
+    assert capsys.readouterr().out == ""
+    assert planned(0.99 * floor) == 0
+    assert "photo-electrons per green photosite" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("sets", [["data.mosaic_stages=1"], ["data.mosaic_stages=5"]])
+def test_a_dark_capture_trains_binned_and_the_plan_says_so(dark_scene, tmp_path, capsys,
+                                                            sets):
+    """With too few photons a run asked for the mosaic (in the last stage, or in every
+    stage through data.mosaic_stages) fits the binned raw throughout: its plan keeps the
+    measured photons and the decision, the summary says how many stages fitted the
+    mosaic, and a resume keeps the plan's decision."""
+    from gridnerf import plan as planmod
+    from gridnerf.train import train
+
+    cfg = cfgmod.override(cfgmod.preset("tiny"), sets)
+    run = tmp_path / "run"
+    summary = train(dark_scene, run, cfg)
+    out = capsys.readouterr().out
+    assert "fitting the raw mosaic" not in out and "photo-electrons per green" in out
+    plan = planmod.load(run)
+    assert plan.mosaic_stages == 0 and 0 < plan.photosite_snr < 3.0
+    assert summary["mosaic_stages"] == 0 and summary["photosite_snr"] == plan.photosite_snr
+    (run / "summary.json").unlink()  # trained again from its final checkpoint: no step left
+    train(dark_scene, run, cfg)
+    assert "fitting the raw mosaic" not in capsys.readouterr().out
 
 
 def test_checkpoint_refuses_non_finite(tmp_path):
