@@ -138,11 +138,12 @@ def photosite_snr(data: dataset.RayData, key, n_patches: int = 256) -> float:
     squared), nan where it cannot be measured.
 
     For a Poisson count of n electrons this is n; read noise lowers it (bucket: 10 electrons
-    a green photosite in the simulator's truth, 10.7 measured; scoreboard 6.0 and 4.9, the
-    read noise a larger share of its fewer photons). A binned target averages two green
-    photosites (gridnerf.raw.bin2x2), so its mean^2 / variance is halved; a mosaic's green
-    targets are one photosite each. Texture counts as noise where the median of neighbour
-    differences sees it, so a textured scene reads lower than its photons.
+    a green photosite in the simulator's truth, 9.5 measured; scoreboard 6.0 and 5.4; a
+    tenth of bucket's light 1.0 and 0.34, the read noise a larger share of fewer photons).
+    A binned target averages two green photosites (gridnerf.raw.bin2x2), so its mean^2 /
+    variance is halved; a mosaic's green targets are one photosite each. Texture counts as
+    noise where the median of neighbour differences sees it, so a textured scene reads
+    lower than its photons.
     """
     y, m = _sample_targets(data, key, n_patches)
     g, mg = y[..., 1:2], m[..., 1:2]
@@ -169,12 +170,12 @@ def planned_mosaic_stages(cfg: Config, snr: float) -> int:
 
     A photosite's own noise is twice the binned green's variance; where the photons are few
     the fit is noise-limited and the binned raw's halved noise is worth more than the
-    mosaic's resolution. The same scenes at a tenth to a quarter of their light, both ways
-    (docs/results.md, "The mosaic data term"): the mosaic stage cost 0.11-0.50 dB at 0.7-1.7
-    effective electrons (bucket and scoreboard at 0.1 and 0.25 of their light) and gained
-    0.39-0.52 at 4.9-10.7; every simulated and path-traced scene at its own light measures
-    4.8 or more and gains or ties. The threshold, 3, lies between (chosen on bucket and
-    scoreboard; checked on other scenes and lights in docs/results.md).
+    mosaic's resolution. Both ways on bucket and scoreboard (docs/results.md, "The mosaic
+    data term"): the mosaic stage cost 0.11-0.50 dB at 0.21-1.55 effective electrons (a
+    tenth and a quarter of their light) and gained 0.39-0.52 at 5.4-9.5 (their own light).
+    The threshold, 3, lies between; every simulated and path-traced scene at its own light
+    measures 5.0 or more. Checked on six other scene-light pairs (1.70-4.69): it picked the
+    better data term on all six, by 0.08-0.33 dB.
     """
     want = cfg.data.mosaic_stages
     if want == 0 or not snr < MOSAIC_MIN_ELECTRONS:  # nan: not <
