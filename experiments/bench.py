@@ -191,13 +191,17 @@ def _training_setup(run: str, scale: float, dense: bool, sets: list[str]):
     either way the step's candidate count is fitted to the new grid (stages.fitted_candidates)."""
 
     from gridnerf import config as cfgmod
-    from gridnerf import dataset, eval_run, grid, methods, optim, stages
+    from gridnerf import dataset, eval_run, grid, methods, optim, stages, train, vignetting
 
     cfg, plan, scene, structure, params, _ = eval_run.load_run(Path(run))
     cfg = cfgmod.override(cfg, sets)
     method = methods.get(cfg.loss.method)
     data = method.training_data(scene, cfg)
     data, _ = method.plan_colour(data, scene, cfg, plan.colour)  # the L_ca inputs
+    stage = len(cfg.train.steps_per_stage) - 1
+    # the last stage's data as training fits it: the raw mosaic where the plan says so
+    data = train.stage_data(vignetting.apply(data, plan.vignetting), scene, cfg, method,
+                            plan, stage)
     near_t, far_t = dataset.grid_box(scene)[2:]
     res = tuple(max(2, int(round(r * scale))) for r in structure.resolution)
     changed = dense or res != tuple(structure.resolution)
@@ -209,7 +213,6 @@ def _training_setup(run: str, scale: float, dense: bool, sets: list[str]):
     elif changed:
         structure, params = grid.resample(structure, params, res)
     structure = grid.update_occupancy(structure, params)
-    stage = len(cfg.train.steps_per_stage) - 1
     tx = optim.make_optimizer(cfg, cfg.train.steps_per_stage[-1])
     step = optim.step_plan(cfg, plan, stage, scene)  # the last stage's
     if changed:

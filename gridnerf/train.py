@@ -136,7 +136,7 @@ def _vignetting(run: Path, plan, stage: int, structure, params, data, scene, nea
     return vignetting.apply(data, k), plan
 
 
-def _stage_data(data, scene, cfg: Config, method, plan, stage: int):
+def stage_data(data, scene, cfg: Config, method, plan, stage: int):
     """The training data of `stage`: from the first of the plan's last mosaic stages on
     (DataConfig.mosaic_from), the raw Bayer mosaic, photosite by photosite, in place of
     the binned raw, with the binned data's illuminant map and the lens falloff (the plan's
@@ -235,7 +235,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         plan = saved
         data = vignetting.apply(data, plan.vignetting)
         if stage < len(schedule):
-            data = _stage_data(data, scene, cfg, method, plan, stage)
+            data = stage_data(data, scene, cfg, method, plan, stage)
     else:
         structure, params = stages.initial_grid(
             data, scene, cfg, key,
@@ -283,7 +283,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         if stage > 0 and start == 0 and not opt_leaves:
             data, plan = _vignetting(run, plan, stage, structure, params, data, scene, near_t,
                                      far_t, cfg, method.fits_raw(cfg))
-            data = _stage_data(data, scene, cfg, method, plan, stage)
+            data = stage_data(data, scene, cfg, method, plan, stage)
             structure, params, info = stages.next_stage_grid(
                 structure, params, res, data, cfg, near_t, far_t,
                 fit=cfg.grid.fit_box and stage == 1, forward_facing=scene.forward_facing)
