@@ -88,8 +88,9 @@ class RunPlan:
     frame-based estimate is skipped (train._vignetting), so vignetting stays None.
     photosite_snr: the frames' effective photo-electrons per green photosite
     (data_term.photosite_snr; None where not measured or not measurable); mosaic_stages:
-    how many last stages fit the raw mosaic (data_term.planned_mosaic_stages), None in a
-    plan saved before it was decided: the config's data.mosaic_stages.
+    how many last stages fit the raw mosaic (data_term.planned_mosaic_stages), None where
+    nothing was decided (no stage could fit the mosaic, data.binning off, or a plan saved
+    before the decision existed): the config's data.mosaic_stages.
     """
 
     method: str
