@@ -160,7 +160,6 @@ def test_the_mosaic_stages_are_the_last_ones_of_the_raw_capture(tmp_path):
         blob.encode()).hexdigest()[:16]
     assert common.fingerprint(cfgmod.Config()) != common.fingerprint(
         cfgmod.override(cfgmod.Config(), ["data.mosaic_stages=0"]))
-
     # the default: the last stage on the mosaic
     assert cfgmod.Config().data.mosaic_from(len(cfgmod.Config().grid.resolutions)) == 2
 
@@ -221,25 +220,32 @@ def test_planned_mosaic_stages_keep_the_config_unless_the_photons_are_few(capsys
 
 @pytest.mark.parametrize("sets", [["data.mosaic_stages=1"], ["data.mosaic_stages=5"]])
 def test_a_dark_capture_trains_binned_and_the_plan_says_so(dark_scene, tmp_path, capsys,
-                                                            sets):
+                                                            monkeypatch, sets):
     """With too few photons a run asked for the mosaic (in the last stage, or in every
     stage through data.mosaic_stages) fits the binned raw throughout: its plan keeps the
-    measured photons and the decision, the summary says how many stages fitted the
-    mosaic, and a resume keeps the plan's decision."""
+    measured photons and the decision; killed in its second stage, it resumes there on the
+    binned raw, without measuring again, and the summary says no stage fitted the mosaic."""
     from gridnerf import plan as planmod
-    from gridnerf.train import train
+    from gridnerf import train as trainmod
 
-    cfg = cfgmod.override(cfgmod.preset("tiny"), sets)
+    monkeypatch.setattr(trainmod, "CHECKPOINT_SECONDS", float("inf"))
+    cfg = cfgmod.override(cfgmod.preset("tiny"), [
+        *sets, "train.steps_per_stage=[20,20]", "train.checkpoint_every=10"])
     run = tmp_path / "run"
-    summary = train(dark_scene, run, cfg)
+    real_make_step = optim.make_step
+    _crash_after(monkeypatch, 33)  # dies at stage 1 step 14, after its step-10 checkpoint
+    with pytest.raises(KeyboardInterrupt):
+        trainmod.train(dark_scene, run, cfg)
     out = capsys.readouterr().out
     assert "fitting the raw mosaic" not in out and "photo-electrons per green" in out
     plan = planmod.load(run)
-    assert plan.mosaic_stages == 0 and 0 < plan.photosite_snr < 3.0
+    assert plan.mosaic_stages == 0 and 0 < plan.photosite_snr < data_term.MOSAIC_MIN_ELECTRONS
+    monkeypatch.setattr(optim, "make_step", real_make_step)
+    summary = trainmod.train(dark_scene, run, cfg)
+    out = capsys.readouterr().out
+    assert "resuming" in out and "fitting the raw mosaic" not in out
+    assert "photo-electrons per green" not in out  # the plan's decision, not a new one
     assert summary["mosaic_stages"] == 0 and summary["photosite_snr"] == plan.photosite_snr
-    (run / "summary.json").unlink()  # trained again from its final checkpoint: no step left
-    train(dark_scene, run, cfg)
-    assert "fitting the raw mosaic" not in capsys.readouterr().out
 
 
 def test_checkpoint_refuses_non_finite(tmp_path):
