@@ -213,7 +213,7 @@ def _training_setup(run: str, scale: float, dense: bool, sets: list[str]):
     elif changed:
         structure, params = grid.resample(structure, params, res)
     structure = grid.update_occupancy(structure, params)
-    tx = optim.make_optimizer(cfg, cfg.train.steps_per_stage[-1])
+    tx = optim.make_optimizer(cfg, cfg.train.steps_per_stage[-1], stage)
     step = optim.step_plan(cfg, plan, stage, scene)  # the last stage's
     if changed:
         step = dataclasses.replace(step, n_candidates=stages.fitted_candidates(

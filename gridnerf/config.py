@@ -241,6 +241,9 @@ class TrainConfig(_Section):
     lr_rgb: float = 0.1  # Adam learning rate of the low-light colour
     lr_gain: float = 0.02  # Adam learning rate of the log gains
     lr_decay: float = 0.01  # final / initial learning rate over each stage (exponential)
+    # steps over which each stage after the first ramps its rates up from 0 (linear): the
+    # upsampled grid starts near its optimum, and Adam's first steps move every parameter
+    warmup_steps: int = 0
     seed: int = 0  # PRNG seed of the init and the batches
     log_every: int = 50  # steps between metrics.jsonl lines
     checkpoint_every: int = 300  # steps between checkpoints (also every CHECKPOINT_SECONDS)
@@ -254,6 +257,7 @@ class TrainConfig(_Section):
         for name in ("lr_density", "lr_rgb", "lr_gain"):
             self._range(name, 0.0)
         self._range("lr_decay", 0.0, lo_open=True)
+        self._require("warmup_steps", self.warmup_steps >= 0, "a whole number >= 0")
         self._require("seed", self.seed >= 0, "a whole number >= 0")
         self._require("log_every", self.log_every >= 1, "a whole number >= 1")
         self._require("checkpoint_every", self.checkpoint_every >= 1, "a whole number >= 1")
@@ -464,7 +468,7 @@ def get(cfg: Config, dotted: str) -> Any:
 # before it: a saved config without the field is read with that value (from_dict), and
 # experiments.common.fingerprint leaves the field out at that value, so the kept results
 # of configs that do not use it stay valid
-ADDED_FIELDS = {("data", "mosaic_stages"): 0}
+ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

@@ -73,7 +73,7 @@ def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage:
                        f"is {tuple(schedule[stage][0])}")
         else:
             try:
-                template = optim.make_optimizer(cfg, schedule[stage][1]).init(params)
+                template = optim.make_optimizer(cfg, schedule[stage][1], stage).init(params)
                 checkpoint.unflatten_like(template, opt_leaves)
             except ValueError as exc:
                 problem = f"its optimiser state does not fit ({exc})"
@@ -292,7 +292,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
                   f"{np.round(info['bbox_max'], 3).tolist()}, "
                   f"{100 * info['occupied_fraction']:.1f}% of the box occupied"
                   )
-        tx = optim.make_optimizer(cfg, steps)
+        tx = optim.make_optimizer(cfg, steps, stage)
         opt_state = tx.init(params)
         if opt_leaves:
             opt_state = checkpoint.unflatten_like(opt_state, opt_leaves)

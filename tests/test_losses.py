@@ -365,3 +365,35 @@ def test_eps_scaled_with_the_raw_makes_the_data_term_free_of_its_scale(follow):
         assert ratio == pytest.approx(1.0, rel=1e-4)
     else:
         assert not 0.9 < ratio < 1.1
+
+
+def test_stage_warmup_ramps_the_rates_of_later_stages_only():
+    """train.warmup_steps: a later stage's first update is zero and its rate reaches lr after
+    the ramp, then decays to lr * lr_decay by the stage's end; the first stage starts at lr."""
+    from gridnerf import config as cfgmod
+
+    cfg = cfgmod.override(cfgmod.preset("default"), ["train.warmup_steps=10"])
+    params = {"density": jnp.zeros(4), "rgb": jnp.zeros((4, 3)), "log_gain": jnp.zeros((4, 3))}
+    grads = jax.tree_util.tree_map(jnp.ones_like, params)
+
+    def steps_taken(stage, n=100):
+        tx = optim.make_optimizer(cfg, n, stage)
+        state, sizes = tx.init(params), []
+        for _ in range(n):
+            upd, state = tx.update(grads, state, params)
+            sizes.append(-float(upd["rgb"][0, 0]))  # Adam on a constant gradient: the rate
+        return np.asarray(sizes)
+
+    lr, decay = cfg.train.lr_rgb, cfg.train.lr_decay
+    first, later = steps_taken(0), steps_taken(1)
+    np.testing.assert_allclose(first[0], lr, rtol=1e-5)
+    assert later[0] == 0.0 and np.all(np.diff(later[:11]) > 0)
+    np.testing.assert_allclose(later[10], lr, rtol=1e-5)
+    np.testing.assert_allclose(later[-1], lr * decay ** (89 / 90), rtol=1e-4)
+    assert np.all(np.diff(later[10:]) < 0)
+    # without the field (old runs) every stage starts at lr
+    plain = cfgmod.preset("default")
+    assert plain.train.warmup_steps == 0
+    tx = optim.make_optimizer(plain, 100, 2)
+    upd, _ = tx.update(grads, tx.init(params), params)
+    np.testing.assert_allclose(-float(upd["rgb"][0, 0]), lr, rtol=1e-5)
