@@ -9,11 +9,14 @@ Decided once per run by gridnerf.train, before the first step, and kept in the r
   sigmas;
 - `data_statistics`: the mean level and grey-world gains a grid starts from;
 - `photosite_snr`, `planned_mosaic_stages`: the frames' photons per green photosite and
-  whether the last stages fit the raw mosaic (data.mosaic_stages) or stay binned.
+  whether the last stages fit the raw mosaic (data.mosaic_stages) or stay binned;
+- `planned_downscale`, `fitted_config`: how far the binned frames are box-downscaled, from
+  the capture's pixels per voxel of the final grid.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import jax
@@ -185,6 +188,45 @@ def planned_mosaic_stages(cfg: Config, snr: float) -> int:
           "fits the 2x2-binned raw, whose noise is half a photosite's (data.binning=false "
           "fits the mosaic anyway)")
     return 0
+
+
+# A training pixel is at most this share of a final voxel's width (planned_downscale).
+PIXEL_PER_VOXEL = 0.5
+
+
+def planned_downscale(cfg: Config, image_width: int) -> int:
+    """The box downscale of the 2x2-binned training frames (data.downscale, at least the
+    config's): the largest power of 2 at which a training pixel, 2 x downscale capture
+    pixels wide, spans at most PIXEL_PER_VOXEL of a voxel of the final grid. A voxel spans
+    image_width / (the last stage's x vertex count) capture pixels: the box taken to fill
+    the view's width, as the grid's resolutions are given. The config's own where the data
+    is not binned (data.binning=false) or already coarser.
+
+    Why: a step fits a fixed number of rays (train.batch_patches x patch_size^2), so a
+    stage's photons are rays x photosites per training pixel. At 480x270 a final voxel
+    spans 2.5 capture pixels, the last stage's 4.9M rays see every photosite of the 2.7M
+    about twice, and the raw mosaic is the finest data the photons allow (planned_mosaic_
+    stages). At 1920x1080 it spans 10: the same rays on the mosaic see 11% of the 44M
+    photosites, on the binned raw 45%; downscaled by 2 (16 photosites a pixel, 4 capture
+    pixels wide, still under half a voxel) all of them. On bucket at 1920x1080 (evaluated
+    at 1920x1080, docs/results.md) the mosaic last stage scored 21.47 dB (colour-aligned
+    24.66), binned throughout 21.90 (25.91), downscaled by 2 21.96 (26.92).
+    """
+    d = cfg.data.downscale
+    if not cfg.data.binning:
+        return d
+    voxel_px = image_width / max(cfg.grid.resolutions[-1][0], 1)
+    while 2 * (2 * d) <= PIXEL_PER_VOXEL * voxel_px:
+        d *= 2
+    return d
+
+
+def fitted_config(cfg: Config, downscale: int | None) -> Config:
+    """cfg with the run plan's training downscale (planned_downscale; None: cfg's own): the
+    config the training data is built from. The saved config.json stays the user's."""
+    if downscale is None or downscale == cfg.data.downscale:
+        return cfg
+    return replace(cfg, data=replace(cfg.data, downscale=int(downscale)))
 
 
 def capped_eps(cfg: Config, sigma: float, raw: bool = True) -> float:

@@ -33,6 +33,7 @@ from gridnerf import (
     baseline,
     color,
     consistency,
+    data_term,
     dataset,
     evaluate,
     image_io,
@@ -51,14 +52,16 @@ from gridnerf.runfolder import CHECKPOINT, load_state, open_scene
 
 
 def load_run(run: Path):
-    """(cfg, plan, scene, structure, params, summary) of a finished run."""
+    """(cfg, plan, scene, structure, params, summary) of a finished run; cfg is its
+    config.json with its plan's training downscale (data_term.fitted_config), the config
+    its training data was built with."""
     run = Path(run)
     if not (run / "summary.json").exists() or not (run / CHECKPOINT).exists():
         raise SceneError(
             run, "no finished training run here", f"run `gridnerf train <scene> --out {run}`"
         )
-    cfg = cfgmod.load(run / "config.json")
     plan = planmod.load(run)
+    cfg = data_term.fitted_config(cfgmod.load(run / "config.json"), plan.downscale)
     summary = json.loads((run / "summary.json").read_text())
     scene = open_scene(Path(summary["scene"]), run, estimate=False,
                        dark=plan.black_level == "lens_cap")

@@ -9,6 +9,8 @@ training decides at run time from the capture goes here instead, is saved as
   data.black_offset = "dark");
 - the data term's eps (loss.data_eps capped at loss.data_eps_sigmas noise sigmas) and the
   noise sigma it was capped against;
+- how far the binned frames are box-downscaled: data.downscale, or more where a final voxel
+  spans many capture pixels (gridnerf.data_term.planned_downscale);
 - how many last stages fit the raw mosaic: data.mosaic_stages, or none where the frames
   hold too few photons per photosite (gridnerf.data_term.planned_mosaic_stages);
 - the colour (ColourPlan): which estimator "consistent" picked, the capture's illuminant
@@ -90,7 +92,9 @@ class RunPlan:
     (data_term.photosite_snr; None where not measured or not measurable); mosaic_stages:
     how many last stages fit the raw mosaic (data_term.planned_mosaic_stages), None where
     nothing was decided (no stage could fit the mosaic, data.binning off, or a plan saved
-    before the decision existed): the config's data.mosaic_stages.
+    before the decision existed): the config's data.mosaic_stages. downscale: the box
+    downscale of the binned training frames (data_term.planned_downscale), None (a plan
+    saved before the decision existed): the config's data.downscale.
     """
 
     method: str
@@ -104,6 +108,7 @@ class RunPlan:
     file_falloff: str | None = None
     photosite_snr: float | None = None
     mosaic_stages: int | None = None
+    downscale: int | None = None
 
     @property
     def one_gain(self) -> tuple[float, float, float] | None:

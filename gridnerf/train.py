@@ -193,6 +193,18 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         black = data_term.black_level(scene_dir, run, cfg, scene)
     if black == "lens_cap":
         scene = darkframes.apply(scene, darkframes.load(run))
+    # the training frames' downscale (the saved plan's, or from the final grid's footprint):
+    # from here on `cfg` builds the data with it; config.json keeps the user's `asked`
+    asked = cfg
+    downscale = (data_term.planned_downscale(cfg, scene.cameras.width) if saved is None
+                 else saved.downscale)
+    cfg = data_term.fitted_config(cfg, downscale)
+    if downscale is not None and downscale != asked.data.downscale:
+        print(f"training frames: binned and box-downscaled by {downscale} "
+              f"({scene.cameras.width // (2 * downscale)} pixels wide): a voxel of the "
+              f"{cfg.grid.resolutions[-1][0]}-wide final grid spans "
+              f"{scene.cameras.width / cfg.grid.resolutions[-1][0]:.3g} capture pixels, and "
+              "the steps see more photons in fewer, larger pixels")
     # the first stage's data: the binned raw, or the mosaic where every stage fits it; and
     # how many last stages fit the mosaic: the saved plan's, or decided on these frames
     n_stages = len(cfg.grid.resolutions)
@@ -259,14 +271,14 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
             opacity=planmod.opacity_schedule(cfg.loss.opacity, n_stages,
                                              cfg.loss.opacity_stages),
             n_candidates=(0,) * n_stages, file_falloff=scene.lens_correction,
-            photosite_snr=snr, mosaic_stages=mosaic_stages)
+            photosite_snr=snr, mosaic_stages=mosaic_stages, downscale=downscale)
         if scene.lens_correction and method.fits_raw(cfg):
             print(f"lens falloff: corrected on loading by the raw files' "
                   f"{scene.lens_correction}; the frame-based estimate is skipped")
 
     # Training really starts: save the config and the plan, drop metrics logged after the
     # checkpoint.
-    cfgmod.save(cfg, run / runfolder.CONFIG)
+    cfgmod.save(asked, run / runfolder.CONFIG)
     planmod.save(run, plan)
     runfolder.trim_metrics(run, stage, start)
     lock.started()
@@ -381,6 +393,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         # the frames' photons per green photosite and the stages that fitted the raw mosaic
         "photosite_snr": plan.photosite_snr,
         "mosaic_stages": (n_stages - cfg.data.mosaic_from(n_stages, plan.mosaic_stages)),
+        # the binned training frames' box downscale (data_term.planned_downscale)
+        "downscale": cfg.data.downscale,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
     if plan.black_level == "lens_cap" and (offset := darkframes.load(run)) is not None:

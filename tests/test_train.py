@@ -248,6 +248,56 @@ def test_a_dark_capture_trains_binned_and_the_plan_says_so(dark_scene, tmp_path,
     assert summary["mosaic_stages"] == 0 and summary["photosite_snr"] == plan.photosite_snr
 
 
+def test_planned_downscale_follows_the_final_voxels_footprint():
+    """A training pixel (2 x downscale capture pixels) stays within half a final voxel
+    (capture width / last x vertex count): 480x270 under the default grid keeps the binned
+    size (its mosaic stage), 1920x1080 is downscaled by 2, 3840 by 4; never below the
+    config's downscale; a finer last stage or the mosaic in every stage (binning off) keep
+    the config's."""
+    def planned(width, *sets):
+        return data_term.planned_downscale(cfgmod.override(cfgmod.Config(), list(sets)), width)
+
+    assert planned(480) == 1 and planned(960) == 1 and planned(1536) == 2
+    assert planned(1920) == 2 and planned(3840) == 4
+    assert planned(480, "data.downscale=3") == 3 and planned(3840, "data.downscale=3") == 3
+    assert planned(1920, "data.binning=false") == 1
+    finer = "grid.resolutions=[[48,0,24],[96,0,48],[192,0,64],[480,0,96]]"
+    assert planned(1920, finer, "train.steps_per_stage=[1,1,1,1]") == 1
+    cfg = cfgmod.Config()
+    assert data_term.fitted_config(cfg, None) is cfg and data_term.fitted_config(cfg, 1) is cfg
+    assert data_term.fitted_config(cfg, 2).data.downscale == 2
+
+
+def test_a_capture_wider_than_the_grid_trains_on_larger_pixels(small_scene, tmp_path, capsys,
+                                                                 monkeypatch):
+    """Ten capture pixels a final voxel: the run fits the binned frames downscaled by 2 and
+    its plan says so; config.json keeps the user's downscale, load_run gives the fitted one;
+    killed and resumed under a rule that would decide otherwise, it keeps its plan's."""
+    from gridnerf import eval_run
+    from gridnerf import plan as planmod
+    from gridnerf import train as trainmod
+
+    monkeypatch.setattr(trainmod, "CHECKPOINT_SECONDS", float("inf"))
+    cfg = cfgmod.override(cfgmod.preset("tiny"), [
+        "grid.resolutions=[[8,8,8],[16,16,8]]", "train.steps_per_stage=[20,20]",
+        "train.checkpoint_every=10"])
+    run = tmp_path / "run"
+    real_make_step = optim.make_step
+    _crash_after(monkeypatch, 33)
+    with pytest.raises(KeyboardInterrupt):
+        trainmod.train(small_scene, run, cfg)
+    assert "box-downscaled by 2 (40 pixels wide)" in capsys.readouterr().out
+    assert planmod.load(run).downscale == 2
+    assert cfgmod.load(run / "config.json").data.downscale == 1
+    monkeypatch.setattr(optim, "make_step", real_make_step)
+    monkeypatch.setattr(data_term, "PIXEL_PER_VOXEL", 0.25)  # would keep the binned size
+    summary = trainmod.train(small_scene, run, cfg)
+    assert "resuming" in capsys.readouterr().out
+    assert summary["downscale"] == 2 and planmod.load(run).downscale == 2
+    fitted = eval_run.load_run(run)[0]
+    assert fitted.data.downscale == 2 and fitted == data_term.fitted_config(cfg, 2)
+
+
 def test_checkpoint_refuses_non_finite(tmp_path):
     with pytest.raises(NumericsError, match="non-finite"):
         checkpoint.save(tmp_path / "c.npz", {"p": [np.array([1.0, np.nan])]}, {})
