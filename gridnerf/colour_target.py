@@ -31,10 +31,29 @@ from gridnerf.plan import ColourPlan
 
 # Minkowski p of shades of grey (grey edge uses p = 1)
 ESTIMATOR_P = 6.0
-# the illuminant maps: blocks of MAP_BLOCK binned pixels (the noise averages down), and the
+# the illuminant maps: blocks of MAP_BLOCK binned pixels (the noise averages down), larger
+# on frames wider than MAP_BLOCKS_ACROSS such blocks' double (map_block), and the
 # log-chromaticity step above which neighbouring blocks differ in paint, not light
 MAP_BLOCK = 16
+MAP_BLOCKS_ACROSS = 15
 MAP_TAU = 0.1
+
+
+def map_block(width: int) -> int:
+    """The illuminant maps' block side (pixels) for frames `width` pixels wide: the largest
+    power-of-2 multiple of MAP_BLOCK that leaves at least MAP_BLOCKS_ACROSS blocks across,
+    MAP_BLOCK at least. 16 up to 479 pixels (480x270 captures: 16 of 240 binned pixels),
+    32 at 480 (1920x1080 trained downscaled by 2), 64 at 960, so that a block covers about
+    the share of the view it covers at 480x270. The maps' spread and the one-light test
+    (ONE_LIGHT_DEG, LIGHT_DOUBT_DEG) were read off blocks of that share: at 1920x1080,
+    blocks of 16 of 480 pixels strayed 3.63 deg on bucket (one light; 2.24 at 480x270), in
+    the band where the light cannot be told. Powers of 2, because the spread depends on
+    how blocks meet edges (on frames of aligned paint squares a block that does not divide
+    them reads one light as 0.5 deg and two as 2.1, against 0.0 and 7.3 at 16)."""
+    block = MAP_BLOCK
+    while int(width) // (2 * block) >= MAP_BLOCKS_ACROSS:
+        block *= 2
+    return block
 # the one-light test: a capture whose maps stray less than this (deg) from the consensus
 # is lit by one light. Chosen between the single-light scenes' spreads (at most 2.42 deg)
 # and the mixed-light ones' (at least 4.05) of the built-in and tuning scenes
@@ -229,19 +248,20 @@ def with_illuminant_map(data: dataset.RayData, frames, estimator: str, downscale
                         ) -> tuple[dataset.RayData, np.ndarray]:
     """(data with its per-frame L_ca illuminant map, the maps' anchor (3,)) for
     loss.ca_target = "map": each training frame's Retinex map (gridnerf.illum_map, blocks
-    of MAP_BLOCK binned pixels) anchored to `anchor` (3,) where given (a resumed run's),
+    of map_block binned pixels) anchored to `anchor` (3,) where given (a resumed run's),
     else to the lights of the maps' warm and cool halves (illum_map.regional_anchor, each
     by `estimator`: two lights no longer pull one estimate towards the brighter one); on
     `locus` when given. The maps use the frames at full size (their blocks average the
     noise); the estimates, the frames downscaled by `downscale`."""
     images, masks = frames
-    rel, weight = illum_map.relative_maps(images, masks, MAP_BLOCK, MAP_TAU)
+    block = map_block(np.shape(images[0])[1])
+    rel, weight = illum_map.relative_maps(images, masks, block, MAP_TAU)
     if anchor is None:
         anchor = illum_map.regional_anchor(
             images, masks, rel, weight,
             lambda ims, mks: scene_illuminant((ims, mks), estimator, downscale, locus),
-            locus, MAP_BLOCK)
-    maps = illum_map.frame_maps(images, masks, anchor, locus, MAP_BLOCK, MAP_TAU, rel=rel)
+            locus, block)
+    maps = illum_map.frame_maps(images, masks, anchor, locus, block, MAP_TAU, rel=rel)
     return dataclasses.replace(data, illuminant_map=jnp.asarray(maps, jnp.float32)), anchor
 
 
@@ -262,7 +282,8 @@ def light_spread(frames, downscale: int = 1, locus=None, free: dict | None = Non
     wholes = {n: np.asarray(e if locus is None else illuminant.to_locus(e, locus), np.float64)
               for n, e in free.items()}
     cons = illuminant.consensus(list(wholes.values()), locus)
-    maps = illum_map.frame_maps(images, masks, cons, locus, MAP_BLOCK, MAP_TAU)
+    maps = illum_map.frame_maps(images, masks, cons, locus, map_block(np.shape(images[0])[1]),
+                                MAP_TAU)
     return illum_map.map_spread_deg(maps, cons), wholes
 
 

@@ -219,3 +219,25 @@ def test_estimates_run_downscaled_where_the_noise_rivals_the_signal():
         est = illuminant.capture_estimate(name, small, small_masks)
         errors[k] = illuminant.angular_error_deg(est, WARM)
     assert errors[d] < errors[1] / 2
+
+
+def test_map_blocks_keep_their_share_of_the_view():
+    """16 binned pixels up to 479 wide (a 480x270 capture: the size the one-light test was
+    read off), powers of 2 more on wider frames; a frame twice as wide keeps the same block
+    grid and the same spread."""
+    from gridnerf import colour_target
+
+    widths = (80, 160, 240, 384, 479, 480, 960, 1920)
+    assert [colour_target.map_block(w) for w in widths] == [16, 16, 16, 16, 16, 32, 64, 128]
+    rng = np.random.default_rng(0)
+    small = rng.uniform(0.2, 0.4, (135, 240, 3))
+    wide = np.repeat(np.repeat(small, 2, 0), 2, 1)  # the same view at twice the pixels
+    grids = []
+    for img in (small, wide):
+        mask = np.ones(img.shape[:2], bool)
+        frames = ([img, img], [mask, mask])
+        spread, _ = colour_target.light_spread(frames)
+        grids.append(spread)
+        block = colour_target.map_block(img.shape[1])
+        assert img.shape[1] // block == 15 and img.shape[0] // block == 8
+    np.testing.assert_allclose(grids[0], grids[1], rtol=1e-3)
