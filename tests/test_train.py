@@ -135,8 +135,9 @@ def test_interrupted_training_resumes_from_checkpoint(small_scene, tmp_path, mon
 def test_the_mosaic_stages_are_the_last_ones_of_the_raw_capture(tmp_path):
     """DataConfig.mosaic_from: the last data.mosaic_stages stages of a raw run at its own
     size; none for a binned image target or a downscaled raw; all with binning off. A
-    config saved before the field existed reads as binned throughout, and the fingerprint of
-    such a config is the one it had (its kept results stay valid)."""
+    config saved before the added fields existed reads as binned throughout, without a
+    warm-up, and the fingerprint of such a config is the one it had (its kept results stay
+    valid)."""
     from experiments import common
 
     def first(*sets, n=3):
@@ -153,7 +154,8 @@ def test_the_mosaic_stages_are_the_last_ones_of_the_raw_capture(tmp_path):
         with pytest.raises(ConfigError, match=bad):
             cfgmod.override(cfgmod.Config(), [f"data.{bad}=-1"])
     saved = cfgmod.to_dict(cfgmod.preset("oracle"))
-    del saved["data"]["mosaic_stages"]
+    for section, name in cfgmod.ADDED_FIELDS:  # mosaic_stages, warmup_steps
+        del saved[section][name]
     assert cfgmod.from_dict(saved) == cfgmod.preset("oracle")
     blob = json.dumps(saved, sort_keys=True, default=str)
     assert common.fingerprint(cfgmod.preset("oracle")) == hashlib.sha256(
