@@ -1,10 +1,12 @@
 """Training: scene -> rays -> grid render -> losses -> optax step, coarse to fine.
 
 The stage loop around gridnerf.optim's jitted step, one per resolution stage (shapes
-change only between stages). What the run decides from the frames (the black level and
-the data term's eps, gridnerf.data_term; the colour, the method's plan_colour; each
-stage's candidate count, gridnerf.stages) is the run plan (gridnerf.plan), saved as
-plan.json and read back on resume; the config is never changed.
+change only between stages). What the run decides from the frames (the black level, the
+data term's eps, the training frames' downscale and the mosaic stages, gridnerf.data_term;
+the colour, the method's plan_colour; each stage's candidate count, gridnerf.stages) is
+the run plan (gridnerf.plan), saved as plan.json and read back on resume; the config is
+never changed (config.json keeps the user's; the data is built from it with the plan's
+downscale, data_term.fitted_config).
 The run folder (gridnerf.runfolder) holds config.json, plan.json, checkpoint.npz (atomic,
 finite-only, written every train.checkpoint_every steps or CHECKPOINT_SECONDS, resumed
 automatically) and metrics.jsonl. One
