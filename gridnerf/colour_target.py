@@ -38,22 +38,6 @@ MAP_BLOCK = 16
 MAP_BLOCKS_ACROSS = 15
 MAP_TAU = 0.1
 
-
-def map_block(width: int) -> int:
-    """The illuminant maps' block side (pixels) for frames `width` pixels wide: the largest
-    power-of-2 multiple of MAP_BLOCK that leaves at least MAP_BLOCKS_ACROSS blocks across,
-    MAP_BLOCK at least. 16 up to 479 pixels (480x270 captures: 16 of 240 binned pixels),
-    32 at 480 (1920x1080 trained downscaled by 2), 64 at 960, so that a block covers about
-    the share of the view it covers at 480x270. The maps' spread and the one-light test
-    (ONE_LIGHT_DEG, LIGHT_DOUBT_DEG) were read off blocks of that share: at 1920x1080,
-    blocks of 16 of 480 pixels strayed 3.63 deg on bucket (one light; 2.24 at 480x270), in
-    the band where the light cannot be told. Powers of 2, because the spread depends on
-    how blocks meet edges (on frames of aligned paint squares a block that does not divide
-    them reads one light as 0.5 deg and two as 2.1, against 0.0 and 7.3 at 16)."""
-    block = MAP_BLOCK
-    while int(width) // (2 * block) >= MAP_BLOCKS_ACROSS:
-        block *= 2
-    return block
 # the one-light test: a capture whose maps stray less than this (deg) from the consensus
 # is lit by one light. Chosen between the single-light scenes' spreads (at most 2.42 deg)
 # and the mixed-light ones' (at least 4.05) of the built-in and tuning scenes
@@ -107,6 +91,23 @@ ESTIMATORS_AGREE = 0.42
 # this share of their mean level (estimate_downscale): shades of grey's p-norm and grey
 # edge's gradients measure the noise where it rivals the signal
 NOISE_RATIO = 0.6
+
+
+def map_block(width: int) -> int:
+    """The illuminant maps' block side (pixels) for frames `width` pixels wide: the largest
+    power-of-2 multiple of MAP_BLOCK that leaves at least MAP_BLOCKS_ACROSS blocks across,
+    MAP_BLOCK at least. 16 up to 479 pixels (480x270 captures: 16 of 240 binned pixels),
+    32 at 480 (1920x1080 trained downscaled by 2), 64 at 960, so that a block covers about
+    the share of the view it covers at 480x270. The maps' spread and the one-light test
+    (ONE_LIGHT_DEG, LIGHT_DOUBT_DEG) were read off blocks of that share: at 1920x1080,
+    blocks of 16 of 480 pixels strayed 3.63 deg on bucket (one light; 2.24 at 480x270), in
+    the band where the light cannot be told. Powers of 2, because the spread depends on
+    how blocks meet edges (on frames of aligned paint squares a block that does not divide
+    them reads one light as 0.5 deg and two as 2.1, against 0.0 and 7.3 at 16)."""
+    block = MAP_BLOCK
+    while int(width) // (2 * block) >= MAP_BLOCKS_ACROSS:
+        block *= 2
+    return block
 
 
 def estimate_frames(data: dataset.RayData, scene) -> tuple[list, list]:
