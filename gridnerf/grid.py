@@ -212,12 +212,43 @@ def corner_rows(structure: GridStructure, u: jax.Array) -> tuple[jax.Array, jax.
     C order; frac (..., 3) the position inside the cell.
     """
     rx, ry, rz = structure.resolution
-    uc = jnp.clip(u, 0.0, jnp.asarray([rx - 1, ry - 1, rz - 1], jnp.float32))
-    base = jnp.minimum(jnp.floor(uc).astype(jnp.int32), jnp.asarray([rx - 2, ry - 2, rz - 2]))
+    uc, base = _cell_of(structure, u)
     corner = np.array([(dx * ry + dy) * rz + dz for dx in (0, 1) for dy in (0, 1)
                        for dz in (0, 1)], np.int32)
     flat = ((base[..., 0] * ry + base[..., 1]) * rz + base[..., 2])[..., None] + corner
     return jnp.take(structure.index.reshape(-1), flat, mode="clip"), uc - base
+
+
+def _cell_of(structure: GridStructure, u: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """(u clamped to the box, (..., 3) int32 lower corner of the cell holding it)."""
+    rx, ry, rz = structure.resolution
+    uc = jnp.clip(u, 0.0, jnp.asarray([rx - 1, ry - 1, rz - 1], jnp.float32))
+    return uc, jnp.minimum(jnp.floor(uc).astype(jnp.int32), jnp.asarray([rx - 2, ry - 2, rz - 2]))
+
+
+def cell_ids(structure: GridStructure, u: jax.Array) -> jax.Array:
+    """(..., 3) index-space points -> (...,) int32 flat C-order id of the cell holding each
+    (the cell whose corners corner_rows reads) among the (Rx-1)(Ry-1)(Rz-1) cells."""
+    _, ry, rz = structure.resolution
+    base = _cell_of(structure, u)[1]
+    return (base[..., 0] * (ry - 1) + base[..., 1]) * (rz - 1) + base[..., 2]
+
+
+def cells_to_rows(structure: GridStructure, cells, reduce: str) -> np.ndarray:
+    """(Cx Cy Cz,) per-cell values (host) -> (M,) per row: the max ("max") or the sum
+    ("sum") over the up to 8 cells the row's vertex is a corner of."""
+    cx, cy, cz = (r - 1 for r in structure.resolution)
+    fill = -np.inf if reduce == "max" else 0.0
+    padded = np.pad(np.asarray(cells).reshape(cx, cy, cz), 1, constant_values=fill)
+    out = None
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                part = padded[dx:dx + cx + 1, dy:dy + cy + 1, dz:dz + cz + 1]
+                out = part if out is None else (np.maximum(out, part) if reduce == "max"
+                                                else out + part)
+    coords = np.asarray(structure.coords)
+    return out[coords[:, 0], coords[:, 1], coords[:, 2]]
 
 
 def trilinear_index_space(structure: GridStructure, table: jax.Array, u: jax.Array,

@@ -11,6 +11,8 @@ step then tests only as many candidate voxels per ray as its training rays cross
 
 from __future__ import annotations
 
+from functools import partial
+
 import jax
 import numpy as np
 
@@ -60,23 +62,28 @@ def fitted_candidates(structure, data: dataset.RayData, near_t: float, far_t: fl
     and only the candidate test (occupancy lookups, running count, search) shrinks.
     Image renders fit the count to their own rays (render.image_candidates).
     """
-    longest = 0
-    for oc, dc, _ in training_rays(data, 1 << 16, stride=1):
-        longest = max(longest, render.fit_n_candidates(
-            structure, oc, dc, near_t, far_t, render_cfg.samples_per_voxel))
+    longest = max(render.fit_n_candidates(structure, oc, dc, near_t, far_t,
+                                          render_cfg.samples_per_voxel)
+                  for oc, dc, _ in training_rays(data, 1 << 16, stride=1))
     return min(int(np.ceil(longest * CANDIDATE_MARGIN)) + 1,
                render.n_candidates(structure, render_cfg))
+
+
+@partial(jax.jit, static_argnames=("hw", "stride", "ndc"))
+def _frame_rays(c2w, intrinsics, ndc_intrinsics, hw: tuple[int, int], stride: int, ndc: bool):
+    """Grid-space rays (h', w', 3) each of every `stride`-th pixel per axis of one frame."""
+    o, d = dataset.image_rays(c2w, intrinsics, *hw)
+    return dataset.to_grid_space(ndc, ndc_intrinsics, o[::stride, ::stride],
+                                 d[::stride, ::stride])
 
 
 def training_rays(data: dataset.RayData, chunk: int, stride: int = 2):
     """Every `stride`-th pixel per axis of each training frame as grid-space rays, in padded
     chunks (origins, directions, n_real): (chunk, 3) each, the first n_real real; padding
     rays start far outside the box, so they miss it and weigh nothing."""
-    h, w = data.image_hw
     for f in range(int(data.c2w.shape[0])):
-        o, d = dataset.image_rays(data.c2w[f], data.intrinsics[f], h, w)
-        o, d = dataset.to_grid_space(data.ndc, data.ndc_intrinsics, o[::stride, ::stride],
-                                     d[::stride, ::stride])
+        o, d = _frame_rays(data.c2w[f], data.intrinsics[f], data.ndc_intrinsics,
+                           tuple(data.image_hw), stride, bool(data.ndc))
         o, d = np.asarray(o).reshape(-1, 3), np.asarray(d).reshape(-1, 3)
         for s in range(0, o.shape[0], chunk):
             sl = slice(s, s + chunk)
@@ -89,15 +96,21 @@ def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, nea
                       far_t: float, stride: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """Per vertex (M,) over the training rays (every `stride`-th pixel per axis): max and
     sum of the rendering weights (render.vertex_visibility): the carving criterion and
-    where the mass is."""
-    fn = jax.jit(render.vertex_visibility, static_argnames=("cfg",))
-    vis = np.zeros(structure.n_rows, np.float32)
-    mass = np.zeros(structure.n_rows, np.float64)
-    for oc, dc, _ in training_rays(data, int(cfg.render.chunk), stride):
-        v_max, v_sum = fn(structure, params, oc, dc, near_t, far_t, cfg.render)
-        vis = np.maximum(vis, np.asarray(v_max))
-        mass += np.asarray(v_sum, np.float64)
-    return vis, mass
+    where the mass is. Accumulated per cell over the chunks, spread to the rows once."""
+    fn = jax.jit(render.cell_visibility, static_argnames=("cfg", "n_cand"))
+    chunks = list(training_rays(data, int(cfg.render.chunk), stride))
+    # the rays' own candidate count (render.fit_n_candidates): the same samples as the box
+    # diagonal's count, a fraction of the candidates tested
+    n_cand = max(render.fit_n_candidates(structure, oc, dc, near_t, far_t,
+                                         cfg.render.samples_per_voxel) for oc, dc, _ in chunks)
+    c_max = c_sum = None
+    for oc, dc, _ in chunks:
+        v_max, v_sum = fn(structure, params, oc, dc, near_t, far_t, cfg.render, n_cand=n_cand)
+        v_max, v_sum = np.asarray(v_max), np.asarray(v_sum, np.float64)
+        c_max = v_max if c_max is None else np.maximum(c_max, v_max)
+        c_sum = v_sum if c_sum is None else c_sum + v_sum
+    return (grid.cells_to_rows(structure, c_max, "max"),
+            grid.cells_to_rows(structure, c_sum, "sum") / 8.0)
 
 
 def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fit: bool,

@@ -284,6 +284,34 @@ def test_vertex_visibility_sees_the_first_surface_only():
     assert vis_max[z <= 3].max() < 1e-3  # free space in front of it
 
 
+def test_vertex_visibility_is_the_corner_scatter_of_the_sample_weights():
+    """Per cell, spread to the rows (grid.cells_to_rows), equals scattering every sample's
+    weight to its cell's 8 corner rows: max, and sum / 8; on a pruned grid, where some
+    corners are empty rows, and with the fitted candidate count as with the box's."""
+    structure, params = random_scene(0, seed=3)
+    structure = grid.update_occupancy(structure, params)
+    o, d = random_rays(n=48, seed=4)
+    o, d = jnp.asarray(o, jnp.float32), jnp.asarray(d, jnp.float32)
+    u, _, step, _ = render.march(structure, o, d, 0.2, 3.0, CFG)
+    table = grid.feature_table(structure, params, pad_to=8)
+    feats = grid.trilinear_index_space(structure, table, u)
+    w, _ = render.composite(jax.nn.softplus(feats[..., 0]), step, {})
+    w = np.asarray(jnp.where(step > 0, w, 0.0), np.float64).reshape(-1)
+    rows = np.asarray(grid.corner_rows(structure, u)[0]).reshape(-1, 8)
+    want_max = np.zeros(structure.n_rows + 1)
+    want_sum = np.zeros(structure.n_rows + 1)
+    for k in range(8):
+        np.maximum.at(want_max, rows[:, k], w)
+        np.add.at(want_sum, rows[:, k], w / 8.0)
+    assert want_max[:-1].max() > 0.1 and (want_max[:-1] == 0).any()
+    n_fit = render.fit_n_candidates(structure, o, d, 0.2, 3.0, CFG.samples_per_voxel)
+    for n_cand in (0, n_fit):
+        got_max, got_sum = render.vertex_visibility(structure, params, o, d, 0.2, 3.0, CFG,
+                                                    n_cand=n_cand)
+        np.testing.assert_allclose(got_max, want_max[:-1], rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(got_sum, want_sum[:-1], rtol=1e-5, atol=1e-7)
+
+
 def test_backdrop_fills_what_the_grid_leaves_and_matches_the_reference():
     """rgb_low(backdrop) = rgb_low(black) + (1 - acc) b, restored with the backdrop's gains
     g; rays that miss the box show b itself; gain, depth and acc are the grid's alone."""
