@@ -97,8 +97,8 @@ def _first_k(occupied: jax.Array, k: int) -> jax.Array:
     Binary search of the running count (measured 2-3x faster than a scatter, 15x faster
     than top_k on 2 CPU cores for 4096 x 381 -> 64). As a loop ("scan"), not unrolled: XLA
     fuses an unrolled search into each of its consumers, so the 8 corner lookups of every
-    sample ran it 8 times (13 of bucket's 77 ms per training step); the loop's result is
-    computed once (the same ids; the step measured 10-25% faster, docs/speed.md).
+    sample ran it 8 times (13 of bucket's 77 ms per training step, in a profile); the
+    loop's result is computed once (the same ids; docs/speed.md).
     """
     count = jnp.cumsum(occupied, axis=1, dtype=jnp.int32)
     want = jnp.arange(1, k + 1, dtype=jnp.int32)
