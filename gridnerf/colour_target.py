@@ -37,7 +37,6 @@ ESTIMATOR_P = 6.0
 MAP_BLOCK = 16
 MAP_BLOCKS_ACROSS = 15
 MAP_TAU = 0.1
-
 # the one-light test: a capture whose maps stray less than this (deg) from the consensus
 # is lit by one light. Chosen between the single-light scenes' spreads (at most 2.42 deg)
 # and the mixed-light ones' (at least 4.05) of the built-in and tuning scenes

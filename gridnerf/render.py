@@ -244,9 +244,13 @@ def vertex_visibility(structure: GridStructure, params, origins, directions, nea
     space and everything hidden behind surfaces score ~0), and the sum of those weights over
     8 (where the rendered mass is; a floater that serves one view holds little of it).
     cell_visibility, spread to the rows (grid.cells_to_rows)."""
-    c_max, c_sum = cell_visibility(structure, params, origins, directions, near_t, far_t, cfg,
-                                   n_cand)
-    return (gridlib.cells_to_rows(structure, c_max, "max"),
+    return cells_to_vertices(structure, *cell_visibility(
+        structure, params, origins, directions, near_t, far_t, cfg, n_cand))
+
+
+def cells_to_vertices(structure: GridStructure, c_max, c_sum) -> tuple[np.ndarray, np.ndarray]:
+    """cell_visibility's (max, sum) per cell -> vertex_visibility's (max, sum / 8) per row."""
+    return (gridlib.cells_to_rows(structure, np.asarray(c_max), "max"),
             gridlib.cells_to_rows(structure, np.asarray(c_sum, np.float64), "sum") / 8.0)
 
 

@@ -98,19 +98,20 @@ def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, nea
     sum of the rendering weights (render.vertex_visibility): the carving criterion and
     where the mass is. Accumulated per cell over the chunks, spread to the rows once."""
     fn = jax.jit(render.cell_visibility, static_argnames=("cfg", "n_cand"))
-    chunks = list(training_rays(data, int(cfg.render.chunk), stride))
+    chunk = int(cfg.render.chunk)
     # the rays' own candidate count (render.fit_n_candidates): the same samples as the box
-    # diagonal's count, a fraction of the candidates tested
+    # diagonal's count, a fraction of the candidates tested. The rays are generated again
+    # below rather than kept (a full-size mosaic's would be hundreds of MB).
     n_cand = max(render.fit_n_candidates(structure, oc, dc, near_t, far_t,
-                                         cfg.render.samples_per_voxel) for oc, dc, _ in chunks)
+                                         cfg.render.samples_per_voxel)
+                 for oc, dc, _ in training_rays(data, chunk, stride))
     c_max = c_sum = None
-    for oc, dc, _ in chunks:
+    for oc, dc, _ in training_rays(data, chunk, stride):
         v_max, v_sum = fn(structure, params, oc, dc, near_t, far_t, cfg.render, n_cand=n_cand)
         v_max, v_sum = np.asarray(v_max), np.asarray(v_sum, np.float64)
         c_max = v_max if c_max is None else np.maximum(c_max, v_max)
         c_sum = v_sum if c_sum is None else c_sum + v_sum
-    return (grid.cells_to_rows(structure, c_max, "max"),
-            grid.cells_to_rows(structure, c_sum, "sum") / 8.0)
+    return render.cells_to_vertices(structure, c_max, c_sum)
 
 
 def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fit: bool,
