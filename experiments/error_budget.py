@@ -28,7 +28,16 @@ The colour path's own ceiling, no reconstruction at all: the clean binned raw of
 test view against its binned reference, through the best 3x3 map any raw pipeline could
 apply (least squares per view: what the camera's response allows) and through the
 method's own output path (the true white's von Kries gains, the file's colour matrix,
-exposure matched to the reference).
+exposure matched to the reference); and the same output path on the clean camera RGB at
+every photosite (truth.clean_cam: no colour filter array, no binning), the colour path's
+ceiling at the capture's own resolution.
+
+Two columns split the default's own gap with no further training (its test renders in
+<runs>/<scene>/default/eval): "default, best white" is its render with the white and the
+exposure that fit the reference best (a von Kries diagonal in balanced camera RGB, before
+the output matrix, least squares per view); oracle - that is what the fit loses (noise,
+footprint, representation), that - default what the white estimate and the automatic
+exposure lose.
 
     python -m experiments.error_budget [--scenes nine,dev,heldout] [--runs runs]
     python -m experiments.error_budget --no-train   # no training: the fits already there
@@ -40,6 +49,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from scipy.optimize import least_squares
 
 from experiments.common import (
     BINNED,
@@ -57,12 +67,14 @@ from experiments.common import (
 )
 from gridnerf import atomic, dataset, exposure, illuminant, image_io, raw
 from gridnerf import config as cfgmod
+from gridnerf.color import srgb_encode
 from gridnerf.evaluate import effective_crop, image_metrics
 from gridnerf.scene import load_scene
 from gridnerf.sim import truth
 
 CROP = 16  # the metrics' border crop (evaluate.image_metrics)
-COLUMNS = ("noise_only", "bound", "best_3x3", "path", "oracle", "clean", "noisy", "default")
+COLUMNS = ("noise_only", "bound", "best_3x3", "path", "path_full", "oracle", "clean", "noisy",
+           "default", "best_white")
 
 
 def srgb_slope(x: np.ndarray) -> np.ndarray:
@@ -74,16 +86,17 @@ def srgb_slope(x: np.ndarray) -> np.ndarray:
 def per_view(folder: Path) -> dict[str, list[float]]:
     """Per test view (module docstring): "noise_mse", the sRGB mean squared error an ideal
     average of the training views' noise would leave; "best_3x3" and "path", the PSNR of
-    the clean binned raw through the best 3x3 map and through the output path."""
+    the clean binned raw through the best 3x3 map and through the output path;
+    "path_full", the clean camera RGB at every photosite through the output path."""
     sim = json.loads((folder / "sim.json").read_text())
     nt = truth.noise_truth(sim)
-    mean = truth.clean_mean(folder)
+    mean, cam_full = truth.clean_mean(folder), truth.clean_cam(folder)
     scene = load_scene(folder, near_far=tuple(sim["near_far"]))
     views = len(scene.train_idx)
     light = np.asarray(sim["illuminant_neutral_cam"], np.float64)
     gains = np.asarray(illuminant.gains_from_illuminant(light / np.linalg.norm(light)))
     matrix = exposure.display_matrix(scene.xyz_to_cam, True)
-    out = {"noise_mse": [], "best_3x3": [], "path": []}
+    out = {"noise_mse": [], "best_3x3": [], "path": [], "path_full": []}
     for i in scene.test_idx:
         name = scene.names[i]
         clean = mean(name)  # (H, W) normalised raw
@@ -99,12 +112,60 @@ def per_view(folder: Path) -> dict[str, list[float]]:
         c = effective_crop(*g.shape[:2], CROP)
         sl = (slice(c, g.shape[0] - c), slice(c, g.shape[1] - c))
         out["noise_mse"].append(float(np.mean(srgb_slope(g[sl]) ** 2 * var_full[sl])))
-        shown = (cam * gains) @ matrix.T
-        shown *= np.sum(shown * gt_b) / np.sum(shown * shown)
         crop = CROP // 2  # the binned frame's
         out["best_3x3"].append(image_metrics(cam @ t, gt_b, crop)["psnr"])
-        out["path"].append(image_metrics(shown, gt_b, crop)["psnr"])
+        out["path"].append(image_metrics(exposed((cam * gains) @ matrix.T, gt_b), gt_b,
+                                         crop)["psnr"])
+        full = (cam_full(name).astype(np.float64) * gains) @ matrix.T
+        out["path_full"].append(image_metrics(exposed(full, gt), gt, CROP)["psnr"])
     return out
+
+
+def exposed(rgb_linear: np.ndarray, ref_linear: np.ndarray) -> np.ndarray:
+    """rgb_linear times the one scale that fits ref_linear best (least squares)."""
+    return rgb_linear * (np.sum(rgb_linear * ref_linear) / np.sum(rgb_linear * rgb_linear))
+
+
+def best_white_psnr(pred_linear: np.ndarray, gt_linear: np.ndarray,
+                    matrix: np.ndarray) -> float:
+    """PSNR of a rendered view (linear sRGB, shown through `matrix` (3, 3) from balanced
+    camera RGB) with the von Kries diagonal that fits the reference best: the balanced
+    camera RGB (pred @ inv(matrix).T) times d (3,), d minimising the metric's own error
+    (sRGB, clipped, on its crop; scipy's least_squares from the linear least-squares d).
+    d = (1, 1, 1) is the render itself, so this is never below its PSNR."""
+    c = effective_crop(*gt_linear.shape[:2], CROP)
+    crop = (slice(c, gt_linear.shape[0] - c), slice(c, gt_linear.shape[1] - c))
+    bal = pred_linear[crop].reshape(-1, 3) @ np.linalg.inv(matrix).T
+    gt = gt_linear[crop].reshape(-1, 3)
+    design = np.stack([np.outer(bal[:, k], matrix[:, k]).reshape(-1) for k in range(3)], 1)
+    d0, *_ = np.linalg.lstsq(design, gt.reshape(-1), rcond=None)
+    gt_srgb = srgb_encode(np.clip(gt, 0.0, 1.0))
+
+    def residual(d):
+        return (srgb_encode(np.clip((bal * d) @ matrix.T, 0.0, 1.0)) - gt_srgb).reshape(-1)
+
+    best = min((least_squares(residual, x0).x for x0 in (d0, np.ones(3))),
+               key=lambda d: float(np.sum(residual(d) ** 2)))
+    best = min((best, np.ones(3)), key=lambda d: float(np.sum(residual(d) ** 2)))
+    shown = ((bal * best) @ matrix.T).reshape(gt_linear[crop].shape)
+    return image_metrics(shown, gt_linear[crop], 0)["psnr"]
+
+
+def best_white(folder: Path, run: Path) -> float | None:
+    """Mean over the test views of best_white_psnr on the default run's renders
+    (<run>/eval/<view>_pred.exr, the shipped "gridnerf" output: the file's colour
+    matrix), None where a render is missing."""
+    sim = json.loads((folder / "sim.json").read_text())
+    scene = load_scene(folder, near_far=tuple(sim["near_far"]))
+    matrix = exposure.display_matrix(scene.xyz_to_cam, True)
+    psnr = []
+    for i in scene.test_idx:
+        pred = run / "eval" / f"{scene.names[i]}_pred.exr"
+        if not pred.is_file():
+            return None
+        gt = image_io.read_exr(scene.gt_linear_paths[scene.names[i]]).astype(np.float64)
+        psnr.append(best_white_psnr(image_io.read_exr(pred).astype(np.float64), gt, matrix))
+    return float(np.mean(psnr))
 
 
 def kept_summary(name: str, variant: str, cfg: cfgmod.Config, runs: Path) -> dict | None:
@@ -190,10 +251,15 @@ def budget(name: str, runs: Path, train: bool = True, earlier: dict | None = Non
     row["noise_only"] = float(np.mean([-10.0 * np.log10(m) for m in views["noise_mse"]]))
     row["best_3x3"] = float(np.mean(views["best_3x3"]))
     row["path"] = float(np.mean(views["path"]))
+    row["path_full"] = float(np.mean(views["path_full"]))
+    if default is not None and (white := best_white(folder, runs / name / "default")):
+        row["best_white"] = white
     return row
 
 
-GAPS = (("oracle", "clean"), ("clean", "noisy"), ("noisy", "default"))
+# trained: pipeline, noise, white; from the default's renders: fit, white and exposure
+GAPS = (("oracle", "clean"), ("clean", "noisy"), ("noisy", "default"),
+        ("oracle", "best_white"), ("best_white", "default"))
 
 
 def table_row(label: str, r: dict) -> list[str]:
@@ -224,8 +290,9 @@ def main() -> None:
                                   {k: float(np.mean([r[k] for r in group])) for k in keys}))
     table = markdown_table(
         ["scene", "noise alone", "noise bound", "colour: best 3x3", "colour: output path",
-         "oracle", "clean raw, true white", "noisy raw, true white", "default", "pipeline",
-         "noise", "white", "one frame + NLM"], rows)
+         "colour: output path, full res", "oracle", "clean raw, true white",
+         "noisy raw, true white", "default", "default, best white", "pipeline", "noise",
+         "white", "fit", "white & exposure", "one frame + NLM"], rows)
     md = ("# Error budget\n\n"
           f"`python -m experiments.error_budget --scenes {args.scenes}"
           f"{' --no-train' if args.no_train else ''}`: test-view PSNR (dB) "
@@ -233,7 +300,9 @@ def main() -> None:
           "clean, noise = clean - noisy, white = noisy - default); noise alone: the PSNR the "
           "ideal average of the training views' noise would leave on a perfect image; colour: "
           "the clean raw with no reconstruction, binned, through the best 3x3 map and through "
-          "the output path.\n\n" + table + "\n")
+          "the output path, and at every photosite (full res); default, best white: the "
+          "default's renders with the white and exposure that fit the reference best (fit = "
+          "oracle - that, white & exposure = that - default).\n\n" + table + "\n")
     write_report(args.out, md, record)
     update_doc("error_budget", table, RESULTS_DOC)
     print(md)

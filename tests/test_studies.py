@@ -265,26 +265,53 @@ def test_bench_training_key_follows_the_config_not_the_preset_name(monkeypatch, 
 
 
 def test_error_budget_gaps_telescope_and_missing_fits_say_so():
-    """The three gaps of a full row add up to oracle - default; a row without the trained
-    fits says n/a rather than a number; the sRGB slope is the encoding's derivative."""
+    """Both sets of gaps of a full row add up to oracle - default (pipeline + noise + white
+    from the trained fits; fit + white & exposure from the default's renders); a row
+    without the trained fits says n/a rather than a number; the sRGB slope is the
+    encoding's derivative."""
     from experiments import error_budget as eb
     from gridnerf.color import srgb_encode
 
     full = {"noise_only": 30.0, "bound": 25.0, "best_3x3": 26.0, "path": 24.0,
-            "oracle": 29.0, "clean": 25.5, "noisy": 23.0, "default": 21.0,
-            "one_frame_nlm": 20.0}
+            "path_full": 28.0, "oracle": 29.0, "clean": 25.5, "noisy": 23.0, "default": 21.0,
+            "best_white": 22.5, "one_frame_nlm": 20.0}
     cells = eb.table_row("x", full)
-    gaps = [float(c) for c in cells[len(eb.COLUMNS) + 1:len(eb.COLUMNS) + 4]]
-    assert sum(gaps) == pytest.approx(full["oracle"] - full["default"])
+    gaps = [float(c) for c in cells[len(eb.COLUMNS) + 1:-1]]
+    assert len(gaps) == len(eb.GAPS) == 5
+    assert sum(gaps[:3]) == pytest.approx(full["oracle"] - full["default"])
+    assert sum(gaps[3:]) == pytest.approx(full["oracle"] - full["default"])
     part = {k: full[k] for k in ("noise_only", "bound", "oracle", "default")}
     cells = eb.table_row("y", part)
-    assert cells[eb.COLUMNS.index("clean") + 1] == "n/a" and cells[-4:-1] == ["n/a"] * 3
+    assert cells[eb.COLUMNS.index("clean") + 1] == "n/a" and cells[-6:-1] == ["n/a"] * 5
     import numpy as np
 
     x = np.array([0.001, 0.01, 0.18, 0.7])
     h = 1e-6
     numeric = (srgb_encode(x + h) - srgb_encode(x - h)) / (2 * h)
     np.testing.assert_allclose(eb.srgb_slope(x), numeric, rtol=1e-3)
+
+
+def test_error_budget_best_white_undoes_a_wrong_diagonal_before_the_matrix():
+    """A render whose balanced camera RGB is the reference's times a wrong white and
+    exposure (a diagonal before the output matrix) scores as the reference itself with the
+    best white; a cast applied after the matrix (no diagonal in camera RGB undoes it
+    exactly) does not."""
+    import numpy as np
+
+    from experiments import error_budget as eb
+    from gridnerf import color
+    from gridnerf.evaluate import image_metrics
+
+    rng = np.random.default_rng(0)
+    gt = rng.uniform(0.02, 0.6, (48, 64, 3))
+    matrix = color.srgb_from_cam(color.CAMERA_XYZ_TO_CAM["Sony ILCE-7SM2"])
+    cam = gt.reshape(-1, 3) @ np.linalg.inv(matrix).T
+    pred = ((cam * [1.6, 0.8, 1.3]) @ matrix.T).reshape(gt.shape)
+    assert image_metrics(pred, gt, 16)["psnr"] < 20.0
+    assert eb.best_white_psnr(pred, gt, matrix) > 60.0
+    twisted = (gt.reshape(-1, 3) @ np.array([[0.8, 0.2, 0.0], [0.0, 1.0, 0.0],
+                                             [0.0, 0.3, 0.7]]).T).reshape(gt.shape)
+    assert eb.best_white_psnr(twisted, gt, matrix) < 40.0
 
 
 def test_error_budget_reuses_a_true_white_fit_only_under_its_config(tmp_path):

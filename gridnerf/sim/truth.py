@@ -46,12 +46,13 @@ def binned_noise_var(nt: dict, clean: np.ndarray, cfa: np.ndarray) -> np.ndarray
     return var
 
 
-def clean_mean(scene_dir) -> Callable[[str], np.ndarray]:
-    """For a simulated single-illuminant scene: name -> the exact clean mean (H, W) of that
-    frame in normalised raw (no offset), from its reference gt/<name>.exr and sim.json
+def clean_cam(scene_dir) -> Callable[[str], np.ndarray]:
+    """For a simulated single-illuminant scene: name -> rgb_cam (H, W, 3), the exact clean
+    camera RGB of that frame at every photosite before the colour filter array keeps one
+    channel, in normalised raw (no offset), from its reference gt/<name>.exr and sim.json
     (the reference divided by gt_scale is the simulator's clean render; camera response
-    under the scene's illuminant, CFA, electrons per unit signal, K, white - black; the
-    lens falloff and the frame's exposure factor of a quirky camera, not its defects)."""
+    under the scene's illuminant, electrons per unit signal, K, white - black; the lens
+    falloff and the frame's exposure factor of a quirky camera, not its defects)."""
     folder = Path(scene_dir)
     sim = json.loads((folder / "sim.json").read_text())
     if len(sim.get("illuminants", [None])) > 1:
@@ -68,11 +69,21 @@ def clean_mean(scene_dir) -> Callable[[str], np.ndarray]:
     factor = dict(zip(sim["frames"], sim.get("exposure_jitter", {}).get("factor_per_frame", []),
                       strict=False))
 
-    def mean(name: str) -> np.ndarray:
-        rgb_cam = sensor.scene_to_cam(read_exr(folder / "gt" / f"{name}.exr"), params)
-        raw_norm = np.maximum(sensor.mosaic(rgb_cam, params.cfa), 0.0) * gain
+    def cam(name: str) -> np.ndarray:
+        rgb_cam = np.maximum(sensor.scene_to_cam(read_exr(folder / "gt" / f"{name}.exr"),
+                                                 params), 0.0) * gain
         if stops:
-            raw_norm = raw_norm * sensor.vignette_gain(*raw_norm.shape, stops)
-        return raw_norm * factor[name] if name in factor else raw_norm
+            rgb_cam = rgb_cam * sensor.vignette_gain(*rgb_cam.shape[:2], stops)[..., None]
+        return rgb_cam * factor[name] if name in factor else rgb_cam
 
-    return mean
+    return cam
+
+
+def clean_mean(scene_dir) -> Callable[[str], np.ndarray]:
+    """For a simulated single-illuminant scene: name -> the exact clean mean (H, W) of that
+    frame in normalised raw (no offset): clean_cam's camera RGB through the colour filter
+    array."""
+    cam = clean_cam(scene_dir)
+    cfa = sensor.SensorParams(
+        cfa_pattern=json.loads((Path(scene_dir) / "sim.json").read_text())["cfa_pattern"]).cfa
+    return lambda name: sensor.mosaic(cam(name), cfa)
