@@ -33,11 +33,12 @@ every photosite (truth.clean_cam: no colour filter array, no binning), the colou
 ceiling at the capture's own resolution.
 
 Two columns split the default's own gap with no further training (its test renders in
-<runs>/<scene>/default/eval): "default, best white" is its render with the white and the
-exposure that fit the reference best (a von Kries diagonal in balanced camera RGB, before
-the output matrix, least squares per view); oracle - that is what the fit loses (noise,
-footprint, representation), that - default what the white estimate and the automatic
-exposure lose.
+<runs>/<scene>/default/eval, best_map_psnr): "default, best white" is its render with the
+white and exposure that fit the reference best (a von Kries diagonal in balanced camera
+RGB, before the output matrix), "default, best 3x3" with the best 3x3 map of its camera
+RGB. The gaps telescope: fit = oracle - best 3x3 (noise, footprint, representation),
+output matrix = best 3x3 - best white (what the file's matrix after von Kries gains cannot
+show), white & exposure = best white - default.
 
     python -m experiments.error_budget [--scenes nine,dev,heldout] [--runs runs]
     python -m experiments.error_budget --no-train   # no training: the fits already there
@@ -74,7 +75,7 @@ from gridnerf.sim import truth
 
 CROP = 16  # the metrics' border crop (evaluate.image_metrics)
 COLUMNS = ("noise_only", "bound", "best_3x3", "path", "path_full", "oracle", "clean", "noisy",
-           "default", "best_white")
+           "default", "best_white", "best_map")
 
 
 def srgb_slope(x: np.ndarray) -> np.ndarray:
@@ -126,46 +127,65 @@ def exposed(rgb_linear: np.ndarray, ref_linear: np.ndarray) -> np.ndarray:
     return rgb_linear * (np.sum(rgb_linear * ref_linear) / np.sum(rgb_linear * rgb_linear))
 
 
-def best_white_psnr(pred_linear: np.ndarray, gt_linear: np.ndarray,
-                    matrix: np.ndarray) -> float:
+def best_map_psnr(pred_linear: np.ndarray, gt_linear: np.ndarray, matrix: np.ndarray,
+                  full: bool = False) -> float:
     """PSNR of a rendered view (linear sRGB, shown through `matrix` (3, 3) from balanced
-    camera RGB) with the von Kries diagonal that fits the reference best: the balanced
-    camera RGB (pred @ inv(matrix).T) times d (3,), d minimising the metric's own error
-    (sRGB, clipped, on its crop; scipy's least_squares from the linear least-squares d).
-    d = (1, 1, 1) is the render itself, so this is never below its PSNR."""
+    camera RGB) re-shown by the map that fits the reference best, the metric's own error
+    minimised (sRGB, clipped, on its crop; scipy's least_squares from the linear
+    least-squares map and from the render as it is):
+
+    full=False: a von Kries diagonal d (3,) on the balanced camera RGB (pred @
+      inv(matrix).T) before `matrix`: the best white and exposure for this output path;
+    full=True: any 3x3 map of the camera RGB (the output matrix's error removed too).
+    The render as it is lies in both families, so neither is below its PSNR.
+    """
     c = effective_crop(*gt_linear.shape[:2], CROP)
     crop = (slice(c, gt_linear.shape[0] - c), slice(c, gt_linear.shape[1] - c))
-    bal = pred_linear[crop].reshape(-1, 3) @ np.linalg.inv(matrix).T
     gt = gt_linear[crop].reshape(-1, 3)
-    design = np.stack([np.outer(bal[:, k], matrix[:, k]).reshape(-1) for k in range(3)], 1)
-    d0, *_ = np.linalg.lstsq(design, gt.reshape(-1), rcond=None)
     gt_srgb = srgb_encode(np.clip(gt, 0.0, 1.0))
+    if full:
+        x = pred_linear[crop].reshape(-1, 3)
+        design = np.kron(np.eye(3), x)  # rows: channel-major pixels; unknowns: the map's rows
 
-    def residual(d):
-        return (srgb_encode(np.clip((bal * d) @ matrix.T, 0.0, 1.0)) - gt_srgb).reshape(-1)
+        def shown(p):
+            return x @ p.reshape(3, 3).T
+        start = np.eye(3).reshape(-1)
+        linear, *_ = np.linalg.lstsq(design, gt.T.reshape(-1), rcond=None)
+    else:
+        bal = pred_linear[crop].reshape(-1, 3) @ np.linalg.inv(matrix).T
+        design = np.stack([np.outer(bal[:, k], matrix[:, k]).reshape(-1) for k in range(3)], 1)
 
-    best = min((least_squares(residual, x0).x for x0 in (d0, np.ones(3))),
-               key=lambda d: float(np.sum(residual(d) ** 2)))
-    best = min((best, np.ones(3)), key=lambda d: float(np.sum(residual(d) ** 2)))
-    shown = ((bal * best) @ matrix.T).reshape(gt_linear[crop].shape)
-    return image_metrics(shown, gt_linear[crop], 0)["psnr"]
+        def shown(p):
+            return (bal * p) @ matrix.T
+        start = np.ones(3)
+        linear, *_ = np.linalg.lstsq(design, gt.reshape(-1), rcond=None)
+
+    def residual(p):
+        return (srgb_encode(np.clip(shown(p), 0.0, 1.0)) - gt_srgb).reshape(-1)
+
+    best = min([least_squares(residual, p0).x for p0 in (linear, start)] + [start],
+               key=lambda p: float(np.sum(residual(p) ** 2)))
+    return image_metrics(shown(best).reshape(gt_linear[crop].shape), gt_linear[crop],
+                         0)["psnr"]
 
 
-def best_white(folder: Path, run: Path) -> float | None:
-    """Mean over the test views of best_white_psnr on the default run's renders
-    (<run>/eval/<view>_pred.exr, the shipped "gridnerf" output: the file's colour
-    matrix), None where a render is missing."""
+def best_maps(folder: Path, run: Path) -> dict[str, float]:
+    """Means over the test views of best_map_psnr on the default run's renders
+    (<run>/eval/<view>_pred.exr, the shipped "gridnerf" output: the file's colour matrix):
+    "best_white" (the diagonal) and "best_3x3"; empty where a render is missing."""
     sim = json.loads((folder / "sim.json").read_text())
     scene = load_scene(folder, near_far=tuple(sim["near_far"]))
     matrix = exposure.display_matrix(scene.xyz_to_cam, True)
-    psnr = []
+    out = {"best_white": [], "best_map": []}
     for i in scene.test_idx:
         pred = run / "eval" / f"{scene.names[i]}_pred.exr"
         if not pred.is_file():
-            return None
+            return {}
         gt = image_io.read_exr(scene.gt_linear_paths[scene.names[i]]).astype(np.float64)
-        psnr.append(best_white_psnr(image_io.read_exr(pred).astype(np.float64), gt, matrix))
-    return float(np.mean(psnr))
+        pred = image_io.read_exr(pred).astype(np.float64)
+        out["best_white"].append(best_map_psnr(pred, gt, matrix))
+        out["best_map"].append(best_map_psnr(pred, gt, matrix, full=True))
+    return {k: float(np.mean(v)) for k, v in out.items()}
 
 
 def kept_summary(name: str, variant: str, cfg: cfgmod.Config, runs: Path) -> dict | None:
@@ -252,14 +272,15 @@ def budget(name: str, runs: Path, train: bool = True, earlier: dict | None = Non
     row["best_3x3"] = float(np.mean(views["best_3x3"]))
     row["path"] = float(np.mean(views["path"]))
     row["path_full"] = float(np.mean(views["path_full"]))
-    if default is not None and (white := best_white(folder, runs / name / "default")):
-        row["best_white"] = white
+    if default is not None:
+        row.update(best_maps(folder, runs / name / "default"))
     return row
 
 
-# trained: pipeline, noise, white; from the default's renders: fit, white and exposure
+# trained: pipeline, noise, white; from the default's renders: fit, output matrix, white
+# and exposure
 GAPS = (("oracle", "clean"), ("clean", "noisy"), ("noisy", "default"),
-        ("oracle", "best_white"), ("best_white", "default"))
+        ("oracle", "best_map"), ("best_map", "best_white"), ("best_white", "default"))
 
 
 def table_row(label: str, r: dict) -> list[str]:
@@ -291,8 +312,9 @@ def main() -> None:
     table = markdown_table(
         ["scene", "noise alone", "noise bound", "colour: best 3x3", "colour: output path",
          "colour: output path, full res", "oracle", "clean raw, true white",
-         "noisy raw, true white", "default", "default, best white", "pipeline", "noise",
-         "white", "fit", "white & exposure", "one frame + NLM"], rows)
+         "noisy raw, true white", "default", "default, best white", "default, best 3x3",
+         "pipeline", "noise", "white", "fit", "output matrix", "white & exposure",
+         "one frame + NLM"], rows)
     md = ("# Error budget\n\n"
           f"`python -m experiments.error_budget --scenes {args.scenes}"
           f"{' --no-train' if args.no_train else ''}`: test-view PSNR (dB) "
@@ -301,8 +323,9 @@ def main() -> None:
           "ideal average of the training views' noise would leave on a perfect image; colour: "
           "the clean raw with no reconstruction, binned, through the best 3x3 map and through "
           "the output path, and at every photosite (full res); default, best white: the "
-          "default's renders with the white and exposure that fit the reference best (fit = "
-          "oracle - that, white & exposure = that - default).\n\n" + table + "\n")
+          "default's renders with the white and exposure that fit the reference best; best 3x3: "
+          "with the best 3x3 map of its camera RGB (fit = oracle - best 3x3, output matrix = "
+          "best 3x3 - best white, white & exposure = best white - default).\n\n" + table + "\n")
     write_report(args.out, md, record)
     update_doc("error_budget", table, RESULTS_DOC)
     print(md)

@@ -274,15 +274,15 @@ def test_error_budget_gaps_telescope_and_missing_fits_say_so():
 
     full = {"noise_only": 30.0, "bound": 25.0, "best_3x3": 26.0, "path": 24.0,
             "path_full": 28.0, "oracle": 29.0, "clean": 25.5, "noisy": 23.0, "default": 21.0,
-            "best_white": 22.5, "one_frame_nlm": 20.0}
+            "best_white": 22.5, "best_map": 23.5, "one_frame_nlm": 20.0}
     cells = eb.table_row("x", full)
     gaps = [float(c) for c in cells[len(eb.COLUMNS) + 1:-1]]
-    assert len(gaps) == len(eb.GAPS) == 5
+    assert len(gaps) == len(eb.GAPS) == 6
     assert sum(gaps[:3]) == pytest.approx(full["oracle"] - full["default"])
     assert sum(gaps[3:]) == pytest.approx(full["oracle"] - full["default"])
     part = {k: full[k] for k in ("noise_only", "bound", "oracle", "default")}
     cells = eb.table_row("y", part)
-    assert cells[eb.COLUMNS.index("clean") + 1] == "n/a" and cells[-6:-1] == ["n/a"] * 5
+    assert cells[eb.COLUMNS.index("clean") + 1] == "n/a" and cells[-7:-1] == ["n/a"] * 6
     import numpy as np
 
     x = np.array([0.001, 0.01, 0.18, 0.7])
@@ -294,8 +294,8 @@ def test_error_budget_gaps_telescope_and_missing_fits_say_so():
 def test_error_budget_best_white_undoes_a_wrong_diagonal_before_the_matrix():
     """A render whose balanced camera RGB is the reference's times a wrong white and
     exposure (a diagonal before the output matrix) scores as the reference itself with the
-    best white; a cast applied after the matrix (no diagonal in camera RGB undoes it
-    exactly) does not."""
+    best white; a twist of the colours (no diagonal in camera RGB undoes it exactly) does
+    not, but the best 3x3 map does; neither map scores below the render as it is."""
     import numpy as np
 
     from experiments import error_budget as eb
@@ -308,10 +308,13 @@ def test_error_budget_best_white_undoes_a_wrong_diagonal_before_the_matrix():
     cam = gt.reshape(-1, 3) @ np.linalg.inv(matrix).T
     pred = ((cam * [1.6, 0.8, 1.3]) @ matrix.T).reshape(gt.shape)
     assert image_metrics(pred, gt, 16)["psnr"] < 20.0
-    assert eb.best_white_psnr(pred, gt, matrix) > 60.0
-    twisted = (gt.reshape(-1, 3) @ np.array([[0.8, 0.2, 0.0], [0.0, 1.0, 0.0],
-                                             [0.0, 0.3, 0.7]]).T).reshape(gt.shape)
-    assert eb.best_white_psnr(twisted, gt, matrix) < 40.0
+    assert eb.best_map_psnr(pred, gt, matrix) > 60.0
+    twist = np.array([[0.8, 0.2, 0.0], [0.0, 1.0, 0.0], [0.0, 0.3, 0.7]])
+    twisted = (gt.reshape(-1, 3) @ np.linalg.inv(twist).T).reshape(gt.shape)
+    assert eb.best_map_psnr(twisted, gt, matrix) < 40.0
+    assert eb.best_map_psnr(twisted, gt, matrix, full=True) > 60.0
+    as_is = image_metrics(twisted, gt, 16)["psnr"]
+    assert eb.best_map_psnr(twisted, gt, matrix) >= as_is - 1e-9
 
 
 def test_error_budget_reuses_a_true_white_fit_only_under_its_config(tmp_path):
