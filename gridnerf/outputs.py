@@ -42,7 +42,7 @@ def training_render(structure, params, scene, cfg) -> dict:
     between two training seeds (0.6 dB) where a bright coloured wall filled some patches
     and not others; an even grid over all frames does not depend on the seed."""
     data = dataset.training_data(scene, cfg.data)
-    rays = dataset.rays_at(data, *dataset.strided_pixels(data, TRAINING_RENDER_RAYS))
+    rays = dataset.rays_at_jit(data, *dataset.strided_pixels(data, TRAINING_RENDER_RAYS))
     near_t, far_t = dataset.grid_box(scene)[2:]
     return render.render_image(
         structure, params, rays["origins"], rays["directions"], near_t, far_t, cfg.render

@@ -128,7 +128,7 @@ def correspondences(structure, params, data: dataset.RayData, near_t: float, far
     other content, on average the brighter middle of the frames). obs: the pixels'
     exposure-normalised signal summed over the channels (valid in all)."""
     frame, v, u = (np.asarray(a) for a in dataset.strided_pixels(data, RAYS))
-    sample = dataset.rays_at(data, frame, v, u)
+    sample = dataset.rays_at_jit(data, frame, v, u)
     out = render.render_image(structure, params, sample["origins"], sample["directions"],
                               near_t, far_t, render_cfg)
     points, opaque = consistency.world_points(
@@ -175,7 +175,7 @@ def _seen(structure, params, data: dataset.RayData, near_t: float, far_t: float,
     of the point's own depth in that camera (consistency.camera_depth)."""
     if points.shape[0] == 0:
         return np.zeros(0, bool)
-    sample = dataset.rays_at(data, jnp.asarray(fj), jnp.asarray(vj), jnp.asarray(uj))
+    sample = dataset.rays_at_jit(data, jnp.asarray(fj), jnp.asarray(vj), jnp.asarray(uj))
     out = render.render_image(structure, params, sample["origins"], sample["directions"],
                               near_t, far_t, render_cfg)
     seen, opaque = consistency.world_points(
