@@ -84,15 +84,15 @@ def srgb_slope(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92, 1.055 / 2.4 * np.maximum(x, 1e-6) ** (1 / 2.4 - 1))
 
 
-def per_view(folder: Path) -> dict[str, list[float]]:
+def per_view(folder: Path, scene) -> dict[str, list[float]]:
     """Per test view (module docstring): "noise_mse", the sRGB mean squared error an ideal
     average of the training views' noise would leave; "best_3x3" and "path", the PSNR of
     the clean binned raw through the best 3x3 map and through the output path;
-    "path_full", the clean camera RGB at every photosite through the output path."""
+    "path_full", the clean camera RGB at every photosite through the output path. scene:
+    the folder's loaded scene."""
     sim = json.loads((folder / "sim.json").read_text())
     nt = truth.noise_truth(sim)
     mean, cam_full = truth.clean_mean(folder), truth.clean_cam(folder)
-    scene = load_scene(folder, near_far=tuple(sim["near_far"]))
     views = len(scene.train_idx)
     light = np.asarray(sim["illuminant_neutral_cam"], np.float64)
     gains = np.asarray(illuminant.gains_from_illuminant(light / np.linalg.norm(light)))
@@ -145,12 +145,11 @@ def best_map_psnr(pred_linear: np.ndarray, gt_linear: np.ndarray, matrix: np.nda
     gt_srgb = srgb_encode(np.clip(gt, 0.0, 1.0))
     if full:
         x = pred_linear[crop].reshape(-1, 3)
-        design = np.kron(np.eye(3), x)  # rows: channel-major pixels; unknowns: the map's rows
 
         def shown(p):
             return x @ p.reshape(3, 3).T
         start = np.eye(3).reshape(-1)
-        linear, *_ = np.linalg.lstsq(design, gt.T.reshape(-1), rcond=None)
+        linear = np.linalg.lstsq(x, gt, rcond=None)[0].T.reshape(-1)
     else:
         bal = pred_linear[crop].reshape(-1, 3) @ np.linalg.inv(matrix).T
         design = np.stack([np.outer(bal[:, k], matrix[:, k]).reshape(-1) for k in range(3)], 1)
@@ -169,12 +168,11 @@ def best_map_psnr(pred_linear: np.ndarray, gt_linear: np.ndarray, matrix: np.nda
                          0)["psnr"]
 
 
-def best_maps(folder: Path, run: Path) -> dict[str, float]:
-    """Means over the test views of best_map_psnr on the default run's renders
-    (<run>/eval/<view>_pred.exr, the shipped "gridnerf" output: the file's colour matrix):
-    "best_white" (the diagonal) and "best_3x3"; empty where a render is missing."""
-    sim = json.loads((folder / "sim.json").read_text())
-    scene = load_scene(folder, near_far=tuple(sim["near_far"]))
+def best_maps(scene, run: Path) -> dict[str, float]:
+    """Means over the test views of a loaded scene of best_map_psnr on the default run's
+    renders (<run>/eval/<view>_pred.exr, the shipped "gridnerf" output: the file's colour
+    matrix): "best_white" (the diagonal) and "best_map" (any 3x3); empty where a render is
+    missing."""
     matrix = exposure.display_matrix(scene.xyz_to_cam, True)
     out = {"best_white": [], "best_map": []}
     for i in scene.test_idx:
@@ -265,7 +263,9 @@ def budget(name: str, runs: Path, train: bool = True, earlier: dict | None = Non
     if default is not None:  # the one-frame non-local-means row, beside the default
         row["one_frame_nlm"] = float(default["baseline_denoised"]["psnr"])
     mse_oracle = 10.0 ** (-row.get("oracle", np.inf) / 10.0)
-    views = per_view(folder)
+    sim = json.loads((folder / "sim.json").read_text())
+    scene = load_scene(folder, near_far=tuple(sim["near_far"]))
+    views = per_view(folder, scene)
     row["bound"] = float(np.mean([-10.0 * np.log10(mse_oracle + m)
                                   for m in views["noise_mse"]]))
     row["noise_only"] = float(np.mean([-10.0 * np.log10(m) for m in views["noise_mse"]]))
@@ -273,7 +273,7 @@ def budget(name: str, runs: Path, train: bool = True, earlier: dict | None = Non
     row["path"] = float(np.mean(views["path"]))
     row["path_full"] = float(np.mean(views["path_full"]))
     if default is not None:
-        row.update(best_maps(folder, runs / name / "default"))
+        row.update(best_maps(scene, runs / name / "default"))
     return row
 
 
