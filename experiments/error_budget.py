@@ -5,11 +5,11 @@ Four fits of the same default grid, test views, PSNR (dB):
 - oracle: trained on the clean normal-light references (the `oracle` preset): what the
   grid holds;
 - clean raw, true white: trained on the capture's exact noise-free raw
-  (data.target=clean, kept binned: binned in every stage) through the method's own
-  colour path, the L_ca anchor the simulator's light (`--white-ref rgb:...`):
-  representation and colour pipeline;
+  (data.target=clean: binned, then the mosaic in the last stage, as the default fits
+  the capture) through the method's own colour path, the L_ca anchor the simulator's
+  light (`--white-ref rgb:...`): representation and colour pipeline;
 - noisy raw, true white: the capture itself (the default's data term: the mosaic in the
-  last stage), the same anchor: what the noise costs, less what the mosaic stage regains;
+  last stage), the same anchor: what the noise costs, the same data path as the clean;
 - default: the capture, the light estimated from the frames.
 
 The gaps telescope, so every dB between the oracle and the default is assigned:
@@ -53,7 +53,6 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from experiments.common import (
-    BINNED,
     GROUPS,
     RESULTS_DOC,
     cached_result,
@@ -219,10 +218,10 @@ def truth_white(folder: Path) -> str:
     return "rgb:" + ",".join(repr(float(v)) for v in rgb)
 
 
-# fit -> (run folder name, preset, overrides): the four fits (budget). The clean raw is a
-# binned image (no mosaic): its fit is binned throughout whatever data.mosaic_stages says
+# fit -> (run folder name, preset, overrides): the four fits (budget). The clean raw goes
+# the default's own way (binned stages, then the mosaic), so clean - noisy is the noise alone
 FITS = {"oracle": ("oracle", "oracle", []),
-        "clean": ("clean_truewhite", "default", ["data.target=clean", *BINNED]),
+        "clean": ("clean_truewhite_mosaic", "default", ["data.target=clean"]),
         "noisy": ("truewhite", "default", []),
         "default": ("default", "default", [])}
 TRUE_WHITE = ("clean", "noisy")  # their light is not in the config: kept here, not in RESULTS

@@ -114,7 +114,7 @@ class DataConfig(_Section):
     # every stage (false)
     binning: bool = True
     # the last this many stages fit the raw Bayer mosaic photosite by photosite, the earlier
-    # (coarse) ones the binned raw (0: binned throughout; target raw at downscale 1 only;
+    # (coarse) ones the binned raw (0: binned throughout; target raw or clean, downscale 1;
     # none where the frames hold too few photons: gridnerf.data_term.MOSAIC_MIN_ELECTRONS)
     mosaic_stages: int = 1
     downscale: int = 1  # extra box downscale of the training frames (1 = binned/raw size)
@@ -137,10 +137,11 @@ class DataConfig(_Section):
 
     def mosaic_from(self, n_stages: int, mosaic_stages: int | None = None) -> int:
         """The first stage (0-based) that fits the Bayer mosaic: n_stages where none does.
-        Only the raw capture at its own size has a mosaic (target raw, downscale 1); every
-        other target is a binned image, fitted binned throughout. mosaic_stages: the run
+        Only the camera's raw at its own size has a mosaic (target raw or its noise-free
+        twin clean, downscale 1); every other target is a binned image, fitted binned
+        throughout. mosaic_stages: the run
         plan's count (the photons may turn the mosaic stages off), None: the config's."""
-        if self.target != "raw" or self.downscale != 1:
+        if self.target not in ("raw", "clean") or self.downscale != 1:
             return n_stages
         count = self.mosaic_stages if mosaic_stages is None else mosaic_stages
         return 0 if not self.binning else max(n_stages - count, 0)

@@ -31,7 +31,9 @@ class RayData:
     c2w: jax.Array  # (N, 3, 4) camera-to-world of the training frames
     intrinsics: jax.Array  # (N, 4) fx, fy, cx, cy at the target resolution
     ndc_intrinsics: jax.Array  # (4,) fx, fy, width, height of camera 0 at full resolution
-    pixels: jax.Array  # binned: rgb_cam (N, h, w, 3) float32; mosaic: raw_bayer (N, H, W) uint16
+    # binned: rgb_cam (N, h, w, 3) float32; mosaic: raw_bayer (N, H, W) uint16 (float32 DN
+    # for the clean raw)
+    pixels: jax.Array
     valid: jax.Array  # binned: (N, h, w, 3) bool, False where saturated; mosaic: unused (N,)
     black: jax.Array  # (N, 2, 2) black level per CFA position (mosaic)
     white: jax.Array  # (N,) white level (mosaic)
@@ -109,8 +111,9 @@ def clean_frames(scene: Scene, frames, binning: bool, downscale: int, exposure_r
     """The error budget's noise-free row: a simulated capture's exact clean raw,
     <scene>/clean/<frame>.npy ((H, W) float32 normalised mosaic, black level removed, no
     shot or read noise, no hidden black offset; written from the simulator's truth by
-    `python -m experiments.error_budget`), binned like the raw, exposure as the raw's."""
-    _binned_only(scene, binning, "clean")
+    `python -m experiments.error_budget`), binned like the raw, or as a mosaic (float32
+    raw_bayer in DN: clean x (white - black) + black, the frame's own levels, so the
+    batch gather's normalisation gives the clean values back), exposure as the raw's."""
     folder = scene.path / CLEAN_DIR
     missing = [scene.names[i] for i in frames
                if not (folder / f"{scene.names[i]}.npy").is_file()]
@@ -118,13 +121,22 @@ def clean_frames(scene: Scene, frames, binning: bool, downscale: int, exposure_r
         raise SceneError(folder, f"data.target=clean needs the noise-free raw of every "
                          f"training frame (missing: {missing[:3]})", "write them for a "
                          "simulated scene with python -m experiments.error_budget")
+    if not binning and downscale != 1:
+        raise ValueError("mosaic training needs data.downscale=1 (use binning to downscale)")
     pixels = []
     for i in frames:
-        rgb_cam = raw.bin2x2(np.load(folder / f"{scene.names[int(i)]}.npy"), scene.cfa)
+        clean = np.load(folder / f"{scene.names[int(i)]}.npy")
+        if not binning:
+            h, w = clean.shape
+            black = np.tile(scene.black_level[int(i)], (h // 2, w // 2))
+            pixels.append(clean * (scene.white_level[int(i)] - black) + black)
+            continue
+        rgb_cam = raw.bin2x2(clean, scene.cfa)
         pixels.append(raw.downscale(rgb_cam, downscale) if downscale > 1 else rgb_cam)
     pixels = np.stack(pixels).astype(np.float32)
+    valid = np.ones(pixels.shape if binning else len(frames), bool)
     inv_exposure = (float(exposure_ratio) / scene.exposure[frames]).astype(np.float32)
-    return pixels, np.ones(pixels.shape, bool), inv_exposure
+    return pixels, valid, inv_exposure
 
 
 # data.target -> (scene, frames, binning, downscale, exposure_ratio) -> (pixels, valid,

@@ -185,3 +185,17 @@ def test_clean_target_is_the_noise_free_mean_of_the_raw(small_scene, tmp_path):
     rough = lambda x: np.mean(np.abs(np.diff(x, axis=2)))  # noqa: E731
     assert rough(c) < 0.5 * rough(n)
     np.testing.assert_allclose(np.asarray(clean.inv_exposure), np.asarray(noisy.inv_exposure))
+    # as a mosaic: every photosite's target is the clean value itself, on its own channel
+    mosaic = dataset.build(scene, frames, binning=False, target="clean")
+    assert mosaic.mosaic and mosaic.image_hw == scene.raw_bayer.shape[1:]
+    h, w = mosaic.image_hw
+    fr, v, u = (jnp.asarray(a) for a in np.meshgrid(np.arange(2), np.arange(h), np.arange(w),
+                                                   indexing="ij"))
+    y, m = (np.asarray(a, np.float64) for a in dataset.targets(mosaic, fr, v, u))
+    truth = np.stack([np.load(folder / dataset.CLEAN_DIR / f"{scene.names[i]}.npy")
+                      for i in frames]) * np.asarray(clean.inv_exposure)[:, None, None]
+    kept = m.sum(-1) > 0
+    assert kept.mean() > 0.99 and np.all(m.sum(-1) <= 1)
+    np.testing.assert_allclose(y.sum(-1)[kept], truth[kept], rtol=1e-5, atol=1e-6)
+    channel = np.asarray(scene.cfa)[np.arange(h)[:, None] % 2, np.arange(w)[None] % 2]
+    assert np.all(m.argmax(-1)[kept] == np.broadcast_to(channel, kept.shape)[kept])
