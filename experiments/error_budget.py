@@ -73,8 +73,15 @@ from gridnerf.scene import load_scene
 from gridnerf.sim import truth
 
 CROP = 16  # the metrics' border crop (evaluate.image_metrics)
-COLUMNS = ("noise_only", "bound", "best_3x3", "path", "path_full", "oracle", "clean", "noisy",
-           "default", "best_white", "best_map")
+# the ceilings (no reconstruction) and the fits: (record key, column heading)
+CEILINGS = (("noise_only", "noise alone"), ("bound", "noise bound"),
+            ("best_3x3", "colour: best 3x3"), ("path", "colour: output path"),
+            ("best_3x3_full", "colour: best 3x3, full res"),
+            ("path_full", "colour: output path, full res"), ("one_frame_nlm", "one frame + NLM"))
+COLUMNS = (("oracle", "oracle"), ("clean", "clean raw, true white"),
+           ("clean_best_map", "clean raw, best 3x3"), ("noisy", "noisy raw, true white"),
+           ("default", "default"), ("best_white", "default, best white"),
+           ("best_map", "default, best 3x3"))
 
 
 def srgb_slope(x: np.ndarray) -> np.ndarray:
@@ -87,8 +94,9 @@ def per_view(folder: Path, scene) -> dict[str, list[float]]:
     """Per test view (module docstring): "noise_mse", the sRGB mean squared error an ideal
     average of the training views' noise would leave; "best_3x3" and "path", the PSNR of
     the clean binned raw through the best 3x3 map and through the output path;
-    "path_full", the clean camera RGB at every photosite through the output path. scene:
-    the folder's loaded scene."""
+    "path_full" and "best_3x3_full", the clean camera RGB at every photosite through the
+    output path and through the best 3x3 map (what the camera's colours allow at all).
+    scene: the folder's loaded scene."""
     sim = json.loads((folder / "sim.json").read_text())
     nt = truth.noise_truth(sim)
     mean, cam_full = truth.clean_mean(folder), truth.clean_cam(folder)
@@ -96,7 +104,7 @@ def per_view(folder: Path, scene) -> dict[str, list[float]]:
     light = np.asarray(sim["illuminant_neutral_cam"], np.float64)
     gains = np.asarray(illuminant.gains_from_illuminant(light / np.linalg.norm(light)))
     matrix = exposure.display_matrix(scene.xyz_to_cam, True)
-    out = {"noise_mse": [], "best_3x3": [], "path": [], "path_full": []}
+    out = {"noise_mse": [], "best_3x3": [], "path": [], "path_full": [], "best_3x3_full": []}
     for i in scene.test_idx:
         name = scene.names[i]
         clean = mean(name)  # (H, W) normalised raw
@@ -116,8 +124,10 @@ def per_view(folder: Path, scene) -> dict[str, list[float]]:
         out["best_3x3"].append(image_metrics(cam @ t, gt_b, crop)["psnr"])
         out["path"].append(image_metrics(exposed((cam * gains) @ matrix.T, gt_b), gt_b,
                                          crop)["psnr"])
-        full = (cam_full(name).astype(np.float64) * gains) @ matrix.T
+        full_cam = cam_full(name).astype(np.float64)
+        full = (full_cam * gains) @ matrix.T
         out["path_full"].append(image_metrics(exposed(full, gt), gt, CROP)["psnr"])
+        out["best_3x3_full"].append(best_map_psnr(full_cam, gt, matrix, full=True))
     return out
 
 
@@ -168,7 +178,7 @@ def best_map_psnr(pred_linear: np.ndarray, gt_linear: np.ndarray, matrix: np.nda
 
 
 def best_maps(scene, run: Path) -> dict[str, float]:
-    """Means over the test views of a loaded scene of best_map_psnr on the default run's
+    """Means over the test views of a loaded scene of best_map_psnr on a run's
     renders (<run>/eval/<view>_pred.exr, the shipped "gridnerf" output: the file's colour
     matrix): "best_white" (the diagonal) and "best_map" (any 3x3); empty where a render is
     missing."""
@@ -271,22 +281,34 @@ def budget(name: str, runs: Path, train: bool = True, earlier: dict | None = Non
     row["best_3x3"] = float(np.mean(views["best_3x3"]))
     row["path"] = float(np.mean(views["path"]))
     row["path_full"] = float(np.mean(views["path_full"]))
+    row["best_3x3_full"] = float(np.mean(views["best_3x3_full"]))
     if default is not None:
         row.update(best_maps(scene, runs / name / "default"))
+    # the clean fit re-shown by its best 3x3: from its renders, else this study's record
+    clean = best_maps(scene, runs / name / FITS["clean"][0]).get("best_map")
+    old = (earlier or {}).get(name, {})
+    if clean is None and "clean" in row and old.get("clean") == row["clean"]:
+        clean = old.get("clean_best_map")
+    if clean is not None:
+        row["clean_best_map"] = clean
     return row
 
 
-# trained: pipeline, noise, white; from the default's renders: fit, output matrix, white
-# and exposure
-GAPS = (("oracle", "clean"), ("clean", "noisy"), ("noisy", "default"),
-        ("oracle", "best_map"), ("best_map", "best_white"), ("best_white", "default"))
+# trained: pipeline, noise, white; from the renders: fit (= representation + noise, the
+# clean and the default fit each re-shown by its best 3x3), output matrix, white & exposure
+GAPS = ((("oracle", "clean"), "pipeline"), (("clean", "noisy"), "noise"),
+        (("noisy", "default"), "white"), (("oracle", "best_map"), "fit"),
+        (("oracle", "clean_best_map"), "fit: representation"),
+        (("clean_best_map", "best_map"), "fit: noise"),
+        (("best_map", "best_white"), "output matrix"),
+        (("best_white", "default"), "white & exposure"))
 
 
-def table_row(label: str, r: dict) -> list[str]:
-    """A row's cells ("n/a" where a fit is missing) and its three gaps."""
-    cells = [label, *(f"{r[k]:.2f}" if k in r else "n/a" for k in COLUMNS)]
-    cells += [f"{r[a] - r[b]:+.2f}" if a in r and b in r else "n/a" for a, b in GAPS]
-    return cells + [f"{r['one_frame_nlm']:.2f}" if "one_frame_nlm" in r else "n/a"]
+def table_row(label: str, r: dict, columns=COLUMNS, gaps=GAPS) -> list[str]:
+    """A row's cells ("n/a" where a fit is missing) and its gaps."""
+    cells = [label, *(f"{r[k]:.2f}" if k in r else "n/a" for k, _ in columns)]
+    return cells + [f"{r[a] - r[b]:+.2f}" if a in r and b in r else "n/a"
+                    for (a, b), _ in gaps]
 
 
 def main() -> None:
@@ -295,36 +317,38 @@ def main() -> None:
                     help="train nothing: the fits whose runs or kept results are here")
     args = ap.parse_args()
     names = scene_names(args.scenes, ("nine", "dev", "heldout"))
-    record, rows = {}, []
+    record = {}
     earlier_path = Path(args.out).with_suffix(".json")
     earlier = json.loads(earlier_path.read_text()) if earlier_path.is_file() else {}
     for name in names:
         record[name] = budget(name, Path(args.runs), not args.no_train, earlier)
-        rows.append(table_row(name, record[name]))
-        print(rows[-1], flush=True)
+        print(name, table_row(name, record[name]), flush=True)
+    rows = dict(record)
     for g in ("nine", "dev", "heldout"):
         group = [r for n, r in record.items() if n in GROUPS[g]]
         if len(group) > 1:
             keys = set.intersection(*(set(r) for r in group)) - {"fingerprints"}
-            rows.append(table_row(f"**mean, {g}** ({len(group)})",
-                                  {k: float(np.mean([r[k] for r in group])) for k in keys}))
-    table = markdown_table(
-        ["scene", "noise alone", "noise bound", "colour: best 3x3", "colour: output path",
-         "colour: output path, full res", "oracle", "clean raw, true white",
-         "noisy raw, true white", "default", "default, best white", "default, best 3x3",
-         "pipeline", "noise", "white", "fit", "output matrix", "white & exposure",
-         "one frame + NLM"], rows)
+            rows[f"**mean, {g}** ({len(group)})"] = {k: float(np.mean([r[k] for r in group]))
+                                                     for k in keys}
+    ceilings = markdown_table(["scene", *(h for _, h in CEILINGS)],
+                              [table_row(n, r, CEILINGS, ()) for n, r in rows.items()])
+    fits = markdown_table(["scene", *(h for _, h in COLUMNS), *(h for _, h in GAPS)],
+                          [table_row(n, r) for n, r in rows.items()])
+    table = ("What no reconstruction can beat (nothing trained):\n\n" + ceilings
+             + "\nThe fits and where their dB go:\n\n" + fits)
     md = ("# Error budget\n\n"
           f"`python -m experiments.error_budget --scenes {args.scenes}"
-          f"{' --no-train' if args.no_train else ''}`: test-view PSNR (dB) "
-          "of the same grid fitted four ways, and the gaps between them (pipeline = oracle - "
-          "clean, noise = clean - noisy, white = noisy - default); noise alone: the PSNR the "
-          "ideal average of the training views' noise would leave on a perfect image; colour: "
-          "the clean raw with no reconstruction, binned, through the best 3x3 map and through "
-          "the output path, and at every photosite (full res); default, best white: the "
-          "default's renders with the white and exposure that fit the reference best; best 3x3: "
-          "with the best 3x3 map of its camera RGB (fit = oracle - best 3x3, output matrix = "
-          "best 3x3 - best white, white & exposure = best white - default).\n\n" + table + "\n")
+          f"{' --no-train' if args.no_train else ''}`: test-view PSNR (dB). Ceilings: "
+          "noise alone, the PSNR the ideal average of the training views' noise would leave on "
+          "a perfect image; noise bound, the oracle's error plus that noise; colour, the clean "
+          "raw with no reconstruction, binned and at every photosite (full res), through the "
+          "best 3x3 map and through the output path. Fits: the same grid fitted four ways "
+          "(pipeline = oracle - clean, noise = clean - noisy, white = noisy - default); the "
+          "clean and the default fit re-shown with the best 3x3 map of their camera RGB, the "
+          "default with the best white and exposure (fit = oracle - default's best 3x3 = "
+          "representation (oracle - clean's best 3x3) + noise (clean's - default's best 3x3); "
+          "output matrix = best 3x3 - best white; white & exposure = best white - "
+          "default).\n\n" + table + "\n")
     write_report(args.out, md, record)
     update_doc("error_budget", table, RESULTS_DOC)
     print(md)

@@ -266,23 +266,33 @@ def test_bench_training_key_follows_the_config_not_the_preset_name(monkeypatch, 
 
 def test_error_budget_gaps_telescope_and_missing_fits_say_so():
     """Both sets of gaps of a full row add up to oracle - default (pipeline + noise + white
-    from the trained fits; fit + white & exposure from the default's renders); a row
-    without the trained fits says n/a rather than a number; the sRGB slope is the
+    from the trained fits; fit + output matrix + white & exposure from the renders), and
+    the fit splits into representation + noise; the ceilings are the row's own numbers; a
+    row without the trained fits says n/a rather than a number; the sRGB slope is the
     encoding's derivative."""
     from experiments import error_budget as eb
     from gridnerf.color import srgb_encode
 
     full = {"noise_only": 30.0, "bound": 25.0, "best_3x3": 26.0, "path": 24.0,
-            "path_full": 28.0, "oracle": 29.0, "clean": 25.5, "noisy": 23.0, "default": 21.0,
-            "best_white": 22.5, "best_map": 23.5, "one_frame_nlm": 20.0}
+            "path_full": 28.0, "best_3x3_full": 28.5, "oracle": 29.0, "clean": 25.5,
+            "clean_best_map": 26.5, "noisy": 23.0, "default": 21.0, "best_white": 22.5,
+            "best_map": 23.5, "one_frame_nlm": 20.0}
     cells = eb.table_row("x", full)
-    gaps = [float(c) for c in cells[len(eb.COLUMNS) + 1:-1]]
-    assert len(gaps) == len(eb.GAPS) == 6
-    assert sum(gaps[:3]) == pytest.approx(full["oracle"] - full["default"])
-    assert sum(gaps[3:]) == pytest.approx(full["oracle"] - full["default"])
-    part = {k: full[k] for k in ("noise_only", "bound", "oracle", "default")}
+    values = [float(c) for c in cells[len(eb.COLUMNS) + 1:]]
+    gaps = dict(zip([h for _, h in eb.GAPS], values, strict=True))
+    assert len(gaps) == len(eb.GAPS) == 8
+    whole = full["oracle"] - full["default"]
+    assert gaps["pipeline"] + gaps["noise"] + gaps["white"] == pytest.approx(whole)
+    assert (gaps["fit"] + gaps["output matrix"] + gaps["white & exposure"]
+            == pytest.approx(whole))
+    assert gaps["fit: representation"] + gaps["fit: noise"] == pytest.approx(gaps["fit"])
+    ceilings = eb.table_row("x", full, eb.CEILINGS, ())
+    assert ceilings[1:] == [f"{full[k]:.2f}" for k, _ in eb.CEILINGS]
+    part = {k: full[k] for k in ("noise_only", "bound", "oracle", "default", "best_map")}
     cells = eb.table_row("y", part)
-    assert cells[eb.COLUMNS.index("clean") + 1] == "n/a" and cells[-7:-1] == ["n/a"] * 6
+    assert cells[1 + [k for k, _ in eb.COLUMNS].index("clean")] == "n/a"
+    assert cells[-8:] == ["n/a"] * 3 + [f"{full['oracle'] - full['best_map']:+.2f}"] + [
+        "n/a"] * 4
     import numpy as np
 
     x = np.array([0.001, 0.01, 0.18, 0.7])
