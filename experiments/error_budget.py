@@ -42,6 +42,7 @@ show), white & exposure = best white - default.
 
     python -m experiments.error_budget [--scenes nine,dev,heldout] [--runs runs]
     python -m experiments.error_budget --no-train   # no training: the fits already there
+    python -m experiments.error_budget --train clean   # train only the missing clean fits
 """
 
 from __future__ import annotations
@@ -255,14 +256,16 @@ def kept(name: str, fit: str, runs: Path, earlier: dict) -> float | None:
     return None if summary is None else float(summary["gridnerf"]["psnr"])
 
 
-def budget(name: str, runs: Path, train: bool = True, earlier: dict | None = None) -> dict:
+def budget(name: str, runs: Path, train=tuple(FITS), earlier: dict | None = None) -> dict:
+    """One scene's row: the fits (kept, or trained where missing and named in `train`), the
+    ceilings and the default's (and the clean fit's) renders re-shown."""
     folder = scene_dir(name)
     row = {k: v for k in FITS if (v := kept(name, k, runs, earlier or {})) is not None}
     if train:
         write_clean(folder)
         white = truth_white(folder)
         for k, (variant, preset, sets) in FITS.items():
-            if k not in row:
+            if k not in row and k in train:
                 summary = run_variant(name, variant, preset, sets, runs,
                                       white_ref=white if k in TRUE_WHITE else None,
                                       keep=k not in TRUE_WHITE)["summary"]
@@ -313,15 +316,21 @@ def table_row(label: str, r: dict, columns=COLUMNS, gaps=GAPS) -> list[str]:
 
 def main() -> None:
     ap = study_parser(__doc__, "reports/error_budget", scenes="nine,dev,heldout", runs=True)
+    ap.add_argument("--train", default=",".join(FITS),
+                    help="the fits to train where missing (comma-separated, of "
+                    f"{', '.join(FITS)})")
     ap.add_argument("--no-train", action="store_true",
                     help="train nothing: the fits whose runs or kept results are here")
     args = ap.parse_args()
     names = scene_names(args.scenes, ("nine", "dev", "heldout"))
+    train = () if args.no_train else tuple(args.train.split(","))
+    if unknown := set(train) - set(FITS):
+        ap.error(f"--train: unknown fit(s) {sorted(unknown)}; the fits are {', '.join(FITS)}")
     record = {}
     earlier_path = Path(args.out).with_suffix(".json")
     earlier = json.loads(earlier_path.read_text()) if earlier_path.is_file() else {}
     for name in names:
-        record[name] = budget(name, Path(args.runs), not args.no_train, earlier)
+        record[name] = budget(name, Path(args.runs), train, earlier)
         print(name, table_row(name, record[name]), flush=True)
     rows = dict(record)
     for g in ("nine", "dev", "heldout"):
@@ -349,7 +358,7 @@ def main() -> None:
           "representation (oracle - clean's best 3x3) + noise (clean's - default's best 3x3); "
           "output matrix = best 3x3 - best white; white & exposure = best white - "
           "default).\n\n" + table + "\n")
-    write_report(args.out, md, record)
+    write_report(args.out, md, {**earlier, **record})  # other scenes' fits stay on record
     update_doc("error_budget", table, RESULTS_DOC)
     print(md)
 
