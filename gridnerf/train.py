@@ -206,7 +206,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
               f"({scene.cameras.width // (2 * downscale)} pixels wide): a voxel of the "
               f"{cfg.grid.resolutions[-1][0]}-wide final grid spans "
               f"{scene.cameras.width / cfg.grid.resolutions[-1][0]:.3g} capture pixels, and "
-              "the steps see more photons in fewer, larger pixels")
+              "the steps see more photons in fewer, larger pixels; the last stage trains "
+              f"{cfg.train.steps_per_stage[-1]} steps")
     # the first stage's data: the binned raw, or the mosaic where every stage fits it; and
     # how many last stages fit the mosaic: the saved plan's, or decided on these frames
     n_stages = len(cfg.grid.resolutions)

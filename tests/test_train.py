@@ -268,6 +268,11 @@ def test_planned_downscale_follows_the_final_voxels_footprint():
     cfg = cfgmod.Config()
     assert data_term.fitted_config(cfg, None) is cfg and data_term.fitted_config(cfg, 1) is cfg
     assert data_term.fitted_config(cfg, 2).data.downscale == 2
+    # the last stage trains as many times its steps as the plan raised the downscale
+    assert data_term.fitted_config(cfg, 2).train.steps_per_stage == (600, 600, 2400)
+    asked = cfgmod.override(cfg, ["data.downscale=2"])
+    assert data_term.fitted_config(asked, 2) is asked
+    assert data_term.fitted_config(asked, 4).train.steps_per_stage == (600, 600, 2400)
 
 
 def test_a_capture_wider_than_the_grid_trains_on_larger_pixels(small_scene, tmp_path, capsys,
@@ -298,6 +303,8 @@ def test_a_capture_wider_than_the_grid_trains_on_larger_pixels(small_scene, tmp_
     assert summary["downscale"] == 2 and planmod.load(run).downscale == 2
     fitted = eval_run.load_run(run)[0]
     assert fitted.data.downscale == 2 and fitted == data_term.fitted_config(cfg, 2)
+    last = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])
+    assert (last["stage"], last["step"]) == (1, 40)  # the last stage's 20 steps, twice
 
 
 def test_checkpoint_refuses_non_finite(tmp_path):
