@@ -194,6 +194,7 @@ class LossConfig(_Section):
     smooth_mode: Literal["patch", "tv"] = "tv"  # "tv": edge-aware grid TV; "patch": eq. 15
     tv_density: float = 1e-2  # TV weight on the density
     tv_rgb: float = 1e-2  # TV weight on the low-light colour
+    tv_chroma: float = 0.0  # TV weight on its chroma (log-like R - G, B - G) on top of tv_rgb
     sparsity: float = 1e-3  # weight of the Cauchy sparsity prior on the density
     opacity: float = 0.1  # weight of mean (1 - acc)^2: every ray ends on a surface
     opacity_stages: int = 1  # the opacity prior acts in this many first stages (0: all)
@@ -214,7 +215,7 @@ class LossConfig(_Section):
         return self.gain_model != "none"
 
     def _check(self) -> None:
-        for name in ("w_data", "w_ca", "w_smooth", "tv_density", "tv_rgb", "sparsity",
+        for name in ("w_data", "w_ca", "w_smooth", "tv_density", "tv_rgb", "tv_chroma", "sparsity",
                      "opacity"):
             self._range(name, 0.0)
         self._range("tv_fraction", 0.0, 1.0, lo_open=True)
@@ -469,7 +470,8 @@ def get(cfg: Config, dotted: str) -> Any:
 # before it: a saved config without the field is read with that value (from_dict), and
 # experiments.common.fingerprint leaves the field out at that value, so the kept results
 # of configs that do not use it stay valid
-ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0}
+ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0,
+                ("loss", "tv_chroma"): 0.0}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

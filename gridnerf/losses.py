@@ -159,6 +159,21 @@ def tv_loss(structure: GridStructure, values: jax.Array, eps: float = 1e-8, samp
     return jnp.mean(jnp.sum(jnp.sqrt(eps + jnp.sum(d**2, axis=1)), axis=-1))
 
 
+def chroma_tv_loss(structure: GridStructure, rgb: jax.Array, eps: float = 1e-8,
+                   sample_key=None, fraction: float = 1.0) -> jax.Array:
+    """TV of the low-light colour's chroma: the forward differences of (v_R - v_G, v_B - v_G),
+    v the DC coefficients of params["rgb"] (M, 3 * n_sh) (c = color_scale softplus(v)), as
+    tv_loss: mean over rows of sum_k sqrt(eps + |grad chroma_k|^2). Raw noise is independent
+    per channel, so a colour difference carries twice a channel's variance and the mean of
+    the channels a third of it: chroma noise is what a prior can smooth most cheaply."""
+    m = rgb.shape[0]
+    if m == 0:
+        return jnp.zeros((), rgb.dtype)
+    dc = rgb.reshape(m, 3, -1)[..., 0]
+    chroma = jnp.stack([dc[:, 0] - dc[:, 1], dc[:, 2] - dc[:, 1]], axis=-1)
+    return tv_loss(structure, chroma, eps, sample_key, fraction)
+
+
 def edge_aware_gain_tv(structure: GridStructure, params, scale: float = 0.5, eps: float = 1e-8,
                        sample_key=None, fraction: float = 1.0) -> jax.Array:
     """Grid form of the local smoothness loss: TV of log_gain, weighted per vertex by

@@ -85,11 +85,15 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, step: StepPlan, nea
     terms["tv_rgb"] = losses.tv_loss(
         structure, params["rgb"], sample_key=k2, fraction=lc.tv_fraction
     )
+    if lc.tv_chroma > 0:
+        terms["tv_chroma"] = losses.chroma_tv_loss(
+            structure, params["rgb"], sample_key=k2, fraction=lc.tv_fraction
+        )
     terms["sparsity"] = losses.sparsity_loss(
         params["density"], sample_key=k2, fraction=lc.tv_fraction
     )
     weights = {**weights, "opacity": step.opacity, "tv_density": lc.tv_density,
-               "tv_rgb": lc.tv_rgb, "sparsity": lc.sparsity}
+               "tv_rgb": lc.tv_rgb, "tv_chroma": lc.tv_chroma, "sparsity": lc.sparsity}
     total = sum(weights[k] * v for k, v in terms.items())
     return total, terms
 

@@ -182,6 +182,24 @@ def test_edge_aware_gain_tv_prefers_gain_steps_at_colour_edges():
     assert finite(g) and np.all(np.asarray(g["rgb"]) == 0.0)
 
 
+def test_chroma_tv_sees_colour_edges_not_brightness_edges():
+    """A step in brightness (every channel alike) costs the chroma TV nothing; the same
+    step in one channel costs it, as the colour TV does; its gradient is finite and leaves
+    the grey direction alone."""
+    structure, params = small_grid((8, 4, 3))
+    x = np.asarray(structure.coords)[:, 0]
+    step = np.where(x[:, None] >= 4, 1.0, 0.0).astype(np.float32)
+    grey = jnp.asarray(np.repeat(step, 3, axis=1) + 0.3)
+    red = jnp.asarray(np.concatenate([step, 0 * step, 0 * step], axis=1) + 0.3)
+    eps = 1e-8
+    floor = 2 * np.sqrt(eps)  # two chroma channels of a constant field
+    assert float(losses.chroma_tv_loss(structure, grey, eps)) == pytest.approx(floor, rel=1e-3)
+    assert float(losses.chroma_tv_loss(structure, red, eps)) > 10 * floor
+    assert float(tv_loss(structure, grey, eps)) > float(tv_loss(structure, red, eps)) > 0.0
+    g = np.asarray(jax.grad(lambda v: losses.chroma_tv_loss(structure, v))(red))
+    assert finite(g) and np.abs(g.sum(axis=1)).max() < 1e-6
+
+
 def test_sparsity_loss_prefers_empty_space():
     raw = jnp.asarray(np.linspace(-8.0, 6.0, 40), jnp.float32)
     sigma = np.logaddexp(0.0, np.asarray(raw, np.float64))
