@@ -343,7 +343,8 @@ def test_kill_9_loses_at_most_checkpoint_seconds(small_scene, tmp_path):
     run = tmp_path / "run"
     argv = ["train", str(small_scene), "--out", str(run), "--preset", "tiny", "--set",
             "grid.resolutions=[[16,16,8]]", f"train.steps_per_stage=[{steps}]",
-            "train.batch_patches=4", "train.log_every=10", "train.checkpoint_every=100000"]
+            "train.batch_patches=4", "train.log_every=10", "train.checkpoint_every=100000",
+            "data.downscale=2"]  # the plan's own for this grid: the steps stay `steps`
     with open(tmp_path / "first.log", "w") as log:
         proc = _cli(argv, tmp_path / "jax-cache", every, stdout=log, stderr=subprocess.STDOUT)
     ckpt, first_seen, first_inode = run / "checkpoint.npz", None, None
