@@ -38,7 +38,9 @@ white and exposure that fit the reference best (a von Kries diagonal in balanced
 RGB, before the output matrix), "default, best 3x3" with the best 3x3 map of its camera
 RGB. The gaps telescope: fit = oracle - best 3x3 (noise, footprint, representation),
 output matrix = best 3x3 - best white (what the file's matrix after von Kries gains cannot
-show), white & exposure = best white - default.
+show), white & exposure = best white - default. The clean fit's renders re-shown the same
+way ("clean raw, best 3x3") split the fit: representation = oracle - the clean fit's best
+3x3, noise = the clean fit's best 3x3 - the default's.
 
     python -m experiments.error_budget [--scenes nine,dev,heldout] [--runs runs]
     python -m experiments.error_budget --no-train   # no training: the fits already there
