@@ -107,6 +107,11 @@ class _Section:
         self._require(name, ok, "a finite number " + " and ".join(s for s in (lo_s, hi_s) if s))
 
 
+# the data.target values in camera raw: shown through the colour matrix, trained with the
+# gains, and the only ones with a Bayer mosaic (DataConfig.mosaic_from)
+CAMERA_RAW = ("raw", "clean")
+
+
 @dataclass(frozen=True)
 class DataConfig(_Section):
     _SECTION = "data"
@@ -137,11 +142,11 @@ class DataConfig(_Section):
 
     def mosaic_from(self, n_stages: int, mosaic_stages: int | None = None) -> int:
         """The first stage (0-based) that fits the Bayer mosaic: n_stages where none does.
-        Only the camera's raw at its own size has a mosaic (target raw or its noise-free
-        twin clean, downscale 1); every other target is a binned image, fitted binned
-        throughout. mosaic_stages: the run
-        plan's count (the photons may turn the mosaic stages off), None: the config's."""
-        if self.target not in ("raw", "clean") or self.downscale != 1:
+        Only the camera's raw at its own size has a mosaic (CAMERA_RAW: the capture or its
+        noise-free twin, downscale 1); every other target is a binned image, fitted binned
+        throughout. mosaic_stages: the run plan's count (the photons may turn the mosaic
+        stages off), None: the config's."""
+        if self.target not in CAMERA_RAW or self.downscale != 1:
             return n_stages
         count = self.mosaic_stages if mosaic_stages is None else mosaic_stages
         return 0 if not self.binning else max(n_stages - count, 0)

@@ -141,8 +141,6 @@ def clean_frames(scene: Scene, frames, binning: bool, downscale: int, exposure_r
 
 # data.target -> (scene, frames, binning, downscale, exposure_ratio) -> (pixels, valid,
 # inv_exposure); a method with targets of its own passes its function to build
-# the targets in camera raw (shown through the colour matrix, trained with the gains)
-CAMERA_RAW = ("raw", "clean")
 TARGETS = {"raw": raw_frames, "reference": reference_frames, "processed": processed_frames,
            "clean": clean_frames}
 

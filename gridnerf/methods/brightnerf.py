@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from gridnerf import colour_target, dataset, exposure, illuminant, losses, render
-from gridnerf.config import Config
+from gridnerf.config import CAMERA_RAW, Config
 from gridnerf.outputs import Output, exposed, global_gains, training_render
 
 NAME = "brightnerf"
@@ -95,7 +95,7 @@ def outputs(structure, params, scene, cfg: Config, plan, out: dict | None = None
     grey-world gain for the capture, global_gains). Where the run's colour is one
     gain (plan.one_gain) the first two show the low-light colour times it."""
     out = training_render(structure, params, scene, cfg) if out is None else out
-    raw_target = cfg.data.target in dataset.CAMERA_RAW
+    raw_target = cfg.data.target in CAMERA_RAW
     one_gain = plan.one_gain
     ones = np.ones(3) if one_gain is None else np.asarray(one_gain, np.float64)
     source = "rgb_restored" if cfg.loss.use_gains and one_gain is None else "rgb_low"
