@@ -237,13 +237,17 @@ def test_every_study_variant_is_a_valid_config_and_shared_folders_agree():
     assert seen["nogain"].loss.gain_model == "none" and not seen["nogain"].loss.use_gains
     assert seen["gain_auto_dark"].data.black_offset == "dark"
     assert seen["binned_gamma0.3"].data.exposure_ratio == 0.3
-    # the factor studies' runs fit the binned raw throughout; the default and the data-term
-    # study's mosaic run are the only ones with a mosaic stage
+    # the factor studies' runs fit the binned raw throughout; the default, the data-term
+    # study's mosaic run and the chroma study's run are the only ones with a mosaic stage
     mosaic = sorted(f for f, c in seen.items()
                     if c.data.target == "raw" and c.data.mosaic_from(3) < 3)
-    assert mosaic == ["default", "mosaic"], mosaic
+    assert mosaic == ["chroma", "default", "mosaic"], mosaic
+    # the chroma prior: the chroma study's run alone, on top of the default
+    chroma = sorted(f for f, c in seen.items() if c.loss.tv_chroma > 0)
+    assert chroma == ["chroma"] and seen["chroma"] == cfgmod.override(
+        seen["default"], ["loss.tv_chroma=0.01"])
     assert set(ablate.STUDIES) == {"parts", "smoothness", "gain_model", "tv_fraction",
-                                   "data_term"}
+                                   "data_term", "chroma"}
     assert seen["default"].data.mosaic_from(3) == 2 and seen["mosaic"].data.mosaic_from(3) == 0
     assert seen["binned"].data.mosaic_from(3) == 3
 
