@@ -7,9 +7,10 @@ runs that other studies share are reused, not trained twice):
 - gains + L_ca, no smoothness (`loss.w_smooth=0`);
 - full, smoothness as edge-aware grid TV (the default's colour path: the `binned` run);
 - full, smoothness as eq. 15 on ray patches (the `patch` preset).
-Every variant of these studies but the data-term one fits the binned raw in every stage
-(common.BINNED): the factors were measured before the default gained its mosaic stage,
-and the data-term study measures that stage on its own.
+Every variant of these studies but the data-term and chroma ones fits the binned raw in
+every stage without the chroma prior (common.FACTOR_BASE): the factors were measured before
+the default gained its mosaic stage and that prior, which those two studies measure on
+their own.
 Each is scored with the colour matrix (the shown output) and without it (the paper's
 matrix-free output); the no-gain variant is also shown with one grey-world gain for the
 scene (its `global_grey_world` output), which is what "no gains" vs "gains" should compare.
@@ -34,7 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from experiments.common import (
-    BINNED,
+    FACTOR_BASE,
+    NO_CHROMA,
     REPORT_GROUPS,
     RESULTS_DOC,
     fmt,
@@ -49,30 +51,33 @@ from experiments.common import (
 # (key, label, run folder, preset, overrides)
 VARIANTS = [
     ("no_cr", "no colour restoration (no gains, L_ca, smoothness)", "nogain", "nogain", []),
-    ("cr_ca", "gains + L_ca", "ablate_cr_ca", "default", ["loss.w_smooth=0.0", *BINNED]),
-    ("full_tv", "full, smoothness as grid TV (default)", "binned", "default", BINNED),
-    ("full_patch", "full, smoothness as eq. 15 on ray patches", "patch", "patch", BINNED),
+    ("cr_ca", "gains + L_ca", "ablate_cr_ca", "default",
+     ["loss.w_smooth=0.0", *FACTOR_BASE]),
+    ("full_tv", "full, smoothness as grid TV (default)", "binned", "default", FACTOR_BASE),
+    ("full_patch", "full, smoothness as eq. 15 on ray patches", "patch", "patch",
+     FACTOR_BASE),
 ]
 # --study smoothness: the gains' grid TV weight loss.w_smooth at a tenth of the default's
 # (does the field follow its illuminant map closer, and at what cost where one light?).
 # Tuned on mixed_lamp_window and mixed_desk_daylight, tested on the rest
 SMOOTHNESS_VARIANTS = [
-    ("map_regions", "field, loss.w_smooth = 0.1 (default)", "binned", "default", BINNED),
+    ("map_regions", "field, loss.w_smooth = 0.1 (default)", "binned", "default",
+     FACTOR_BASE),
     ("smooth_0.01", "field, loss.w_smooth = 0.01", "ws0.01", "default",
-     ["loss.w_smooth=0.01", *BINNED]),
+     ["loss.w_smooth=0.01", *FACTOR_BASE]),
 ]
 # --study gain_model: what carries the colour. The field (default) against
 # loss.gain_model=auto: one gain for the capture (the L_ca target's anchor) where its
 # illuminant maps show one light, the field where lights mix; with one gain the steps
 # train no gains. Each with the file's black level and with the lens-cap one
 GAIN_MODEL_VARIANTS = [
-    ("field", "gain field (default)", "binned", "default", BINNED),
+    ("field", "gain field (default)", "binned", "default", FACTOR_BASE),
     ("auto", "one gain where one light, the field where lights mix", "gain_auto", "default",
-     ["loss.gain_model=auto", *BINNED]),
+     ["loss.gain_model=auto", *FACTOR_BASE]),
     ("field_dark", "gain field, lens-cap black level", "dark_black", "default",
-     ["data.black_offset=dark", *BINNED]),
+     ["data.black_offset=dark", *FACTOR_BASE]),
     ("auto_dark", "one gain where one light, lens-cap black level", "gain_auto_dark",
-     "default", ["loss.gain_model=auto", "data.black_offset=dark", *BINNED]),
+     "default", ["loss.gain_model=auto", "data.black_offset=dark", *FACTOR_BASE]),
 ]
 # --study tv_fraction: the share of the grid's rows the four grid regularisers (TV of
 # density, of colour, of the gains; sparsity) sample per step. Their backward scatters are
@@ -80,27 +85,28 @@ GAIN_MODEL_VARIANTS = [
 # ~16 % faster. Is it free? Nothing was chosen on these runs
 TV_FRACTION_VARIANTS = [
     ("tv_0.25", "grid regularisers on 25 % of the rows per step (default)", "binned",
-     "default", BINNED),
+     "default", FACTOR_BASE),
     ("tv_0.1", "grid regularisers on 10 % of the rows per step", "tv0.1", "default",
-     ["loss.tv_fraction=0.1", *BINNED]),
+     ["loss.tv_fraction=0.1", *FACTOR_BASE]),
 ]
 # --study data_term: what the data term compares. The 2x2-binned raw in every stage
 # against the raw Bayer mosaic photosite by photosite, in every stage or in the last stage
-# only (data.mosaic_stages=1, the default: the coarse stages binned place the geometry).
-# Chosen on the nine built-in scenes; nothing was chosen on the held-out ones
+# only (data.mosaic_stages=1, the default: the coarse stages binned place the geometry),
+# each without the chroma prior. Chosen on the nine built-in scenes; nothing was chosen on
+# the held-out ones
 DATA_TERM_VARIANTS = [
-    ("binned", "binned raw in every stage", "binned", "default", BINNED),
+    ("binned", "binned raw in every stage", "binned", "default", FACTOR_BASE),
     ("mosaic", "raw mosaic in every stage", "mosaic", "default",
-     ["data.binning=false", *BINNED]),
-    ("mosaic_last", "raw mosaic in the last stage, binned before (default)", "default",
-     "default", []),
+     ["data.binning=false", *FACTOR_BASE]),
+    ("mosaic_last", "raw mosaic in the last stage, binned before (default)", "mosaic_last",
+     "default", NO_CHROMA),
 ]
 # --study chroma: a TV of the colour's chroma on top of the colour's TV (loss.tv_chroma,
 # gridnerf.losses.chroma_tv_loss). Its weight, 0.01, was chosen on the nine built-in
 # scenes; every other group is trained after that choice
 CHROMA_VARIANTS = [
-    ("off", "no chroma prior (default)", "default", "default", []),
-    ("chroma", "chroma TV, loss.tv_chroma = 0.01", "chroma", "default", ["loss.tv_chroma=0.01"]),
+    ("off", "no chroma prior", "mosaic_last", "default", NO_CHROMA),
+    ("chroma", "chroma TV, loss.tv_chroma = 0.01 (default)", "default", "default", []),
 ]
 STUDIES = {"parts": VARIANTS, "smoothness": SMOOTHNESS_VARIANTS,
            "gain_model": GAIN_MODEL_VARIANTS, "tv_fraction": TV_FRACTION_VARIANTS,

@@ -10,9 +10,10 @@ black-level offsets stay as they are in DN, so they grow against the signal (at 
 
 Each scene is simulated at every `light` (`gridnerf simulate <scene> --light f`, folder
 data/sim/<scene>_light<f>; light 1 is the scene itself) and trained by the default preset
-with the binned raw in every stage (common.BINNED) and the file's black level (`binned`),
-where asked with the lens-cap black level (`dark_black`, `data.black_offset=dark`) or as
-the default trains, its last stage on the mosaic (`default`); every run estimates its own
+with the binned raw in every stage and no chroma prior (common.FACTOR_BASE) and the file's
+black level (`binned`), where asked with the lens-cap black level (`dark_black`,
+`data.black_offset=dark`) or as the default trains, its last stage on the mosaic and the
+chroma prior on (`default`); every run estimates its own
 bounds. Scored as
 `gridnerf eval` scores a run, on the test views: ours, one grey-world gain on the same
 field, the paper's 2D row (one frame, non-local means) and the generous per-frame
@@ -38,9 +39,10 @@ from gridnerf.sim import HELDOUT, HELDOUT_MIXED
 
 LIGHTS = (0.1, 0.25, 0.5, 1.0)
 # run folder -> overrides of the default preset: the binned data term with the file's
-# black level, with the lens-cap one; the default (its last stage on the mosaic)
-VARIANTS = {"binned": common.BINNED, "dark_black": ["data.black_offset=dark", *common.BINNED],
-            "default": []}
+# black level, with the lens-cap one; the default (its last stage on the mosaic, the chroma
+# prior on)
+VARIANTS = {"binned": common.FACTOR_BASE,
+            "dark_black": ["data.black_offset=dark", *common.FACTOR_BASE], "default": []}
 # (label, eval summary key) of the outputs compared at each light level
 OUTPUTS = (("ours", "gridnerf"), ("global_gw", "global_grey_world"),
            ("denoised_2d", "baseline_denoised"), ("per_frame", "baseline_binned_matched"))

@@ -4,7 +4,7 @@ The held-out quirky-camera scenes carry every quirk at once. Here one clean capt
 default held_arc_brick, held_quirk_brick's twin) is shot again with one quirk at a time
 (the clean camera changed by SensorParams fields; geometry, light, photon budget and every
 random draw the twin's) and trained with the default preset on the binned raw in every
-stage (common.BINNED, as the runs measured) twice:
+stage (common.FACTOR_BASE, as the runs measured) twice:
 
 - after: the trainer as it is;
 - before: its handling of that quirk switched off for the run (hot pixels: no defect map,
@@ -100,7 +100,7 @@ def run(scene: str, quirk: str, when: str) -> dict:
     """{psnr, delta_e} of the default output on runs/<scene>+<quirk>/<when>."""
     folder = shoot(scene, quirk)
     out = Path("runs") / f"{scene}+{quirk}" / when
-    cfg = cfgmod.override(cfgmod.preset("default"), common.BINNED)
+    cfg = cfgmod.override(cfgmod.preset("default"), common.FACTOR_BASE)
     key = f"{scene}+{quirk}"
     hit = common.cached_result(key, when, cfg, common.load_results(RUNS))
     if hit is None:
@@ -123,7 +123,7 @@ def main() -> None:
     rows, record = [], {}
     for scene in common.scene_names(args.scenes):
         twin = common.run_variant(scene, "binned", "default",
-                                  common.BINNED)["summary"]["gridnerf"]
+                                  common.FACTOR_BASE)["summary"]["gridnerf"]
         for quirk in args.quirks.split(","):
             after = run(scene, quirk, "after")
             before = run(scene, quirk, "before") if QUIRKS[quirk][1] else None

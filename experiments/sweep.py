@@ -10,7 +10,8 @@ extreme EXTREME) every method in METHODS is trained and scored on the test views
 and scene).
 
 Our method is swept as `binned` (the default preset with the binned raw in every stage,
-common.BINNED: the sweep was measured before the default gained its mosaic stage).
+common.FACTOR_BASE: the sweep was measured before the default gained its mosaic stage and
+its chroma prior).
 
     python -m experiments.sweep [--scenes bucket] [--methods binned,llnerf] [--quick]
 """
@@ -22,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from experiments.common import (
-    BINNED,
+    FACTOR_BASE,
     fmt,
     markdown_table,
     pyplot,
@@ -37,7 +38,7 @@ GAMMAS = (0.3, 0.4, 0.6, 0.8, 1.0, 1.2, 1.5, 1.8)  # the paper's sweep
 EXTREME = 0.1
 # method -> (preset, eval summary key of its shown output, overrides); the method's name is
 # its gamma-1 run folder (llnerf: the report's run; binned: the ablations')
-METHODS = {"binned": ("default", "gridnerf", BINNED), "llnerf": ("llnerf", "llnerf", [])}
+METHODS = {"binned": ("default", "gridnerf", FACTOR_BASE), "llnerf": ("llnerf", "llnerf", [])}
 SWEPT = ("binned", "llnerf")  # the report's sweep (--methods' default)
 DEFAULT_OUT = "reports/sweep"
 

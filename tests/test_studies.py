@@ -59,7 +59,7 @@ def test_sweep_table_and_plot(tmp_path):
     for method in sweep.METHODS:
         assert sweep.variant(method, 1.0) == method
     assert report.RUN_PRESETS["llnerf"] == sweep.METHODS["llnerf"][0] == "llnerf"
-    assert sweep.METHODS["llnerf"][2] == [] and sweep.METHODS["binned"][2] == common.BINNED
+    assert sweep.METHODS["llnerf"][2] == [] and sweep.METHODS["binned"][2] == common.FACTOR_BASE
     assert ("full_tv", "binned") in [(k, f) for k, _, f, *_ in ablate.VARIANTS]
 
 
@@ -238,14 +238,15 @@ def test_every_study_variant_is_a_valid_config_and_shared_folders_agree():
     assert seen["gain_auto_dark"].data.black_offset == "dark"
     assert seen["binned_gamma0.3"].data.exposure_ratio == 0.3
     # the factor studies' runs fit the binned raw throughout; the default, the data-term
-    # study's mosaic run and the chroma study's run are the only ones with a mosaic stage
+    # study's mosaic run and its mosaic-last run without the chroma prior are the only ones
+    # with a mosaic stage
     mosaic = sorted(f for f, c in seen.items()
                     if c.data.target == "raw" and c.data.mosaic_from(3) < 3)
-    assert mosaic == ["chroma", "default", "mosaic"], mosaic
-    # the chroma prior: the chroma study's run alone, on top of the default
+    assert mosaic == ["default", "mosaic", "mosaic_last"], mosaic
+    # the chroma prior: the default's alone; mosaic_last is the default without it
     chroma = sorted(f for f, c in seen.items() if c.loss.tv_chroma > 0)
-    assert chroma == ["chroma"] and seen["chroma"] == cfgmod.override(
-        seen["default"], ["loss.tv_chroma=0.01"])
+    assert chroma == ["default"] and seen["mosaic_last"] == cfgmod.override(
+        seen["default"], ["loss.tv_chroma=0"])
     assert set(ablate.STUDIES) == {"parts", "smoothness", "gain_model", "tv_fraction",
                                    "data_term", "chroma"}
     assert seen["default"].data.mosaic_from(3) == 2 and seen["mosaic"].data.mosaic_from(3) == 0
