@@ -272,32 +272,34 @@ def test_bench_training_key_follows_the_config_not_the_preset_name(monkeypatch, 
 def test_error_budget_gaps_telescope_and_missing_fits_say_so():
     """Both sets of gaps of a full row add up to oracle - default (pipeline + noise + white
     from the trained fits; fit + output matrix + white & exposure from the renders), and
-    the fit splits into representation + noise; the ceilings are the row's own numbers; a
-    row without the trained fits says n/a rather than a number; the sRGB slope is the
-    encoding's derivative."""
+    the fit splits into representation + noise, the representation into eps + grid; the
+    ceilings are the row's own numbers; a row without the trained fits says n/a rather than
+    a number; the sRGB slope is the encoding's derivative."""
     from experiments import error_budget as eb
     from gridnerf.color import srgb_encode
 
     full = {"noise_only": 30.0, "bound": 25.0, "best_3x3": 26.0, "path": 24.0,
             "path_full": 28.0, "best_3x3_full": 28.5, "oracle": 29.0, "clean": 25.5,
-            "clean_best_map": 26.5, "noisy": 23.0, "default": 21.0, "best_white": 22.5,
-            "best_map": 23.5, "one_frame_nlm": 20.0}
+            "clean_best_map": 26.5, "clean_eps_best_map": 27.5, "noisy": 23.0,
+            "default": 21.0, "best_white": 22.5, "best_map": 23.5, "one_frame_nlm": 20.0}
     cells = eb.table_row("x", full)
     values = [float(c) for c in cells[len(eb.COLUMNS) + 1:]]
     gaps = dict(zip([h for _, h in eb.GAPS], values, strict=True))
-    assert len(gaps) == len(eb.GAPS) == 8
+    assert len(gaps) == len(eb.GAPS) == 10
     whole = full["oracle"] - full["default"]
     assert gaps["pipeline"] + gaps["noise"] + gaps["white"] == pytest.approx(whole)
     assert (gaps["fit"] + gaps["output matrix"] + gaps["white & exposure"]
             == pytest.approx(whole))
     assert gaps["fit: representation"] + gaps["fit: noise"] == pytest.approx(gaps["fit"])
+    assert (gaps["representation: eps"] + gaps["representation: grid"]
+            == pytest.approx(gaps["fit: representation"]))
     ceilings = eb.table_row("x", full, eb.CEILINGS, ())
     assert ceilings[1:] == [f"{full[k]:.2f}" for k, _ in eb.CEILINGS]
     part = {k: full[k] for k in ("noise_only", "bound", "oracle", "default", "best_map")}
     cells = eb.table_row("y", part)
     assert cells[1 + [k for k, _ in eb.COLUMNS].index("clean")] == "n/a"
-    assert cells[-8:] == ["n/a"] * 3 + [f"{full['oracle'] - full['best_map']:+.2f}"] + [
-        "n/a"] * 4
+    assert cells[-10:] == ["n/a"] * 3 + [f"{full['oracle'] - full['best_map']:+.2f}"] + [
+        "n/a"] * 6
     import numpy as np
 
     x = np.array([0.001, 0.01, 0.18, 0.7])
@@ -349,3 +351,10 @@ def test_error_budget_reuses_a_true_white_fit_only_under_its_config(tmp_path):
     # the clean raw goes the noisy raw's way: the mosaic in the last stage
     assert eb.fit_config("clean").data.mosaic_from(3) == 2
     assert eb.fit_config("noisy").data.mosaic_from(3) == 2
+    # the fifth fit is the clean one with the data term's eps alone changed
+    from dataclasses import replace
+
+    clean = eb.fit_config("clean")
+    assert eb.fit_config("clean_eps") == replace(clean, loss=replace(clean.loss,
+                                                                     data_eps=eb.CLEAN_EPS))
+    assert eb.CLEAN_EPS < clean.loss.data_eps
