@@ -84,10 +84,14 @@ def reference_frames(scene: Scene, frames, binning: bool, downscale: int, exposu
     """The oracle's data: the clean normal-light references gt/<name>.exr (rgb_linear)
     box-downscaled to the binned size, exposure 1, all valid."""
     missing = [scene.names[i] for i in frames if scene.names[i] not in scene.gt_linear_paths]
-    if missing or not binning:
+    if missing:
         raise SceneError(scene.path / "gt", f"the oracle needs gt/<name>.exr for every "
-                         f"training frame (missing: {missing[:3]}) and data.binning=true",
+                         f"training frame (missing: {missing[:3]})",
                          "train the oracle only on scenes with references")
+    if not binning:
+        raise SceneError(scene.path / "gt", "the references are fitted at the binned size: "
+                         "data.binning=false has no reference to fit",
+                         "train the oracle with data.binning=true (its default)")
     pixels = np.stack([raw.downscale(image_io.read_exr(scene.gt_linear_paths[scene.names[i]]),
                                      2 * downscale) for i in frames]).astype(np.float32)
     return pixels, np.ones(pixels.shape, bool), np.ones(len(frames), np.float32)

@@ -96,6 +96,12 @@ def test_oracle_data_are_the_downscaled_references(small_scene):
     want = raw.downscale(image_io.read_exr(scene.gt_linear_paths[scene.names[frames[0]]]), 2)
     np.testing.assert_allclose(np.asarray(data.pixels[0]), want, rtol=1e-6)
     assert bool(jnp.all(data.valid)) and np.allclose(np.asarray(data.inv_exposure), 1.0)
+    # the references have no mosaic: the error names binning, not a missing file
+    from gridnerf.errors import SceneError
+
+    with pytest.raises(SceneError, match="binning=false") as err:
+        dataset.build(scene, frames, binning=False, target="reference")
+    assert "missing" not in str(err.value)
 
 
 def test_a_target_function_gives_the_pixels_and_binned_rays(small_scene):
