@@ -67,31 +67,24 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, step: StepPlan, nea
             far_t: float):
     """Total loss and its terms for one batch of (P, p, p) ray patches: the method's terms
     (methods.get(loss.method).batch_terms) and the grid priors every method shares (the
-    opacity prior where step.opacity > 0, TV of density and colour, sparsity)."""
+    opacity prior where step.opacity > 0, TV of density, colour and chroma, sparsity),
+    the grid terms on one sample of loss.tv_fraction of the rows (losses.grid_sample)."""
     shape = rays["target"].shape  # (P, p, p, 3)
     flat = {k: v.reshape(-1, 3) for k, v in rays.items()}
     k0, key = jax.random.split(key)
     out = render.render_rays(structure, params, flat["origins"], flat["directions"], near_t,
                              far_t, cfg.render, key=k0, n_cand=step.n_candidates)
     lc = cfg.loss
-    k1, k2 = jax.random.split(key)
+    # one sample of the grid's rows (one gather) for the shared priors and the method's
+    sample = losses.grid_sample(structure, params, sample_key=key, fraction=lc.tv_fraction)
     terms, weights = methods.get(lc.method).batch_terms(structure, params, flat, out, shape,
-                                                        k1, cfg, step)
+                                                        sample, cfg, step)
     if step.opacity > 0:
         terms["opacity"] = losses.opacity_loss(out["acc"])
-    terms["tv_density"] = losses.tv_loss(
-        structure, params["density"][:, None], sample_key=k2, fraction=lc.tv_fraction
-    )
-    terms["tv_rgb"] = losses.tv_loss(
-        structure, params["rgb"], sample_key=k2, fraction=lc.tv_fraction
-    )
-    if lc.tv_chroma > 0:
-        terms["tv_chroma"] = losses.chroma_tv_loss(
-            structure, params["rgb"], sample_key=k2, fraction=lc.tv_fraction
-        )
-    terms["sparsity"] = losses.sparsity_loss(
-        params["density"], sample_key=k2, fraction=lc.tv_fraction
-    )
+    priors = losses.grid_priors(sample)
+    if lc.tv_chroma <= 0:
+        del priors["tv_chroma"]
+    terms.update(priors)
     weights = {**weights, "opacity": step.opacity, "tv_density": lc.tv_density,
                "tv_rgb": lc.tv_rgb, "tv_chroma": lc.tv_chroma, "sparsity": lc.sparsity}
     total = sum(weights[k] * v for k, v in terms.items())

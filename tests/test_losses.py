@@ -17,7 +17,12 @@ data_loss = jax.jit(losses.data_loss)
 ca_loss = jax.jit(losses.ca_loss, static_argnames=("stop_grad_mean",))
 smooth_loss_patch = jax.jit(losses.smooth_loss_patch, static_argnames=("stop_grad_color",))
 tv_loss = jax.jit(losses.tv_loss, static_argnames=("fraction",))
-edge_aware_gain_tv = jax.jit(losses.edge_aware_gain_tv, static_argnames=("fraction",))
+grid_sample = jax.jit(losses.grid_sample, static_argnames=("fraction",))
+
+
+def edge_aware_gain_tv(structure, params, **sampling):
+    return losses.edge_aware_gain_tv(grid_sample(structure, params, **sampling))
+
 
 def finite(*xs) -> bool:
     return all(bool(np.all(np.isfinite(np.asarray(x)))) for x in jax.tree_util.tree_leaves(xs))
@@ -177,8 +182,8 @@ def test_edge_aware_gain_tv_prefers_gain_steps_at_colour_edges():
     f = float(edge_aware_gain_tv(structure, in_flat))
     assert 0.0 < e < 0.5 * f
     assert float(edge_aware_gain_tv(structure, params)) < 1e-3  # constant gains
-    g = jax.grad(lambda p: edge_aware_gain_tv(structure, p, fraction=0.5,
-                                                     sample_key=jax.random.PRNGKey(1)))(at_edge)
+    g = jax.grad(lambda p: losses.edge_aware_gain_tv(losses.grid_sample(
+        structure, p, sample_key=jax.random.PRNGKey(1), fraction=0.5)))(at_edge)
     assert finite(g) and np.all(np.asarray(g["rgb"]) == 0.0)
 
 
@@ -193,10 +198,14 @@ def test_chroma_tv_sees_colour_edges_not_brightness_edges():
     red = jnp.asarray(np.concatenate([step, 0 * step, 0 * step], axis=1) + 0.3)
     eps = 1e-8
     floor = 2 * np.sqrt(eps)  # two chroma channels of a constant field
-    assert float(losses.chroma_tv_loss(structure, grey, eps)) == pytest.approx(floor, rel=1e-3)
-    assert float(losses.chroma_tv_loss(structure, red, eps)) > 10 * floor
+    rows = losses.neighbour_rows(structure)
+
+    def chroma_tv(rgb, eps=1e-8):
+        return losses.chroma_tv(rgb[rows], eps)
+    assert float(chroma_tv(grey, eps)) == pytest.approx(floor, rel=1e-3)
+    assert float(chroma_tv(red, eps)) > 10 * floor
     assert float(tv_loss(structure, grey, eps)) > float(tv_loss(structure, red, eps)) > 0.0
-    g = np.asarray(jax.grad(lambda v: losses.chroma_tv_loss(structure, v))(red))
+    g = np.asarray(jax.grad(chroma_tv)(red))
     assert finite(g) and np.abs(g.sum(axis=1)).max() < 1e-6
 
 
@@ -208,8 +217,6 @@ def test_sparsity_loss_prefers_empty_space():
     assert float(losses.sparsity_loss(raw - 5.0)) < float(losses.sparsity_loss(raw))
     g = jax.grad(losses.sparsity_loss)(raw)
     assert finite(g) and np.all(np.asarray(g) > 0.0)  # always pushes density down
-    sub = losses.sparsity_loss(raw, sample_key=jax.random.PRNGKey(0), fraction=0.5)
-    assert np.isfinite(float(sub))
     assert float(losses.sparsity_loss(jnp.zeros((0,)))) == 0.0
 
 
@@ -415,3 +422,28 @@ def test_stage_warmup_ramps_the_rates_of_later_stages_only():
     tx = optim.make_optimizer(plain, 100, 2)
     upd, _ = tx.update(grads, tx.init(params), params)
     np.testing.assert_allclose(-float(upd["rgb"][0, 0]), lr, rtol=1e-5)
+
+
+def test_grid_sample_feeds_every_prior_as_its_own_gather_would():
+    """One grid_sample serves all grid priors: each equals the prior computed from its own
+    rows (tv_loss on the same neighbour_rows), the sample's entries are the params at
+    those rows, sampling draws int(M * fraction) rows, and an empty grid gives zeros."""
+    structure, params = small_grid((6, 5, 4))
+    rng = np.random.default_rng(3)
+    params = {k: jnp.asarray(rng.normal(size=v.shape), jnp.float32) for k, v in params.items()}
+    key = jax.random.PRNGKey(4)
+    sample = grid_sample(structure, params, sample_key=key, fraction=0.5)
+    rows = losses.neighbour_rows(structure, key, 0.5)
+    assert rows.shape == (int(structure.n_rows * 0.5), 4)
+    for name in ("density", "rgb", "log_gain"):
+        np.testing.assert_array_equal(np.asarray(sample[name]), np.asarray(params[name][rows]))
+    priors = losses.grid_priors(sample)
+    for name, values in (("tv_density", params["density"]), ("tv_rgb", params["rgb"])):
+        np.testing.assert_allclose(priors[name], tv_loss(structure, values, sample_key=key,
+                                                         fraction=0.5), rtol=1e-6)
+    np.testing.assert_allclose(priors["sparsity"],
+                               losses.sparsity_loss(params["density"][rows[:, 0]]), rtol=1e-6)
+    empty, pe = grid.prune(structure, params, np.zeros(structure.n_rows, bool))
+    zeros = losses.grid_priors(losses.grid_sample(empty, pe, sample_key=key, fraction=0.5))
+    assert all(float(v) == 0.0 for v in zeros.values())
+    assert float(losses.edge_aware_gain_tv(losses.grid_sample(empty, pe))) == 0.0

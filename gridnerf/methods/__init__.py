@@ -13,9 +13,10 @@ A method is a module with:
                                resumed run's plan.ColourPlan, kept)
     init_log_gain(cfg, colour, color_scale, grey_log_gain) -> (3,)
                                the log gains the grid starts from
-    batch_terms(structure, params, flat, out, shape, key, cfg, step) -> (terms, weights)
+    batch_terms(structure, params, flat, out, shape, sample, cfg, step) -> (terms, weights)
                                its loss terms of one batch (the shared grid priors are
-                               gridnerf.optim's), step: the stage's plan.StepPlan
+                               gridnerf.optim's), sample: the step's losses.grid_sample,
+                               step: the stage's plan.StepPlan
     outputs(structure, params, scene, cfg, plan, out=None) -> {name: output}
                                how a trained run is shown (objects with .show(render) ->
                                (rgb_linear, rgb_srgb), gridnerf.outputs)

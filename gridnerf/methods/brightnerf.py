@@ -52,11 +52,13 @@ def init_log_gain(cfg: Config, colour, color_scale: float, grey_log_gain) -> np.
     return grey_log_gain
 
 
-def batch_terms(structure, params, flat: dict, out: dict, shape, key, cfg: Config, step):
+def batch_terms(structure, params, flat: dict, out: dict, shape, sample: dict, cfg: Config,
+                step):
     """(terms, weights) of one batch: "data" (the raw against the render's low-light
     colour, eps step.data_eps) and, where the gains train (step.train_gains), "ca" (L_ca
     towards the ray's illuminant: its block of the frame's map, the capture's anchor, or
-    the batch's own estimate, on the locus when given) and "smooth"."""
+    the batch's own estimate, on the locus when given) and "smooth" (on the step's
+    grid_sample `sample`, or eq. 15 on the batch's patches)."""
     lc = cfg.loss
     terms = {"data": losses.data_loss(out["rgb_low"], flat["target"], flat["mask"],
                                       step.data_eps)}
@@ -82,8 +84,7 @@ def batch_terms(structure, params, flat: dict, out: dict, shape, key, cfg: Confi
             terms["smooth"] = losses.smooth_loss_patch(gain.reshape(shape),
                                                        out["rgb_low"].reshape(shape))
         else:
-            terms["smooth"] = losses.edge_aware_gain_tv(structure, params, sample_key=key,
-                                                        fraction=lc.tv_fraction)
+            terms["smooth"] = losses.edge_aware_gain_tv(sample)
     return terms, {"data": lc.w_data, "ca": lc.w_ca, "smooth": lc.w_smooth}
 
 

@@ -46,7 +46,6 @@ import numpy as np
 from gridnerf import baseline, color, dataset, exposure, losses, render
 from gridnerf.config import Config
 from gridnerf.errors import ConfigError, SceneError
-from gridnerf.grid import GridStructure
 from gridnerf.plan import ColourPlan
 
 NAME = "llnerf"
@@ -151,10 +150,11 @@ def color_constancy_loss(rgb_srgb):
     return (m[0] - m[1]) ** 2 + (m[0] - m[2]) ** 2 + (m[1] - m[2]) ** 2
 
 
-def enhancement_tv(structure: GridStructure, log_gain, sample_key=None, fraction: float = 1.0):
-    """TV of the enhancement field on the grid: losses.tv_loss of log_gain (M, 3) channels
-    ALPHA and GAMMA (TV(log alpha) + TV(log gamma), LLNeRF's alpha and gamma smoothness)."""
-    return losses.tv_loss(structure, log_gain[:, :2], sample_key=sample_key, fraction=fraction)
+def enhancement_tv(log_gain) -> jax.Array:
+    """TV of the enhancement field on the grid: losses.tv of log_gain's channels ALPHA and
+    GAMMA ((r, 4, 3), a grid_sample's "log_gain"; TV(log alpha) + TV(log gamma), LLNeRF's
+    alpha and gamma smoothness)."""
+    return losses.tv(log_gain[..., :2])
 
 
 def loss_terms(rgb_srgb, gain, acc, target, mask, patch_shape, level: float,
@@ -231,10 +231,11 @@ def init_log_gain(cfg: Config, colour, color_scale: float, grey_log_gain) -> np.
     return init_log_gain_at(color_scale, EXPOSURE_LEVEL)
 
 
-def batch_terms(structure, params, flat: dict, out: dict, shape, key, cfg: Config, step):
+def batch_terms(structure, params, flat: dict, out: dict, shape, sample: dict, cfg: Config,
+                step):
     """(terms, weights) of one batch: "data" (the dark render against the dark sRGB,
     DATA_TERM), "exposure" and "color_constancy" (of the enhanced render), "enhance_tv"
-    (grid TV of log alpha and log gamma, rows sampled with `key`).
+    (grid TV of log alpha and log gamma on the step's grid_sample `sample`).
 
     flat: the batch's (n, 3) arrays; out: its render; shape: (P, p, p, 3). The
     enhancement parameters are composited with stop-gradient weights
@@ -244,8 +245,7 @@ def batch_terms(structure, params, flat: dict, out: dict, shape, key, cfg: Confi
     gain, acc = render.frozen_density_gain(out)
     terms = loss_terms(out["rgb_low"], gain, acc, flat["target"], flat["mask"], shape,
                        EXPOSURE_LEVEL, EXPOSURE_POOL, DATA_TERM)
-    terms["enhance_tv"] = enhancement_tv(structure, params["log_gain"], sample_key=key,
-                                         fraction=cfg.loss.tv_fraction)
+    terms["enhance_tv"] = enhancement_tv(sample["log_gain"])
     return terms, {"data": cfg.loss.w_data, "exposure": W_EXPOSURE,
                    "color_constancy": W_COLOR_CONSTANCY, "enhance_tv": W_ENHANCE_TV}
 
