@@ -148,7 +148,7 @@ def grid_sample(structure: GridStructure, params, sample_key=None, fraction: flo
     (grid.feature_table): {"density": (r, 4), "rgb": (r, 4, 3 n_sh), "log_gain": (r, 4, 3)},
     index 0 of the second axis the vertex, 1-3 its +x, +y, +z neighbours. Every grid
     prior of a step reads the one sample: on bucket (480x270) the last stage's training
-    step took 60 ms against 71 with a sample and a gather per prior (docs/speed.md).
+    step took 65 ms against 85 with a sample and a gather per prior (docs/speed.md).
     M = 0 gives r = 0."""
     n_sh = gridlib.n_sh_coeffs(structure.sh_degree)
     if structure.n_rows == 0:
