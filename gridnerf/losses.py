@@ -150,9 +150,9 @@ def grid_sample(structure: GridStructure, params, sample_key=None, fraction: flo
     prior of a step reads the one sample: on bucket (480x270) the last stage's training
     step took 65 ms against 85 with a sample and a gather per prior (docs/speed.md).
     M = 0 gives r = 0."""
-    n_sh = gridlib.n_sh_coeffs(structure.sh_degree)
+    n_sh = structure.n_sh
     if structure.n_rows == 0:
-        g = jnp.zeros((0, 4, 4 + 3 * n_sh), jnp.float32)
+        g = jnp.zeros((0, 4, structure.n_channels), jnp.float32)
     else:
         table = gridlib.feature_table(structure, params, pad_to=8)
         g = table[neighbour_rows(structure, sample_key, fraction)]  # (r, 4, C')
@@ -174,13 +174,9 @@ def tv(values: jax.Array, eps: float = 1e-8) -> jax.Array:
     return _mean(jnp.sum(jnp.sqrt(eps + jnp.sum(d**2, axis=1)), axis=-1))
 
 
-def tv_loss(structure: GridStructure, values: jax.Array, eps: float = 1e-8, sample_key=None,
-            fraction: float = 1.0) -> jax.Array:
-    """tv of any compact rows: values (M,) or (M, C) (e.g. params["density"]) at
-    neighbour_rows(structure, sample_key, fraction). M = 0 gives 0."""
-    if values.shape[0] == 0:
-        return jnp.zeros((), values.dtype)
-    return tv(values[neighbour_rows(structure, sample_key, fraction)], eps)
+def _dc(rgb: jax.Array) -> jax.Array:
+    """(r, 4, 3 n_sh) grid_sample "rgb" -> (r, 4, 3) its DC coefficients."""
+    return rgb.reshape(*rgb.shape[:2], 3, rgb.shape[-1] // 3)[..., 0]
 
 
 def chroma_tv(rgb: jax.Array, eps: float = 1e-8) -> jax.Array:
@@ -189,7 +185,7 @@ def chroma_tv(rgb: jax.Array, eps: float = 1e-8) -> jax.Array:
     Raw noise is independent per channel, so a colour difference carries twice a channel's
     variance and the mean of the channels a third of it: chroma noise is what a prior can
     smooth most cheaply."""
-    dc = rgb.reshape(*rgb.shape[:2], 3, rgb.shape[-1] // 3)[..., 0]
+    dc = _dc(rgb)
     return tv(jnp.stack([dc[..., 0] - dc[..., 1], dc[..., 2] - dc[..., 1]], axis=-1), eps)
 
 
@@ -198,8 +194,7 @@ def edge_aware_gain_tv(sample: dict, scale: float = 0.5, eps: float = 1e-8) -> j
     per vertex by exp(-|grad c| / scale), |grad c| the forward-difference norm of the vertex
     low-light colour (DC term) divided by its mean over the sampled vertices, so `scale` is
     relative. Weights are constants (stop-gradient). r = 0 gives 0."""
-    rgb = jax.lax.stop_gradient(sample["rgb"])
-    color = jax.nn.softplus(rgb.reshape(*rgb.shape[:2], 3, rgb.shape[-1] // 3)[..., 0])
+    color = jax.nn.softplus(_dc(jax.lax.stop_gradient(sample["rgb"])))  # (r, 4, 3)
     color = color / jnp.maximum(_mean(color[:, 0]), _TINY)
     grad_c = jnp.sqrt(jnp.sum((color[:, 1:] - color[:, :1]) ** 2, axis=(1, 2)))
     d = sample["log_gain"][:, 1:] - sample["log_gain"][:, :1]

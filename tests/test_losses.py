@@ -16,7 +16,16 @@ from gridnerf import grid, losses, optim
 data_loss = jax.jit(losses.data_loss)
 ca_loss = jax.jit(losses.ca_loss, static_argnames=("stop_grad_mean",))
 smooth_loss_patch = jax.jit(losses.smooth_loss_patch, static_argnames=("stop_grad_color",))
-tv_loss = jax.jit(losses.tv_loss, static_argnames=("fraction",))
+@jax.jit
+def _tv_at(values, rows, eps):
+    return losses.tv(values[rows], eps)
+
+
+def tv_loss(structure, values, eps=1e-8, sample_key=None, fraction=1.0):
+    """losses.tv of compact rows (M,) or (M, C) at neighbour_rows; 0 for M = 0."""
+    if values.shape[0] == 0:
+        return jnp.zeros((), values.dtype)
+    return _tv_at(values, losses.neighbour_rows(structure, sample_key, fraction), eps)
 grid_sample = jax.jit(losses.grid_sample, static_argnames=("fraction",))
 
 

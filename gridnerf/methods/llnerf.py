@@ -22,7 +22,7 @@ on the same sparse grid as the method (loss.method = "llnerf", the `llnerf` pres
   "mse" (plain masked MSE), DATA_TERM; LLNeRF's enhancement losses in Zero-DCE's form (Guo
   et al., CVPR 2020) on c_e: exposure control, mean over pool x pool regions of |mean
   intensity - E|; colour constancy, sum over channel pairs of (mean_p - mean_q)^2 over the
-  batch; total variation of log alpha and log gamma on the grid (losses.tv_loss). The
+  batch; total variation of log alpha and log gamma on the grid (losses.tv). The
   enhancement losses see c as a constant, so they train the enhancement field alone and the
   dark colour follows the data.
 
