@@ -25,15 +25,17 @@ from gridnerf.sim import (
 from gridnerf.sim.cycles import CYCLES, simulate_cycles
 from gridnerf.train import train
 
-# The default before the chroma prior (loss.tv_chroma=0, NO_CHROMA).
-NO_CHROMA = ["loss.tv_chroma=0"]
-# The default before the mosaic stage (data.mosaic_stages=0: the 2x2-binned raw in every
-# stage) and before the chroma prior, on top of a preset. The studies that measure a factor
-# against the default (the ablations, the darkness and photon sweeps, the camera-quirk
-# runs) were measured on it and keep their runs there, in folders of their own ("binned",
-# ...); the data-term study (ablate --study data_term) measures the mosaic stage against
-# it, and the chroma study (ablate --study chroma) the prior.
-FACTOR_BASE = ["data.mosaic_stages=0", *NO_CHROMA]
+# The default as the studies measured it (cfgmod.FOOTING: no chroma prior, the grid priors
+# on a quarter of the rows, 1200 last-stage steps), on top of a preset and before a
+# variant's own overrides: their kept runs stay the runs their configs name.
+FOOTING = list(cfgmod.FOOTING)
+# ... and before the mosaic stage (data.mosaic_stages=0: the 2x2-binned raw in every
+# stage). The studies that measure a factor against the default (the ablations, the
+# darkness and photon sweeps, the camera-quirk runs) were measured on it and keep their
+# runs there, in folders of their own ("binned", ...); the data-term study (ablate --study
+# data_term) measures the mosaic stage against it, and the chroma study (ablate --study
+# chroma) the prior.
+FACTOR_BASE = ["data.mosaic_stages=0", *FOOTING]
 
 # Quick mode (`make report QUICK=1`): every study on 160x90, 12-frame versions of its
 # scenes (data/quick/<scene>) with each preset shrunk by quick_sets, in its own run root
