@@ -265,7 +265,7 @@ def test_planned_downscale_follows_the_final_voxels_footprint():
     assert planned(1920, "data.binning=false") == 1
     finer = "grid.resolutions=[[48,0,24],[96,0,48],[192,0,64],[480,0,96]]"
     assert planned(1920, finer, "train.steps_per_stage=[1,1,1,1]") == 1
-    cfg = cfgmod.Config()
+    cfg = cfgmod.override(cfgmod.Config(), ["train.steps_per_stage=[600,600,1200]"])
     assert data_term.fitted_config(cfg, None) is cfg and data_term.fitted_config(cfg, 1) is cfg
     assert data_term.fitted_config(cfg, 2).data.downscale == 2
     # the last stage trains as many times its steps as the plan raised the downscale
