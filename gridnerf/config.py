@@ -308,7 +308,7 @@ _SECTIONS = {"data": DataConfig, "grid": GridConfig, "render": RenderConfig,
 
 
 # The footing the presets other than the default and the studies were measured on
-# (docs/results.md, "Kept results and their footing"): the default without the chroma
+# (docs/results.md, "A tenth of the rows buys the steps"): the default without the chroma
 # prior, its grid priors on a quarter of the rows, 1200 last-stage steps. Each later change
 # of the default joins it only where it was measured, so every kept result stays the run
 # its config names; `--set` trains a preset on today's default footing instead.
