@@ -184,11 +184,12 @@ def run_worker(kind: str, args: dict, log: Path) -> dict:
 def _training_setup(run: str, scale: float, dense: bool, sets: list[str]):
     """The final stage of a finished run as train.py runs it: (cfg, step plan, structure,
     params, opt_state, step function, data, near_t, far_t). The step is rebuilt from the
-    run's plan (plan.json: its eps, opacity, colour and candidate count; the method's
+    run's plan (plan.json: its eps, opacity, colour, candidate count and slots; the method's
     training data and L_ca inputs as training made them). scale != 1 resamples the grid
     (grid.resample) to round(scale * resolution) vertices per axis; dense replaces it by a
     full grid of that resolution and box (grid.init_grid) and turns off empty skipping;
-    either way the step's candidate count is fitted to the new grid (stages.fitted_candidates)."""
+    either way the step's candidate count and occupied-sample slots are fitted to the new grid
+    (stages.fitted_candidates, stages.fitted_samples)."""
 
     from gridnerf import config as cfgmod
     from gridnerf import dataset, eval_run, grid, methods, optim, stages, train, vignetting
@@ -215,9 +216,13 @@ def _training_setup(run: str, scale: float, dense: bool, sets: list[str]):
     structure = grid.update_occupancy(structure, params)
     tx = optim.make_optimizer(cfg, cfg.train.steps_per_stage[-1], stage)
     step = optim.step_plan(cfg, plan, stage, scene)  # the last stage's
-    if changed:
-        step = dataclasses.replace(step, n_candidates=stages.fitted_candidates(
-            structure, data, near_t, far_t, cfg.render))
+    if changed:  # the candidates and the slots fitted to the new grid, as a stage fits them
+        n_cand = stages.fitted_candidates(structure, data, near_t, far_t, cfg.render)
+        asked = cfgmod.override(cfgmod.load(Path(run) / "config.json"), sets).render
+        step = dataclasses.replace(step, n_candidates=n_cand, max_samples=stages.fitted_samples(
+            structure, data, near_t, far_t, asked, n_cand))
+        cfg = dataclasses.replace(cfg, render=dataclasses.replace(
+            cfg.render, max_samples=step.max_samples))
     step_fn = optim.make_step(cfg, step, tx, near_t, far_t)
     return cfg, step, structure, params, tx.init(params), step_fn, data, near_t, far_t
 

@@ -8,6 +8,8 @@ benchmark and the tests build the same step here.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import jax
 import numpy as np
 import optax
@@ -48,10 +50,10 @@ def make_optimizer(cfg: Config, steps: int, stage: int = 0) -> optax.GradientTra
 
 
 def step_plan(cfg: Config, plan: RunPlan, stage: int, scene) -> StepPlan:
-    """The StepPlan of stage `stage` of a run: its plan's eps, opacity weight and candidate
-    count; the gain terms where the colour is the gain field; the capture's illuminant
-    (float32) where the plan has one; the camera's Planckian locus for the batch target
-    where the plan trusts it."""
+    """The StepPlan of stage `stage` of a run: its plan's eps, opacity weight, candidate
+    count and occupied-sample slots; the gain terms where the colour is the gain field; the
+    capture's illuminant (float32) where the plan has one; the camera's Planckian locus for
+    the batch target where the plan trusts it."""
     anchor = None if plan.colour.anchor is None else np.asarray(plan.colour.anchor, np.float32)
     locus = None
     if cfg.loss.ca_target == "batch" and plan.colour.locus and plan.colour.model == "field":
@@ -60,6 +62,7 @@ def step_plan(cfg: Config, plan: RunPlan, stage: int, scene) -> StepPlan:
         locus = np.asarray(illuminant.planckian_locus(matrix), np.float32)
     return StepPlan(data_eps=plan.data_eps, opacity=plan.opacity[stage],
                     n_candidates=plan.n_candidates[stage],
+                    max_samples=plan.samples(stage, cfg),
                     train_gains=plan.colour.model == "field", anchor=anchor, locus=locus)
 
 
@@ -72,8 +75,10 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, step: StepPlan, nea
     shape = rays["target"].shape  # (P, p, p, 3)
     flat = {k: v.reshape(-1, 3) for k, v in rays.items()}
     k0, key = jax.random.split(key)
+    render_cfg = (replace(cfg.render, max_samples=step.max_samples) if step.max_samples
+                  else cfg.render)
     out = render.render_rays(structure, params, flat["origins"], flat["directions"], near_t,
-                             far_t, cfg.render, key=k0, n_cand=step.n_candidates)
+                             far_t, render_cfg, key=k0, n_cand=step.n_candidates)
     lc = cfg.loss
     # one sample of the grid's rows (one gather) for the shared priors and the method's
     sample = losses.grid_sample(structure, params, sample_key=key, fraction=lc.tv_fraction)

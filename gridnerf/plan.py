@@ -94,7 +94,10 @@ class RunPlan:
     nothing was decided (no stage could fit the mosaic, data.binning off, or a plan saved
     before the decision existed): the config's data.mosaic_stages. downscale: the box
     downscale of the binned training frames (data_term.planned_downscale), None (a plan
-    saved before the decision existed): the config's data.downscale.
+    saved before the decision existed): the config's data.downscale. max_samples: each
+    stage's occupied-sample slots per ray (stages.fitted_samples; 0: not decided yet), None
+    (a plan saved before the decision existed): the config's render.max_samples; the last
+    stage's is the finished run's (render_config).
     """
 
     method: str
@@ -109,6 +112,7 @@ class RunPlan:
     photosite_snr: float | None = None
     mosaic_stages: int | None = None
     downscale: int | None = None
+    max_samples: tuple[int, ...] | None = None
 
     @property
     def one_gain(self) -> tuple[float, float, float] | None:
@@ -123,6 +127,27 @@ class RunPlan:
         counts = list(self.n_candidates)
         counts[stage] = int(n)
         return replace(self, n_candidates=tuple(counts))
+
+    def with_samples(self, stage: int, k: int) -> RunPlan:
+        """The plan with stage `stage`'s occupied-sample slots set to k."""
+        slots = list(self.max_samples or (0,) * len(self.n_candidates))
+        slots[stage] = int(k)
+        return replace(self, max_samples=tuple(slots))
+
+    def samples(self, stage: int, cfg) -> int:
+        """Stage `stage`'s occupied-sample slots per ray: the plan's where decided, else
+        cfg's render.max_samples."""
+        k = 0 if self.max_samples is None else self.max_samples[stage]
+        return int(k) if k else int(cfg.render.max_samples)
+
+
+def render_config(cfg, plan: RunPlan):
+    """cfg with the finished run's render.max_samples (its last stage's slots): the
+    renders of a run shade the samples its last stage trained."""
+    k = plan.samples(len(plan.n_candidates) - 1, cfg)
+    if k == cfg.render.max_samples:
+        return cfg
+    return replace(cfg, render=replace(cfg.render, max_samples=k))
 
 
 def opacity_schedule(weight: float, stages: int, first: int) -> tuple[float, ...]:
@@ -146,6 +171,8 @@ def from_dict(d: dict) -> RunPlan:
     d["colour"] = ColourPlan(**c)
     d["opacity"] = tuple(float(v) for v in d["opacity"])
     d["n_candidates"] = tuple(int(v) for v in d["n_candidates"])
+    if d.get("max_samples") is not None:
+        d["max_samples"] = tuple(int(v) for v in d["max_samples"])
     if d.get("vignetting") is not None:
         d["vignetting"] = tuple(float(v) for v in d["vignetting"])
     plan = RunPlan(**d)
@@ -179,7 +206,8 @@ class StepPlan:
     """What one stage's step is built with (optim.make_step), from the run plan.
 
     data_eps: the data term's eps; opacity: the opacity prior's weight this stage;
-    n_candidates: the static candidate count per ray; train_gains: whether the gain terms
+    n_candidates: the static candidate count per ray; max_samples: the occupied-sample slots
+    per ray (0: the config's render.max_samples); train_gains: whether the gain terms
     (L_ca, smoothness) are in the loss (False with one gain or no gains); anchor: (3,)
     float32 the capture's illuminant (the "scene" and "map" targets) or None; locus: (n, 3)
     float32 the camera's Planckian locus for the "batch" target with loss.ca_locus, or None.
@@ -191,3 +219,4 @@ class StepPlan:
     train_gains: bool
     anchor: object = None
     locus: object = None
+    max_samples: int = 0

@@ -312,13 +312,19 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         if opt_leaves:
             opt_state = checkpoint.unflatten_like(opt_state, opt_leaves)
             opt_leaves = []
+        structure = grid.update_occupancy(structure, params)
         if not plan.n_candidates[stage]:  # decided on this stage's grid, kept in the plan
             plan = plan.with_candidates(stage, stages.fitted_candidates(
                 structure, data, near_t, far_t, cfg.render))
             planmod.save(run, plan)
+        if plan.max_samples is None or not plan.max_samples[stage]:  # the same, on its rays
+            plan = plan.with_samples(stage, stages.fitted_samples(
+                structure, data, near_t, far_t, cfg.render, plan.n_candidates[stage]))
+            planmod.save(run, plan)
+            print(f"stage {stage}: {plan.max_samples[stage]} occupied samples per ray "
+                  f"(of {plan.n_candidates[stage]} candidates)")
         step_fn = optim.make_step(cfg, optim.step_plan(cfg, plan, stage, scene), tx, near_t,
                                   far_t)
-        structure = grid.update_occupancy(structure, params)
         t_stage = time.perf_counter()
         last_save = t_stage
         steps_timed = 0
@@ -373,6 +379,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     bar.close()
     log.close()
 
+    cfg = planmod.render_config(cfg, plan)  # renders shade the last stage's slots
     # the safety net: the field's white checked against the frames before the run is done
     colour_record = {"shipped": plan.colour.model}
     if plan.colour.model == "field" and plan.colour.evidence:

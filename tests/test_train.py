@@ -845,3 +845,44 @@ def test_eval_without_references_writes_the_renders_and_says_so(tiny_run, tmp_pa
     for name in metrics["test_views"]:
         assert (copy / "eval" / f"{name}_pred.png").exists()
         assert (copy / "eval" / f"{name}_pred.exr").exists()
+
+
+def test_fitted_samples_follow_the_rays_occupied_samples(tiny_run):
+    """stages.fitted_samples: truncated_share 0 gives max_samples (capped by the candidate
+    count); a share keeps at most that share of the marched training rays above K, K a
+    multiple of SAMPLE_QUANTUM that never exceeds max_samples, and a smaller share never a
+    smaller K. The run plan and the finished run's render config carry the slots (the tiny
+    preset fits none: its plan holds its own max_samples)."""
+    import jax
+
+    from gridnerf import dataset, eval_run, render, stages
+    from gridnerf import plan as planmod
+
+    cfg, plan, scene, structure, params, _ = eval_run.load_run(tiny_run[0])
+    assert cfg.render.truncated_share == 0.0
+    assert plan.max_samples == (cfg.render.max_samples,) * len(plan.n_candidates)
+    data = dataset.training_data(scene, cfg.data)
+    near_t, far_t = dataset.grid_box(scene)[2:]
+    n_cand = plan.n_candidates[-1]
+    assert stages.fitted_samples(structure, data, near_t, far_t, cfg.render, n_cand) == min(
+        cfg.render.max_samples, n_cand)
+    march = jax.jit(render.march, static_argnames=("cfg", "n_cand"))
+    occupied = np.concatenate([
+        np.asarray(march(structure, o, d, near_t, far_t, cfg.render, n_cand=n_cand)[3])[:n]
+        for o, d, n in stages.training_rays(data, 4096, stride=stages.SAMPLE_STRIDE)])
+    ks = []
+    for share in (0.2, 0.05, 0.005):
+        rc = cfgmod.override(cfg, ["render.max_samples=64",
+                                   f"render.truncated_share={share}"]).render
+        k = stages.fitted_samples(structure, data, near_t, far_t, rc, n_cand)
+        assert k % stages.SAMPLE_QUANTUM == 0 or k == min(64, n_cand)
+        assert 1 <= k <= min(64, n_cand)
+        assert np.mean(occupied > k) <= share
+        ks.append(k)
+    assert ks == sorted(ks) and ks[0] < ks[-1]  # a smaller share, more slots
+    fitted = plan.with_samples(len(plan.n_candidates) - 1, 8)
+    assert planmod.render_config(cfg, fitted).render.max_samples == 8
+    assert planmod.from_dict(planmod.to_dict(fitted)) == fitted
+    old = planmod.from_dict({**planmod.to_dict(plan), "max_samples": None})  # an older plan
+    assert old.samples(0, cfg) == cfg.render.max_samples
+    assert planmod.render_config(cfg, old) == cfg
