@@ -82,8 +82,9 @@ def fitted_samples(structure, data: dataset.RayData, near_t: float, far_t: float
     """The occupied-sample slots K per ray of a stage's step: the (1 - truncated_share)
     quantile of the occupied samples its training rays hold on the stage's grid (every
     SAMPLE_STRIDE-th pixel per axis, render.march's n_occupied on the current occupancy),
-    rounded up to a multiple of SAMPLE_QUANTUM, at most render.max_samples and never above
-    the candidate count n_cand; render.max_samples where render.truncated_share is 0.
+    rounded up to a multiple of SAMPLE_QUANTUM, at most render.max_samples;
+    render.max_samples where render.truncated_share is 0. (render.march shades at most
+    n_cand slots whatever K is.)
 
     Why: the step gathers and scatters K slots per ray whether occupied or not (fixed
     shapes). On a carved final grid of a shallow scene nearly every ray holds fewer than 48
@@ -91,7 +92,7 @@ def fitted_samples(structure, data: dataset.RayData, near_t: float, far_t: float
     more (dev_arc_shop: 10 % above 48, 4 % above 64), and cutting them off cost it 0.10 dB.
     The quantile keeps K where the rays need it (docs/speed.md, "Slots fitted to the
     rays")."""
-    cap = min(int(render_cfg.max_samples), int(n_cand))
+    cap = int(render_cfg.max_samples)
     share = float(render_cfg.truncated_share)
     if share <= 0.0:
         return cap

@@ -364,7 +364,7 @@ def test_config_overrides_and_round_trip(tmp_path):
     )
     assert cfg.train.steps_per_stage == (5, 6, 7)
     assert cfg.loss.use_gains is False and cfg.grid.sh_degree == 1
-    assert len([f for s in cfgmod.to_dict(cfg).values() for f in s]) <= 47  # the method's
+    assert len([f for s in cfgmod.to_dict(cfg).values() for f in s]) <= 48  # the method's
     cfgmod.save(cfg, tmp_path / "c.json")
     assert cfgmod.load(tmp_path / "c.json") == cfg
     with pytest.raises(ValueError, match="bad override"):
@@ -864,8 +864,8 @@ def test_fitted_samples_follow_the_rays_occupied_samples(tiny_run):
     data = dataset.training_data(scene, cfg.data)
     near_t, far_t = dataset.grid_box(scene)[2:]
     n_cand = plan.n_candidates[-1]
-    assert stages.fitted_samples(structure, data, near_t, far_t, cfg.render, n_cand) == min(
-        cfg.render.max_samples, n_cand)
+    assert stages.fitted_samples(structure, data, near_t, far_t, cfg.render,
+                                 n_cand) == cfg.render.max_samples
     march = jax.jit(render.march, static_argnames=("cfg", "n_cand"))
     occupied = np.concatenate([
         np.asarray(march(structure, o, d, near_t, far_t, cfg.render, n_cand=n_cand)[3])[:n]
@@ -875,8 +875,7 @@ def test_fitted_samples_follow_the_rays_occupied_samples(tiny_run):
         rc = cfgmod.override(cfg, ["render.max_samples=64",
                                    f"render.truncated_share={share}"]).render
         k = stages.fitted_samples(structure, data, near_t, far_t, rc, n_cand)
-        assert k % stages.SAMPLE_QUANTUM == 0 or k == min(64, n_cand)
-        assert 1 <= k <= min(64, n_cand)
+        assert k % stages.SAMPLE_QUANTUM == 0 and 1 <= k <= 64
         assert np.mean(occupied > k) <= share
         ks.append(k)
     assert ks == sorted(ks) and ks[0] < ks[-1]  # a smaller share, more slots
@@ -886,3 +885,23 @@ def test_fitted_samples_follow_the_rays_occupied_samples(tiny_run):
     old = planmod.from_dict({**planmod.to_dict(plan), "max_samples": None})  # an older plan
     assert old.samples(0, cfg) == cfg.render.max_samples
     assert planmod.render_config(cfg, old) == cfg
+
+
+def test_a_run_keeps_its_fitted_slots_and_renders_with_them(small_scene, tmp_path, capsys):
+    """With render.truncated_share > 0 every stage fits its slots (stages.fitted_samples),
+    prints them and keeps them in plan.json; the finished run's config (eval_run.load_run)
+    renders with its last stage's."""
+    from gridnerf import eval_run
+    from gridnerf import plan as planmod
+    from gridnerf.train import train
+
+    cfg = cfgmod.override(cfgmod.preset("tiny"), ["render.truncated_share=0.05",
+                                                  "render.max_samples=32"])
+    train(small_scene, tmp_path / "run", cfg)
+    plan = planmod.load(tmp_path / "run")
+    assert plan.max_samples is not None and len(plan.max_samples) == len(plan.n_candidates)
+    assert all(1 <= k <= 32 and k % 8 == 0 for k in plan.max_samples)
+    assert "occupied samples per ray" in capsys.readouterr().out
+    loaded = eval_run.load_run(tmp_path / "run")[0]
+    assert loaded.render.max_samples == plan.max_samples[-1]
+    assert loaded.render.truncated_share == 0.05
