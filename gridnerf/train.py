@@ -313,16 +313,19 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
             opt_state = checkpoint.unflatten_like(opt_state, opt_leaves)
             opt_leaves = []
         structure = grid.update_occupancy(structure, params)
-        if not plan.n_candidates[stage]:  # decided on this stage's grid, kept in the plan
+        # the stage's candidate count and sample slots: decided on its grid and its rays,
+        # kept in the plan (one write)
+        decided = plan
+        if not plan.n_candidates[stage]:
             plan = plan.with_candidates(stage, stages.fitted_candidates(
                 structure, data, near_t, far_t, cfg.render))
-            planmod.save(run, plan)
-        if plan.max_samples is None or not plan.max_samples[stage]:  # the same, on its rays
+        if plan.max_samples is None or not plan.max_samples[stage]:
             plan = plan.with_samples(stage, stages.fitted_samples(
                 structure, data, near_t, far_t, cfg.render, plan.n_candidates[stage]))
-            planmod.save(run, plan)
             print(f"stage {stage}: {plan.max_samples[stage]} occupied samples per ray "
                   f"(of {plan.n_candidates[stage]} candidates)")
+        if plan is not decided:
+            planmod.save(run, plan)
         step_fn = optim.make_step(cfg, optim.step_plan(cfg, plan, stage, scene), tx, near_t,
                                   far_t)
         t_stage = time.perf_counter()
