@@ -246,8 +246,10 @@ class LossConfig(_Section):
 class TrainConfig(_Section):
     _SECTION = "train"
     steps_per_stage: tuple[int, ...] = (600, 600, 2100)  # optimisation steps of each stage
-    batch_patches: int = 64  # ray patches per step
-    patch_size: int = 8  # patch side in pixels (rays per step = batch_patches * patch_size^2)
+    batch_patches: int = 4096  # ray patches per step
+    # patch side in pixels (rays per step = batch_patches * patch_size^2); 1: every ray
+    # drawn on its own (patches only for loss.smooth_mode=patch or a batch grey edge)
+    patch_size: int = 1
     lr_density: float = 0.3  # Adam learning rate of the raw density
     lr_rgb: float = 0.1  # Adam learning rate of the low-light colour
     lr_gain: float = 0.02  # Adam learning rate of the log gains
@@ -314,12 +316,13 @@ _SECTIONS = {"data": DataConfig, "grid": GridConfig, "render": RenderConfig,
 # The footing the presets other than the default and the studies were measured on
 # (docs/results.md, "A tenth of the rows buys the steps"): the default without the chroma
 # prior, its grid priors on a quarter of the rows, 1200 last-stage steps, max_samples slots
-# per ray in every stage (none fitted to the rays). Each later change
-# of the default joins it only where it was measured, so every kept result stays the run
-# its config names; `--set` trains a preset on today's default footing instead.
+# per ray in every stage (none fitted to the rays), 64 ray patches of 8x8 a step. Each later
+# change of the default joins it only where it was measured, so every kept result stays the
+# run its config names; `--set` trains a preset on today's default footing instead.
 FOOTING: tuple[str, ...] = ("loss.tv_chroma=0", "loss.tv_fraction=0.25",
                             "train.steps_per_stage=[600,600,1200]",
-                            "render.truncated_share=0")
+                            "render.truncated_share=0", "train.patch_size=8",
+                            "train.batch_patches=64")
 
 
 def _measured_footing(c: Config) -> Config:

@@ -17,6 +17,7 @@ import numpy as np
 
 from gridnerf import colour_target, dataset, exposure, illuminant, losses, render
 from gridnerf.config import CAMERA_RAW, Config
+from gridnerf.errors import ConfigError
 from gridnerf.outputs import Output, exposed, global_gains, training_render
 
 NAME = "brightnerf"
@@ -24,7 +25,19 @@ MAIN_OUTPUT = "gridnerf"
 
 
 def check(cfg: Config) -> None:
-    """Every config the config module accepts trains this method."""
+    """The terms that read the batch's ray patches need patches: eq. 15
+    (loss.smooth_mode "patch") and the batch's grey edge (loss.ca_target "batch" with
+    loss.ca_illuminant "grey_edge") differentiate across adjacent rays, and one-ray patches
+    (train.patch_size 1, the default) have no neighbours."""
+    lc = cfg.loss
+    needs = ("loss.smooth_mode = 'patch'" if lc.smooth_mode == "patch" else
+             "loss.ca_illuminant = 'grey_edge' with loss.ca_target = 'batch'"
+             if lc.ca_target == "batch" and lc.ca_illuminant == "grey_edge" else None)
+    if needs and cfg.train.patch_size < 2:
+        raise ConfigError(None, f"{needs} needs ray patches, and train.patch_size = "
+                          f"{cfg.train.patch_size}",
+                          "also set train.patch_size=8 train.batch_patches=64 (the `patch` "
+                          "preset's)")
 
 
 def fits_raw(cfg: Config) -> bool:
