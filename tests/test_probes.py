@@ -85,6 +85,9 @@ def scene_copy(small_scene, tmp_path):
     (["--set", "loss.use_gains=false"], ["loss.use_gains", "no field", "loss.gain_model"]),
     (["--set", "train.lr_decay=0"], ["train.lr_decay", "> 0"]),
     (["--set", "grid.prune_threshold=2"], ["grid.prune_threshold", "<= 1"]),
+    # eq. 15 compares neighbouring rays: one-ray patches have none
+    (["--set", "train.patch_size=1", "train.batch_patches=64", "loss.smooth_mode=patch"],
+     ["loss.smooth_mode", "train.patch_size = 1", "train.patch_size=8"]),
 ])
 def test_bad_config_is_one_line_and_leaves_no_run_folder(small_scene, tmp_path, capsys, args,
                                                          needles):
