@@ -64,6 +64,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from scipy.ndimage import gaussian_filter
 from scipy.optimize import least_squares
 
 from experiments.common import (
@@ -193,13 +194,39 @@ def best_map_psnr(pred_linear: np.ndarray, gt_linear: np.ndarray, matrix: np.nda
                          0)["psnr"]
 
 
+DETAIL_SIGMA = 1.0  # px: the Gaussian that leaves out the detail finer than about 2 pixels
+
+
+def by_scale(pred_linear: np.ndarray, gt_linear: np.ndarray) -> dict[str, float]:
+    """A render's error split by scale, in sRGB (srgb_encode of the clipped linear images,
+    as the metrics compare), on the metrics' crop:
+
+    "coarse": the PSNR after render and reference are both blurred by a Gaussian of
+      DETAIL_SIGMA pixels (the error at scales above about two pixels: colour, exposure,
+      low-frequency noise, misplaced geometry);
+    "detail_kept": the render's detail (its image minus its blur) as a share of the
+      reference's, in RMS amplitude: 1 where the render holds the reference's fine
+      detail, near 0 where it is blurred (noise adds to it too: read it with the PSNR).
+    pred_linear, gt_linear: (H, W, 3) linear sRGB."""
+    c = effective_crop(*gt_linear.shape[:2], CROP)
+    crop = (slice(c, gt_linear.shape[0] - c), slice(c, gt_linear.shape[1] - c))
+    pred, gt = (srgb_encode(np.clip(np.asarray(x, np.float64), 0.0, 1.0))
+                for x in (pred_linear, gt_linear))
+    blur_pred, blur_gt = (gaussian_filter(x, (DETAIL_SIGMA, DETAIL_SIGMA, 0)) for x in (pred, gt))
+    mse = float(np.mean((blur_pred[crop] - blur_gt[crop]) ** 2))
+    detail_gt = float(np.mean((gt - blur_gt)[crop] ** 2))
+    detail_pred = float(np.mean((pred - blur_pred)[crop] ** 2))
+    return {"coarse": -10.0 * np.log10(max(mse, 1e-20)),
+            "detail_kept": float(np.sqrt(detail_pred / max(detail_gt, 1e-20)))}
+
+
 def best_maps(scene, run: Path) -> dict[str, float]:
     """Means over the test views of a loaded scene of best_map_psnr on a run's
     renders (<run>/eval/<view>_pred.exr, the shipped "gridnerf" output: the file's colour
-    matrix): "best_white" (the diagonal) and "best_map" (any 3x3); empty where a render is
-    missing."""
+    matrix): "best_white" (the diagonal) and "best_map" (any 3x3), and of by_scale
+    ("coarse", "detail_kept"); empty where a render is missing."""
     matrix = exposure.display_matrix(scene.xyz_to_cam, True)
-    out = {"best_white": [], "best_map": []}
+    out = {"best_white": [], "best_map": [], "coarse": [], "detail_kept": []}
     for i in scene.test_idx:
         pred = run / "eval" / f"{scene.names[i]}_pred.exr"
         if not pred.is_file():
@@ -208,6 +235,8 @@ def best_maps(scene, run: Path) -> dict[str, float]:
         pred = image_io.read_exr(pred).astype(np.float64)
         out["best_white"].append(best_map_psnr(pred, gt, matrix))
         out["best_map"].append(best_map_psnr(pred, gt, matrix, full=True))
+        for k, v in by_scale(pred, gt).items():
+            out[k].append(v)
     return {k: float(np.mean(v)) for k, v in out.items()}
 
 
@@ -329,6 +358,12 @@ GAPS = ((("oracle", "clean"), "pipeline"), (("clean", "noisy"), "noise"),
         (("best_white", "default"), "white & exposure"))
 
 
+# the default's error by scale (by_scale): (record key, column heading), and its gap
+SCALE_COLUMNS = (("default", "default"), ("coarse", f"default, both blurred {DETAIL_SIGMA:g} px"),
+                 ("detail_kept", "detail kept"))
+SCALE_GAPS = ((("coarse", "default"), "detail (dB)"),)
+
+
 def table_row(label: str, r: dict, columns=COLUMNS, gaps=GAPS) -> list[str]:
     """A row's cells ("n/a" where a fit is missing) and its gaps."""
     cells = [label, *(f"{r[k]:.2f}" if k in r else "n/a" for k, _ in columns)]
@@ -365,8 +400,14 @@ def main() -> None:
                               [table_row(n, r, CEILINGS, ()) for n, r in rows.items()])
     fits = markdown_table(["scene", *(h for _, h in COLUMNS), *(h for _, h in GAPS)],
                           [table_row(n, r) for n, r in rows.items()])
+    scales = markdown_table(["scene", *(h for _, h in SCALE_COLUMNS), *(h for _, h in SCALE_GAPS)],
+                            [table_row(n, r, SCALE_COLUMNS, SCALE_GAPS) for n, r in rows.items()])
     table = ("What no reconstruction can beat (nothing trained):\n\n" + ceilings
-             + "\nThe fits and where their dB go:\n\n" + fits)
+             + "\nThe fits and where their dB go:\n\n" + fits
+             + "\nThe default's error by scale (render and reference both blurred by a "
+             f"Gaussian of {DETAIL_SIGMA:g} px in sRGB: the error above about two pixels; "
+             "detail = that PSNR - the PSNR; detail kept: the render's fine detail, its "
+             "image minus its blur, as a share of the reference's in RMS):\n\n" + scales)
     md = ("# Error budget\n\n"
           f"`python -m experiments.error_budget --scenes {args.scenes}"
           f"{' --no-train' if args.no_train else ''}`: test-view PSNR (dB). Ceilings: "

@@ -342,6 +342,30 @@ def test_error_budget_best_white_undoes_a_wrong_diagonal_before_the_matrix():
     assert eb.best_map_psnr(twisted, gt, matrix) >= as_is - 1e-9
 
 
+def test_error_budget_by_scale_tells_a_blurred_render_from_a_shifted_colour():
+    """A render that is the reference blurred keeps little of its fine detail and is far
+    closer to it at coarse scales than at full resolution; one that is the reference with a
+    colour cast keeps all its detail and has the same error at both scales."""
+    import numpy as np
+    from scipy.ndimage import gaussian_filter
+
+    from experiments import error_budget as eb
+    from gridnerf.evaluate import image_metrics
+
+    rng = np.random.default_rng(1)
+    gt = gaussian_filter(rng.uniform(0.02, 0.6, (64, 96, 3)), (0.7, 0.7, 0))
+    blurred = gaussian_filter(gt, (2.0, 2.0, 0))
+    b = eb.by_scale(blurred, gt)
+    assert b["detail_kept"] < 0.35
+    assert b["coarse"] > image_metrics(blurred, gt, 16)["psnr"] + 6.0
+    cast = gt * [1.15, 1.0, 0.9]
+    c = eb.by_scale(cast, gt)
+    assert 0.85 < c["detail_kept"] < 1.2
+    assert abs(c["coarse"] - image_metrics(cast, gt, 16)["psnr"]) < 1.0
+    same = eb.by_scale(gt, gt)
+    assert same["detail_kept"] == 1.0 and same["coarse"] > 100.0
+
+
 def test_error_budget_reuses_a_true_white_fit_only_under_its_config(tmp_path):
     """A true-white fit (kept in the study's own record, not in RESULTS) is reused only
     where the record's fingerprint is the fit's config today: a fit trained by another
