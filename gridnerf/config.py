@@ -161,6 +161,12 @@ class GridConfig(_Section):
     prune_threshold: float = 0.05  # carve vertices no training ray weighs by more (weight, 0-1)
     fit_box: bool = True  # after the first stage, shrink the box to the visible content
     background: Literal["black", "mean"] = "mean"  # behind the grid: the capture's mean or black
+    # vertex counts (x, y, z) of the one finer stage a run may add after its last (y = 0:
+    # from the image aspect), trained train.refine_steps steps
+    refine_resolution: tuple[int, int, int] = (288, 0, 64)
+    # add that stage where the last leaves detail in the training frames over this many
+    # times their noise after averaging the views (gridnerf.detail; ratio, 0: never)
+    refine_detail: float = 0.0
 
     def _check(self) -> None:
         self._require("resolutions", len(self.resolutions) >= 1
@@ -171,6 +177,11 @@ class GridConfig(_Section):
         self._require("sh_degree", 0 <= self.sh_degree <= MAX_SH_DEGREE,
                       f"a whole number from 0 to {MAX_SH_DEGREE}")
         self._range("prune_threshold", 0.0, 1.0)
+        r = self.refine_resolution
+        self._require("refine_resolution", len(r) == 3 and min(r[0], r[2]) >= 2
+                      and (r[1] >= 2 or r[1] == 0),
+                      "one [x,y,z], each vertex count >= 2 (y may be 0), e.g. [288,0,64]")
+        self._range("refine_detail", 0.0)
 
 
 @dataclass(frozen=True)
@@ -257,6 +268,7 @@ class TrainConfig(_Section):
     # steps over which each stage after the first ramps its rates up from 0 (linear): the
     # upsampled grid starts near its optimum, and Adam's first steps move every parameter
     warmup_steps: int = 0
+    refine_steps: int = 600  # steps of the finer stage a run adds (grid.refine_detail)
     seed: int = 0  # PRNG seed of the init and the batches
     log_every: int = 50  # steps between metrics.jsonl lines
     checkpoint_every: int = 300  # steps between checkpoints (also every CHECKPOINT_SECONDS)
@@ -271,6 +283,7 @@ class TrainConfig(_Section):
             self._range(name, 0.0)
         self._range("lr_decay", 0.0, lo_open=True)
         self._require("warmup_steps", self.warmup_steps >= 0, "a whole number >= 0")
+        self._require("refine_steps", self.refine_steps >= 1, "a whole number >= 1")
         self._require("seed", self.seed >= 0, "a whole number >= 0")
         self._require("log_every", self.log_every >= 1, "a whole number >= 1")
         self._require("checkpoint_every", self.checkpoint_every >= 1, "a whole number >= 1")
@@ -505,7 +518,9 @@ def get(cfg: Config, dotted: str) -> Any:
 # experiments.common.fingerprint leaves the field out at that value, so the kept results
 # of configs that do not use it stay valid
 ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0,
-                ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0}
+                ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0,
+                ("grid", "refine_detail"): 0.0, ("grid", "refine_resolution"): (288, 0, 64),
+                ("train", "refine_steps"): 600}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

@@ -36,6 +36,7 @@ from gridnerf import (
     darkframes,
     data_term,
     dataset,
+    detail,
     grid,
     illuminant,
     methods,
@@ -138,6 +139,24 @@ def _vignetting(run: Path, plan, stage: int, structure, params, data, scene, nea
     return vignetting.apply(data, k), plan
 
 
+def _refinement(run: Path, plan, structure, params, scene, cfg: Config, near_t, far_t,
+                fits_raw: bool):
+    """The plan after the config's last stage (detail.refinement), saved where it
+    changed."""
+    decided = detail.refinement(plan, structure, params, scene, cfg, near_t, far_t, fits_raw)
+    if decided is not plan:
+        planmod.save(run, decided)
+    return decided
+
+
+def _mosaic_count(cfg: Config, plan) -> int:
+    """How many of a finished run's stages fitted the raw mosaic (the added finer stage
+    fits what the last did)."""
+    n = len(cfg.grid.resolutions)
+    count = n - cfg.data.mosaic_from(n, plan.mosaic_stages)
+    return count + 1 if count and plan.refined else count
+
+
 def stage_data(data, scene, cfg: Config, method, plan, stage: int):
     """The training data of `stage`: from the first of the plan's last mosaic stages on
     (DataConfig.mosaic_from), the raw Bayer mosaic, photosite by photosite, in place of
@@ -235,7 +254,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
                   f"frame, {np.percentile(spread, 90):.2f} deg from the capture's at the "
                   "90th percentile")
     key = jax.random.PRNGKey(cfg.train.seed)
-    schedule = list(zip(cfg.grid.resolutions, cfg.train.steps_per_stage, strict=True))
+    schedule = stages.schedule(cfg, saved)
 
     if resuming:
         structure, params, opt_leaves, header = load_state(run)
@@ -293,7 +312,14 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         total=total_steps, initial=done_before, unit="step", dynamic_ncols=True, mininterval=2.0
     )
     rate = 0.0
-    while stage < len(schedule):
+    while True:
+        if stage == len(schedule):  # the config's stages are trained: a finer one next?
+            plan = _refinement(run, plan, structure, params, scene, cfg, near_t, far_t,
+                               method.fits_raw(cfg))
+            schedule = stages.schedule(cfg, plan)
+            if stage == len(schedule):
+                break
+            bar.total += schedule[stage][1]
         res, steps = schedule[stage]
         if stage > 0 and start == 0 and not opt_leaves:
             data, plan = _vignetting(run, plan, stage, structure, params, data, scene, near_t,
@@ -316,12 +342,13 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         # the stage's candidate count and sample slots: decided on its grid and its rays,
         # kept in the plan (one write)
         decided = plan
+        fitting = stages.stage_render(cfg, stage)
         if not plan.n_candidates[stage]:
             plan = plan.with_candidates(stage, stages.fitted_candidates(
-                structure, data, near_t, far_t, cfg.render))
+                structure, data, near_t, far_t, fitting))
         if plan.max_samples is None or not plan.max_samples[stage]:
             plan = plan.with_samples(stage, stages.fitted_samples(
-                structure, data, near_t, far_t, cfg.render, plan.n_candidates[stage]))
+                structure, data, near_t, far_t, fitting, plan.n_candidates[stage]))
             print(f"stage {stage}: {plan.max_samples[stage]} occupied samples per ray "
                   f"(of {plan.n_candidates[stage]} candidates)")
         if plan is not decided:
@@ -405,7 +432,11 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         "data_eps": plan.data_eps,
         # the frames' photons per green photosite and the stages that fitted the raw mosaic
         "photosite_snr": plan.photosite_snr,
-        "mosaic_stages": (n_stages - cfg.data.mosaic_from(n_stages, plan.mosaic_stages)),
+        "mosaic_stages": _mosaic_count(cfg, plan),
+        # the detail the config's last stage left (gridnerf.detail) and whether a finer
+        # stage followed
+        "detail_ratio": plan.detail_ratio,
+        "refined": bool(plan.refined),
         # the binned training frames' box downscale (data_term.planned_downscale)
         "downscale": cfg.data.downscale,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,

@@ -1,0 +1,171 @@
+"""The detail a trained grid leaves in its training frames, told apart from their noise.
+
+A grid stage either holds a scene's fine structure or it does not; where it does not, the
+residual of every training frame (the raw minus the stage's render of that view) holds the
+missing detail under the frame's noise. The two cannot be told apart by their size in one
+photosite, but they can by what they share: the two green photosites of a 2x2 CFA cell sit
+one photosite apart on the diagonal, see nearly the same point of the scene, and have
+independent noise (shot and read noise are independent per photosite; row noise too, the
+two greens lie on different rows; a per-position black offset is removed by the band
+below). So, with r1, r2 the green residuals of one cell after a high-pass (each green plane
+minus its Gaussian blur of SIGMA plane pixels, i.e. detail finer than about two binned
+pixels):
+
+    detail = mean(r1 * r2)                       the residual's shared, scene-fixed part
+    noise  = (mean(r1^2) + mean(r2^2)) / 2 - detail   one frame's noise in that band
+
+and the reading's `ratio` = detail / (noise / n_views): the missing detail in units of the
+band's noise after an ideal average of the n training views. Well under a few units the
+frames cannot tell a finer grid's detail from their noise (a finer stage would fit noise);
+well over it they can. The shared part underestimates detail at the plane's finest scale
+(the greens are half a plane pixel apart in each axis), so the ratio is a conservative
+reading of the detail, and its threshold (grid.refine_detail) is set on it as measured.
+
+Measured on tiles of TILE x TILE photosites spread evenly over every EVERY-th training
+frame, at most MAX_RAYS photosites in all, rendered by the stage's grid in low-light camera
+RGB (the data term's own prediction: exposure-normalised raw, lens falloff taken off as
+the training targets are, gridnerf.dataset.targets); saturated photosites are left out.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from gridnerf import dataset, render, vignetting
+from gridnerf import plan as planmod
+
+TILE = 64  # photosites a side of one measured tile (even: whole CFA cells)
+SIGMA = 1.0  # the high-pass's Gaussian, in pixels of one CFA plane (two photosites)
+EVERY = 4  # every this many training frames are measured
+MAX_RAYS = 1 << 19  # photosites rendered at most (tiles thinned evenly above it)
+_TRIM = 3  # plane pixels at each tile edge left out of the band (the blur's reach)
+
+
+@dataclass(frozen=True)
+class DetailReading:
+    """ratio: detail / (noise / views), the module docstring's reading; detail, noise: the
+    band powers (normalised raw squared); views: the training views the unit averages;
+    pairs: green cells measured."""
+
+    ratio: float
+    detail: float
+    noise: float
+    views: int
+    pairs: int
+
+
+def green_positions(cfa: np.ndarray) -> tuple[tuple[int, int], tuple[int, int]]:
+    """The two (row, col) positions of a 2x2 CFA's repeated colour (green in every
+    RGB Bayer layout); ValueError for a CFA with none repeated."""
+    cfa = np.asarray(cfa)
+    values, counts = np.unique(cfa, return_counts=True)
+    if counts.max() != 2:
+        raise ValueError(f"a 2x2 CFA with one colour twice, not {cfa.tolist()}")
+    rows, cols = np.nonzero(cfa == values[np.argmax(counts)])
+    return (int(rows[0]), int(cols[0])), (int(rows[1]), int(cols[1]))
+
+
+def highpass(planes: np.ndarray) -> np.ndarray:
+    """(T, h, w) -> (T, h - 2 _TRIM, w - 2 _TRIM): each plane minus its Gaussian blur
+    (SIGMA), the edges the blur reaches past left out."""
+    planes = np.asarray(planes, np.float64)
+    low = ndimage.gaussian_filter(planes, sigma=(0, SIGMA, SIGMA), mode="nearest")
+    return (planes - low)[:, _TRIM:-_TRIM, _TRIM:-_TRIM]
+
+
+def band_powers(resid: np.ndarray, valid: np.ndarray, cfa: np.ndarray) -> tuple[float, float,
+                                                                               int]:
+    """(detail, noise, pairs) of residual tiles resid, valid (T, TILE, TILE) (photosite
+    residuals and their validity): the module docstring's shared and noise band powers of
+    the two green planes, over the cells whose band both greens see unsaturated."""
+    (a0, a1), (b0, b1) = green_positions(cfa)
+    r1, r2 = resid[:, a0::2, a1::2], resid[:, b0::2, b1::2]
+    ok = valid[:, a0::2, a1::2] & valid[:, b0::2, b1::2]
+    # a cell counts where no invalid photosite lies within the blur's reach of it
+    ok = ~ndimage.binary_dilation(~ok, structure=np.ones((1, 2 * _TRIM + 1, 2 * _TRIM + 1)))
+    h1, h2 = highpass(np.where(ok, r1, 0.0)), highpass(np.where(ok, r2, 0.0))
+    ok = ok[:, _TRIM:-_TRIM, _TRIM:-_TRIM]
+    n = int(ok.sum())
+    if n == 0:
+        return float("nan"), float("nan"), 0
+    detail = float((h1 * h2)[ok].mean())
+    noise = float(0.5 * ((h1**2)[ok].mean() + (h2**2)[ok].mean())) - detail
+    return detail, noise, n
+
+
+def tiles(image_hw: tuple[int, int], n_frames: int, max_rays: int = MAX_RAYS
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """frame, v, u (T, TILE, TILE) integer photosites of tiles laid evenly over each of
+    n_frames frames (whole tiles, centred; every k-th tile where more than max_rays
+    photosites would be rendered)."""
+    h, w = image_hw
+    ny, nx = h // TILE, w // TILE
+    if ny == 0 or nx == 0:
+        raise ValueError(f"frames of {w}x{h} photosites are smaller than a {TILE} tile")
+    y0, x0 = (h - ny * TILE) // 2 // 2 * 2, (w - nx * TILE) // 2 // 2 * 2
+    ty, tx = np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij")
+    corners = np.stack([y0 + ty.ravel() * TILE, x0 + tx.ravel() * TILE], 1)
+    keep = max(1, int(math.ceil(n_frames * len(corners) * TILE * TILE / max_rays)))
+    frames = np.repeat(np.arange(n_frames), len(corners))
+    corners = np.tile(corners, (n_frames, 1))
+    frames, corners = frames[::keep], corners[::keep]
+    dv, du = np.meshgrid(np.arange(TILE), np.arange(TILE), indexing="ij")
+    v = corners[:, 0, None, None] + dv
+    u = corners[:, 1, None, None] + du
+    return np.broadcast_to(frames[:, None, None], v.shape), v, u
+
+
+def measure(structure, params, scene, data_cfg, render_cfg, near_t: float, far_t: float,
+            falloff: tuple[float, float] | None = None, every: int = EVERY,
+            max_rays: int = MAX_RAYS) -> DetailReading:
+    """The reading of a trained grid on its scene's training frames (module docstring).
+
+    data_cfg: the run's data section (its target and exposure_ratio; the raw mosaic is
+    read whatever the stage trained on); render_cfg: the run's render section;
+    falloff: the run plan's lens falloff (k1, k2), taken off the targets as in training.
+    """
+    frames = np.asarray(scene.train_idx)[::every]
+    data = vignetting.apply(
+        dataset.build(scene, frames, binning=False, target=data_cfg.target,
+                      exposure_ratio=data_cfg.exposure_ratio), falloff)
+    fr, v, u = tiles(data.image_hw, len(frames), max_rays)
+    rays = dataset.rays_at_jit(data, *(np.ascontiguousarray(a) for a in (fr, v, u)))
+    out = render.render_image(structure, params, rays["origins"], rays["directions"],
+                              near_t, far_t, render_cfg)
+    mask = np.asarray(rays["mask"], np.float64)
+    resid = (mask * (np.asarray(rays["target"], np.float64)
+                     - np.asarray(out["rgb_low"], np.float64))).sum(-1)
+    detail, noise, pairs = band_powers(resid, mask.sum(-1) > 0, scene.cfa)
+    views = len(scene.train_idx)
+    ratio = detail * views / noise if pairs and noise > 0 else float("nan")
+    return DetailReading(ratio=float(ratio), detail=detail, noise=noise, views=views,
+                         pairs=pairs)
+
+
+def refinement(plan, structure, params, scene, cfg, near_t: float, far_t: float,
+               fits_raw: bool):
+    """The run plan once the config's last stage is trained: the reading of its grid and
+    whether the finer stage follows (plan.with_refinement: the ratio over
+    grid.refine_detail), with one printed line; the plan as it is where it was decided
+    already, where the config never refines (grid.refine_detail 0), or where the data
+    term does not fit raw frames (the oracle's references hold no noise to tell detail
+    from)."""
+    threshold = cfg.grid.refine_detail
+    if plan.refined is not None or threshold <= 0 or not fits_raw:
+        return plan
+    reading = measure(structure, params, scene, cfg.data,
+                      planmod.render_config(cfg, plan).render, near_t, far_t, plan.vignetting)
+    ok = math.isfinite(reading.ratio)
+    refined = ok and reading.ratio > threshold
+    res = tuple(cfg.grid.refine_resolution)
+    told = (f"{reading.ratio:.1f} times their noise after averaging the {reading.views} views"
+            if ok else "not measurable (no unsaturated green cells)")
+    print(f"detail: the last stage leaves detail in the training frames of {told} "
+          f"(grid.refine_detail {threshold:g}): "
+          + (f"a finer stage {list(res)} follows, {cfg.train.refine_steps} steps" if refined
+             else "the grid stops refining"))
+    return plan.with_refinement(reading.ratio if ok else None, refined)

@@ -1,0 +1,130 @@
+"""The detail reading: a grid's missing detail told apart from the frames' noise."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from gridnerf import detail
+
+RGGB = np.array([[0, 1], [1, 2]])
+
+
+def _texture(rng, shape, scale: float, blur: float) -> np.ndarray:
+    """(T, H, W) scene-fixed structure: white noise blurred by `blur` photosites."""
+    t = ndimage.gaussian_filter(rng.normal(size=shape), sigma=(0, blur, blur))
+    return scale * t / t.std()
+
+
+def test_green_positions_of_every_bayer_layout():
+    for cfa, want in (([[0, 1], [1, 2]], ((0, 1), (1, 0))), ([[2, 1], [1, 0]], ((0, 1), (1, 0))),
+                      ([[1, 0], [2, 1]], ((0, 0), (1, 1))), ([[1, 2], [0, 1]], ((0, 0), (1, 1)))):
+        assert detail.green_positions(np.array(cfa)) == want
+    with pytest.raises(ValueError):
+        detail.green_positions(np.array([[0, 1], [2, 3]]))
+
+
+def test_noise_alone_reads_no_detail():
+    rng = np.random.default_rng(0)
+    shape = (40, detail.TILE, detail.TILE)
+    resid = 0.01 * rng.normal(size=shape)
+    d, n, pairs = detail.band_powers(resid, np.ones(shape, bool), RGGB)
+    h = detail.highpass(rng.normal(size=(1, 512, 512)))  # the band's share of white noise
+    assert pairs > 20000
+    assert n == pytest.approx(1e-4 * float((h**2).mean()), rel=0.03)
+    assert abs(d) < 0.02 * n
+
+
+def test_shared_detail_is_read_under_the_noise_and_the_noise_apart():
+    rng = np.random.default_rng(1)
+    shape = (40, detail.TILE, detail.TILE)
+    tex = _texture(rng, shape, 0.004, 1.5)
+    noise = 0.01 * rng.normal(size=shape)
+    ones = np.ones(shape, bool)
+    d_true, _, _ = detail.band_powers(tex, ones, RGGB)
+    _, n_true, _ = detail.band_powers(noise, ones, RGGB)
+    d, n, _ = detail.band_powers(tex + noise, ones, RGGB)
+    assert d_true > 0
+    assert d == pytest.approx(d_true, rel=0.2)  # the detail is a few % of the noise
+    assert n == pytest.approx(n_true, rel=0.05)
+    # the reading scales with the residual squared: its ratio does not depend on the units
+    d3, n3, _ = detail.band_powers(3 * (tex + noise), ones, RGGB)
+    assert d3 / n3 == pytest.approx(d / n, rel=1e-9)
+
+
+def test_saturated_photosites_are_left_out():
+    rng = np.random.default_rng(2)
+    shape = (20, detail.TILE, detail.TILE)
+    resid = 0.01 * rng.normal(size=shape)
+    valid = np.ones(shape, bool)
+    ref = detail.band_powers(resid, valid, RGGB)
+    spoiled = resid.copy()
+    spoiled[:, 20:30, 20:30] = 5.0  # a clipped highlight: its residual means nothing
+    valid[:, 20:30, 20:30] = False
+    d, n, pairs = detail.band_powers(spoiled, valid, RGGB)
+    assert pairs < ref[2]
+    assert abs(d) < 0.05 * n and n == pytest.approx(ref[1], rel=0.1)
+
+
+def test_tiles_are_whole_cells_inside_the_frame_and_thinned_to_the_budget():
+    fr, v, u = detail.tiles((270, 480), 6)
+    assert v.shape[1:] == (detail.TILE, detail.TILE)
+    assert v.min() >= 0 and v.max() < 270 and u.min() >= 0 and u.max() < 480
+    assert (v[:, 0, 0] % 2 == 0).all() and (u[:, 0, 0] % 2 == 0).all()
+    assert set(np.unique(fr)) == set(range(6))
+    fr, v, u = detail.tiles((1080, 1920), 6, max_rays=1 << 19)
+    assert v.size <= 1 << 19 and len(np.unique(fr)) == 6
+    with pytest.raises(ValueError):
+        detail.tiles((40, 480), 2)
+
+
+def _tiny(detail_ratio: float):
+    from gridnerf import config as cfgmod
+
+    return cfgmod.override(cfgmod.preset("tiny"), [
+        f"grid.refine_detail={detail_ratio}", "grid.refine_resolution=[48,48,28]",
+        "train.refine_steps=20"])
+
+
+def test_a_run_refines_only_where_its_frames_show_the_detail(small_scene, tmp_path, capsys):
+    """Under the threshold the run trains exactly as one that never measures (the reading
+    draws nothing from the run's key); over it one finer stage follows, kept in the plan,
+    checkpointed finite and rendered by eval; a rerun of the finished run trains nothing."""
+    from gridnerf import checkpoint, eval_run
+    from gridnerf import plan as planmod
+    from gridnerf.train import train
+
+    never = train(small_scene, tmp_path / "never", _tiny(0.0))
+    below = train(small_scene, tmp_path / "below", _tiny(1e9))
+    out = capsys.readouterr().out
+    assert "the grid stops refining" in out
+    plan = planmod.load(tmp_path / "below")
+    assert plan.refined is False and plan.detail_ratio is not None
+    assert planmod.load(tmp_path / "never").refined is None
+    assert below["resolution"] == never["resolution"] and below["refined"] is False
+    a = checkpoint.load(tmp_path / "never" / "checkpoint.npz")[0]
+    b = checkpoint.load(tmp_path / "below" / "checkpoint.npz")[0]
+    assert a.keys() == b.keys()
+    for name in a:
+        for x, y in zip(a[name], b[name], strict=True):
+            np.testing.assert_array_equal(x, y)
+
+    above = train(small_scene, tmp_path / "above", _tiny(1e-9))
+    assert "a finer stage [48, 48, 28] follows" in capsys.readouterr().out
+    plan = planmod.load(tmp_path / "above")
+    assert plan.refined is True and len(plan.n_candidates) == 3 == len(plan.opacity)
+    assert all(plan.n_candidates) and all(plan.max_samples)
+    assert above["refined"] is True and above["resolution"][0] == 48
+    assert above["resolution"] != never["resolution"]
+    groups = checkpoint.load(tmp_path / "above" / "checkpoint.npz")[0]
+    assert all(np.isfinite(x).all() for arrays in groups.values() for x in arrays
+               if x.dtype.kind == "f")
+    steps = [json.loads(line)["stage"] for line in
+             (tmp_path / "above" / "metrics.jsonl").read_text().splitlines()]
+    assert max(steps) == 2
+    assert train(small_scene, tmp_path / "above", _tiny(1e-9))["refined"] is True
+    assert "already trained" in capsys.readouterr().out
+    assert eval_run.load_run(tmp_path / "above")[3].resolution[0] == 48
