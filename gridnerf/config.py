@@ -161,11 +161,11 @@ class GridConfig(_Section):
     prune_threshold: float = 0.05  # carve vertices no training ray weighs by more (weight, 0-1)
     fit_box: bool = True  # after the first stage, shrink the box to the visible content
     background: Literal["black", "mean"] = "mean"  # behind the grid: the capture's mean or black
-    # vertex counts (x, y, z) of the one finer stage a run may add after its last (y = 0:
-    # from the image aspect), trained train.refine_steps steps
+    # vertex counts (x, y, z) of the last stage where the frames carry finer detail than
+    # the last but one holds (y = 0: from the image aspect), in place of the last resolution
     refine_resolution: tuple[int, int, int] = (288, 0, 64)
-    # add that stage where the last leaves detail in the training frames over this many
-    # times their noise after averaging the views (gridnerf.detail; ratio, 0: never)
+    # ...where that detail, read after the last stage but one, is over this many times the
+    # frames' noise after averaging the views (gridnerf.detail; ratio, 0: never)
     refine_detail: float = 0.0
 
     def _check(self) -> None:
@@ -268,7 +268,6 @@ class TrainConfig(_Section):
     # steps over which each stage after the first ramps its rates up from 0 (linear): the
     # upsampled grid starts near its optimum, and Adam's first steps move every parameter
     warmup_steps: int = 0
-    refine_steps: int = 600  # steps of the finer stage a run adds (grid.refine_detail)
     seed: int = 0  # PRNG seed of the init and the batches
     log_every: int = 50  # steps between metrics.jsonl lines
     checkpoint_every: int = 300  # steps between checkpoints (also every CHECKPOINT_SECONDS)
@@ -283,7 +282,6 @@ class TrainConfig(_Section):
             self._range(name, 0.0)
         self._range("lr_decay", 0.0, lo_open=True)
         self._require("warmup_steps", self.warmup_steps >= 0, "a whole number >= 0")
-        self._require("refine_steps", self.refine_steps >= 1, "a whole number >= 1")
         self._require("seed", self.seed >= 0, "a whole number >= 0")
         self._require("log_every", self.log_every >= 1, "a whole number >= 1")
         self._require("checkpoint_every", self.checkpoint_every >= 1, "a whole number >= 1")
@@ -519,8 +517,7 @@ def get(cfg: Config, dotted: str) -> Any:
 # of configs that do not use it stay valid
 ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0,
                 ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0,
-                ("grid", "refine_detail"): 0.0, ("grid", "refine_resolution"): (288, 0, 64),
-                ("train", "refine_steps"): 600}
+                ("grid", "refine_detail"): 0.0, ("grid", "refine_resolution"): (288, 0, 64)}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

@@ -226,8 +226,8 @@ def fitted_config(cfg: Config, downscale: int | None) -> Config:
     config the training data is built from and trained by. The saved config.json stays the
     user's.
 
-    Where the plan raises the downscale by a factor f, the last stage (and the finer stage
-    a run may add, train.refine_steps) trains f times its steps: a capture that large has
+    Where the plan raises the downscale by a factor f, the last stage trains f times its
+    steps: a capture that large has
     f^2 times the photosites a voxel, and its time target more room (`make bench`: 480x270
     within 3 min, 1920x1080 within 15). At 1920x1080 (f = 2) twice the last stage's steps
     lifted bucket by 0.27 dB (colour-aligned 0.65) and the held-out held_arc_table by 0.51
@@ -237,8 +237,7 @@ def fitted_config(cfg: Config, downscale: int | None) -> Config:
     factor = max(int(downscale) // cfg.data.downscale, 1)
     steps = cfg.train.steps_per_stage
     return replace(cfg, data=replace(cfg.data, downscale=int(downscale)),
-                   train=replace(cfg.train, steps_per_stage=(*steps[:-1], steps[-1] * factor),
-                                 refine_steps=cfg.train.refine_steps * factor))
+                   train=replace(cfg.train, steps_per_stage=(*steps[:-1], steps[-1] * factor)))
 
 
 def capped_eps(cfg: Config, sigma: float, raw: bool = True) -> float:

@@ -30,13 +30,12 @@ the training targets are, gridnerf.dataset.targets); saturated photosites are le
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage
 
 from gridnerf import dataset, render, vignetting
-from gridnerf import plan as planmod
 
 TILE = 64  # photosites a side of one measured tile (even: whole CFA cells)
 SIGMA = 1.0  # the high-pass's Gaussian, in pixels of one CFA plane (two photosites)
@@ -146,26 +145,28 @@ def measure(structure, params, scene, data_cfg, render_cfg, near_t: float, far_t
                          pairs=pairs)
 
 
+
 def refinement(plan, structure, params, scene, cfg, near_t: float, far_t: float,
                fits_raw: bool):
-    """The run plan once the config's last stage is trained: the reading of its grid and
-    whether the finer stage follows (plan.with_refinement: the ratio over
-    grid.refine_detail), with one printed line; the plan as it is where it was decided
-    already, where the config never refines (grid.refine_detail 0), or where the data
-    term does not fit raw frames (the oracle's references hold no noise to tell detail
-    from)."""
+    """The run plan at the start of the last stage: the reading of the grid the stage before
+    it trained and whether the last trains at grid.refine_resolution (plan.with_refinement:
+    the ratio over grid.refine_detail), with one printed line; the plan as it is where it
+    was decided already, where the config never refines (grid.refine_detail 0, or a
+    single stage), or where the data term does not fit raw frames (the oracle's
+    references hold no noise to tell detail from)."""
     threshold = cfg.grid.refine_detail
-    if plan.refined is not None or threshold <= 0 or not fits_raw:
+    if (plan.refined is not None or threshold <= 0 or not fits_raw
+            or len(cfg.grid.resolutions) < 2):
         return plan
-    reading = measure(structure, params, scene, cfg.data,
-                      planmod.render_config(cfg, plan).render, near_t, far_t, plan.vignetting)
+    shaded = replace(cfg.render, max_samples=plan.samples(len(cfg.grid.resolutions) - 2, cfg))
+    reading = measure(structure, params, scene, cfg.data, shaded, near_t, far_t,
+                      plan.vignetting)
     ok = math.isfinite(reading.ratio)
     refined = ok and reading.ratio > threshold
-    res = tuple(cfg.grid.refine_resolution)
-    told = (f"{reading.ratio:.1f} times their noise after averaging the {reading.views} views"
-            if ok else "not measurable (no unsaturated green cells)")
-    print(f"detail: the last stage leaves detail in the training frames of {told} "
-          f"(grid.refine_detail {threshold:g}): "
-          + (f"a finer stage {list(res)} follows, {cfg.train.refine_steps} steps" if refined
-             else "the grid stops refining"))
+    last, finer = list(cfg.grid.resolutions[-1]), list(cfg.grid.refine_resolution)
+    told = (f"{reading.ratio:.2f} times their noise after averaging the {reading.views} "
+            "views" if ok else "not measurable (no unsaturated green cells)")
+    print(f"detail: the frames hold fine detail of {told} (grid.refine_detail "
+          f"{threshold:g}): the last stage trains at {finer if refined else last}"
+          + (f" in place of {last}" if refined else ""))
     return plan.with_refinement(reading.ratio if ok else None, refined)

@@ -18,8 +18,9 @@ training decides at run time from the capture goes here instead, is saved as
 - per stage: the opacity prior's weight and the fitted candidate count of the step;
 - the lens falloff: estimated from the frames and taken off (gridnerf.vignetting), or
   corrected by the raw files' own opcodes on loading (gridnerf.raw_layout);
-- whether one finer stage follows the config's last: where the last stage leaves detail in
-  the training frames that their noise does not explain (gridnerf.detail, grid.refine_detail).
+- whether the last stage trains at grid.refine_resolution in place of the config's last
+  resolution: where the last stage but one leaves fine detail in the training frames that
+  their noise does not explain (gridnerf.detail, grid.refine_detail).
 
 The plan is built once before the first step (candidate counts are filled in as each
 stage's grid is made: `with_candidates`); a resumed run reads it back and keeps it.
@@ -99,12 +100,12 @@ class RunPlan:
     saved before the decision existed): the config's data.downscale. max_samples: each
     stage's occupied-sample slots per ray (stages.fitted_samples; 0: not decided yet), None
     (a plan saved before the decision existed): the config's render.max_samples; the last
-    stage's is the finished run's (render_config). detail_ratio: the detail the config's last
-    stage left in the training frames, in units of their noise after averaging the views
-    (gridnerf.detail.DetailReading.ratio), None where not measured or not measurable;
-    refined: whether the finer stage grid.refine_resolution was added after it (its entry
-    is last in the per-stage tuples), None while not decided (or a plan saved before the
-    decision existed, or a config that never refines: no stage added).
+    stage's is the finished run's (render_config). detail_ratio: the fine detail the last
+    stage but one left in the training frames, in units of their noise after averaging the
+    views (gridnerf.detail.DetailReading.ratio), None where not measured or not
+    measurable; refined: whether the last stage trains at grid.refine_resolution in place
+    of the config's last resolution, None while not decided (or a plan saved before the
+    decision existed, or a config that never refines: the config's resolutions).
     """
 
     method: str
@@ -144,16 +145,9 @@ class RunPlan:
         return replace(self, max_samples=tuple(slots))
 
     def with_refinement(self, ratio: float | None, refined: bool) -> RunPlan:
-        """The plan with the detail reading and the decision on it; where `refined`, one more
-        stage in the per-stage tuples (undecided counts and slots, the last stage's opacity
-        weight)."""
-        plan = replace(self, detail_ratio=None if ratio is None else float(ratio),
+        """The plan with the detail reading (None: not measurable) and the decision on it."""
+        return replace(self, detail_ratio=None if ratio is None else float(ratio),
                        refined=bool(refined))
-        if not refined:
-            return plan
-        slots = self.max_samples or (0,) * len(self.n_candidates)
-        return replace(plan, opacity=(*self.opacity, self.opacity[-1]),
-                       n_candidates=(*self.n_candidates, 0), max_samples=(*slots, 0))
 
     def samples(self, stage: int, cfg) -> int:
         """Stage `stage`'s occupied-sample slots per ray: the plan's where decided, else

@@ -207,24 +207,23 @@ def initial_grid(data: dataset.RayData, scene, cfg: Config, key, init_log_gain):
         key=jax.random.fold_in(key, 2))
 
 
+
 def schedule(cfg: Config, plan) -> list[tuple[tuple[int, int, int], int]]:
-    """(resolution, steps) of each stage of a run: the config's, then the finer stage
-    (grid.refine_resolution, train.refine_steps) where the run plan added it
-    (plan.refined; gridnerf.detail)."""
+    """(resolution, steps) of each stage of a run: the config's, the last at
+    grid.refine_resolution where the run plan refined it (plan.refined; gridnerf.detail)."""
     out = list(zip(cfg.grid.resolutions, cfg.train.steps_per_stage, strict=True))
     if plan is not None and plan.refined:
-        out.append((tuple(cfg.grid.refine_resolution), cfg.train.refine_steps))
+        out[-1] = (tuple(cfg.grid.refine_resolution), out[-1][1])
     return out
 
 
-def stage_render(cfg: Config, stage: int):
+def stage_render(cfg: Config, plan, stage: int):
     """The render section a stage's candidates and slots are fitted under: the config's,
-    and for the added finer stage a cap on its slots raised by its ratio of vertices
-    across to the last stage's (a ray crosses that many more occupied voxels), in
+    and for a refined last stage a cap on its slots raised by its ratio of vertices across
+    to the config's last resolution (a ray crosses that many more occupied voxels), in
     multiples of 8: 64 -> 96 for 288 over 192."""
-    n = len(cfg.grid.resolutions)
-    if stage < n:
+    if not (plan.refined and stage == len(cfg.grid.resolutions) - 1):
         return cfg.render
     ratio = cfg.grid.refine_resolution[0] / max(cfg.grid.resolutions[-1][0], 1)
-    cap = max(cfg.render.max_samples, -(-int(math.ceil(cfg.render.max_samples * ratio)) // 8) * 8)
-    return replace(cfg.render, max_samples=cap)
+    cap = -(-math.ceil(cfg.render.max_samples * ratio) // 8) * 8
+    return replace(cfg.render, max_samples=max(cfg.render.max_samples, cap))

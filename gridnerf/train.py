@@ -141,20 +141,12 @@ def _vignetting(run: Path, plan, stage: int, structure, params, data, scene, nea
 
 def _refinement(run: Path, plan, structure, params, scene, cfg: Config, near_t, far_t,
                 fits_raw: bool):
-    """The plan after the config's last stage (detail.refinement), saved where it
+    """The plan at the start of the last stage (detail.refinement), saved where it
     changed."""
     decided = detail.refinement(plan, structure, params, scene, cfg, near_t, far_t, fits_raw)
     if decided is not plan:
         planmod.save(run, decided)
     return decided
-
-
-def _mosaic_count(cfg: Config, plan) -> int:
-    """How many of a finished run's stages fitted the raw mosaic (the added finer stage
-    fits what the last did)."""
-    n = len(cfg.grid.resolutions)
-    count = n - cfg.data.mosaic_from(n, plan.mosaic_stages)
-    return count + 1 if count and plan.refined else count
 
 
 def stage_data(data, scene, cfg: Config, method, plan, stage: int):
@@ -312,14 +304,13 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         total=total_steps, initial=done_before, unit="step", dynamic_ncols=True, mininterval=2.0
     )
     rate = 0.0
-    while True:
-        if stage == len(schedule):  # the config's stages are trained: a finer one next?
+    while stage < len(schedule):
+        if stage == len(schedule) - 1 and start == 0 and not opt_leaves:
+            # the last stage's resolution: the config's, or finer where the frames show the
+            # detail for it
             plan = _refinement(run, plan, structure, params, scene, cfg, near_t, far_t,
                                method.fits_raw(cfg))
             schedule = stages.schedule(cfg, plan)
-            if stage == len(schedule):
-                break
-            bar.total += schedule[stage][1]
         res, steps = schedule[stage]
         if stage > 0 and start == 0 and not opt_leaves:
             data, plan = _vignetting(run, plan, stage, structure, params, data, scene, near_t,
@@ -342,7 +333,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         # the stage's candidate count and sample slots: decided on its grid and its rays,
         # kept in the plan (one write)
         decided = plan
-        fitting = stages.stage_render(cfg, stage)
+        fitting = stages.stage_render(cfg, plan, stage)
         if not plan.n_candidates[stage]:
             plan = plan.with_candidates(stage, stages.fitted_candidates(
                 structure, data, near_t, far_t, fitting))
@@ -432,9 +423,9 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         "data_eps": plan.data_eps,
         # the frames' photons per green photosite and the stages that fitted the raw mosaic
         "photosite_snr": plan.photosite_snr,
-        "mosaic_stages": _mosaic_count(cfg, plan),
-        # the detail the config's last stage left (gridnerf.detail) and whether a finer
-        # stage followed
+        "mosaic_stages": (n_stages - cfg.data.mosaic_from(n_stages, plan.mosaic_stages)),
+        # the fine detail the frames hold over their averaged noise (gridnerf.detail) and
+        # whether the last stage trained at grid.refine_resolution for it
         "detail_ratio": plan.detail_ratio,
         "refined": bool(plan.refined),
         # the binned training frames' box downscale (data_term.planned_downscale)

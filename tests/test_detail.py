@@ -85,26 +85,26 @@ def _tiny(detail_ratio: float):
     from gridnerf import config as cfgmod
 
     return cfgmod.override(cfgmod.preset("tiny"), [
-        f"grid.refine_detail={detail_ratio}", "grid.refine_resolution=[48,48,28]",
-        "train.refine_steps=20"])
+        f"grid.refine_detail={detail_ratio}", "grid.refine_resolution=[48,48,28]"])
 
 
 def test_a_run_refines_only_where_its_frames_show_the_detail(small_scene, tmp_path, capsys):
-    """Under the threshold the run trains exactly as one that never measures (the reading
-    draws nothing from the run's key); over it one finer stage follows, kept in the plan,
-    checkpointed finite and rendered by eval; a rerun of the finished run trains nothing."""
+    """Under the threshold the run trains exactly as one that never reads (the reading
+    draws nothing from the run's key); over it the last stage trains at
+    grid.refine_resolution, kept in the plan, checkpointed finite, resumed and rendered
+    at it; a rerun of the finished run trains nothing."""
     from gridnerf import checkpoint, eval_run
     from gridnerf import plan as planmod
     from gridnerf.train import train
 
     never = train(small_scene, tmp_path / "never", _tiny(0.0))
     below = train(small_scene, tmp_path / "below", _tiny(1e9))
-    out = capsys.readouterr().out
-    assert "the grid stops refining" in out
+    assert "the last stage trains at [40, 40, 24]" in capsys.readouterr().out
     plan = planmod.load(tmp_path / "below")
     assert plan.refined is False and plan.detail_ratio is not None
     assert planmod.load(tmp_path / "never").refined is None
-    assert below["resolution"] == never["resolution"] and below["refined"] is False
+    assert below["resolution"] == never["resolution"] == [40, 40, 24]
+    assert below["refined"] is False
     a = checkpoint.load(tmp_path / "never" / "checkpoint.npz")[0]
     b = checkpoint.load(tmp_path / "below" / "checkpoint.npz")[0]
     assert a.keys() == b.keys()
@@ -113,18 +113,20 @@ def test_a_run_refines_only_where_its_frames_show_the_detail(small_scene, tmp_pa
             np.testing.assert_array_equal(x, y)
 
     above = train(small_scene, tmp_path / "above", _tiny(1e-9))
-    assert "a finer stage [48, 48, 28] follows" in capsys.readouterr().out
+    assert "trains at [48, 48, 28] in place of [40, 40, 24]" in capsys.readouterr().out
     plan = planmod.load(tmp_path / "above")
-    assert plan.refined is True and len(plan.n_candidates) == 3 == len(plan.opacity)
-    assert all(plan.n_candidates) and all(plan.max_samples)
-    assert above["refined"] is True and above["resolution"][0] == 48
-    assert above["resolution"] != never["resolution"]
+    assert plan.refined is True and plan.detail_ratio == below_ratio(tmp_path)
+    assert above["refined"] is True and above["resolution"] == [48, 48, 28]
     groups = checkpoint.load(tmp_path / "above" / "checkpoint.npz")[0]
     assert all(np.isfinite(x).all() for arrays in groups.values() for x in arrays
                if x.dtype.kind == "f")
-    steps = [json.loads(line)["stage"] for line in
-             (tmp_path / "above" / "metrics.jsonl").read_text().splitlines()]
-    assert max(steps) == 2
     assert train(small_scene, tmp_path / "above", _tiny(1e-9))["refined"] is True
     assert "already trained" in capsys.readouterr().out
-    assert eval_run.load_run(tmp_path / "above")[3].resolution[0] == 48
+    assert eval_run.load_run(tmp_path / "above")[3].resolution == (48, 48, 28)
+
+
+def below_ratio(tmp_path) -> float:
+    """The reading of the run under the threshold: the same first stage, the same frames."""
+    from gridnerf import plan as planmod
+
+    return planmod.load(tmp_path / "below").detail_ratio
