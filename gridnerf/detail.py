@@ -1,30 +1,37 @@
-"""The detail a trained grid leaves in its training frames, told apart from their noise.
+"""The fine detail a grid stage leaves in its training frames, told apart from their noise.
 
-A grid stage either holds a scene's fine structure or it does not; where it does not, the
-residual of every training frame (the raw minus the stage's render of that view) holds the
-missing detail under the frame's noise. The two cannot be told apart by their size in one
-photosite, but they can by what they share: the two green photosites of a 2x2 CFA cell sit
-one photosite apart on the diagonal, see nearly the same point of the scene, and have
-independent noise (shot and read noise are independent per photosite; row noise too, the
-two greens lie on different rows; a per-position black offset is removed by the band
-below). So, with r1, r2 the green residuals of one cell after a high-pass (each green plane
-minus its Gaussian blur of SIGMA plane pixels, i.e. detail finer than about two binned
-pixels):
+A grid either holds a scene's fine structure or it does not; where it does not, the
+residual of every training frame (the raw minus the grid's render of that view) holds the
+missing detail under the frame's noise. With r1, r2 the residuals of the two green
+photosites of each 2x2 CFA cell after a high-pass (each green plane minus its Gaussian blur
+of SIGMA plane pixels: detail finer than about two binned pixels),
 
-    detail = mean(r1 * r2)                       the residual's shared, scene-fixed part
-    noise  = (mean(r1^2) + mean(r2^2)) / 2 - detail   one frame's noise in that band
+    total  = (mean(r1^2) + mean(r2^2)) / 2        the band's power: detail + noise
+    noise  = G * mean(var(level))                  the band's share of the frames' noise
+    detail = total - noise
 
 and the reading's `ratio` = detail / (noise / n_views): the missing detail in units of the
-band's noise after an ideal average of the n training views. Well under a few units the
-frames cannot tell a finer grid's detail from their noise (a finer stage would fit noise);
-well over it they can. The shared part underestimates detail at the plane's finest scale
-(the greens are half a plane pixel apart in each axis), so the ratio is a conservative
-reading of the detail, and its threshold (grid.refine_detail) is set on it as measured.
+band's noise after an ideal average of the n training views. G is the high-pass's gain on
+white noise (its kernel's sum of squares). var(level) is one photosite's noise variance at
+the render's level, read from the frames themselves: the two greens of a cell see nearly
+the same point (one photosite apart on the diagonal) and their shot, read and row noise
+are independent (they lie on different rows), so (r1 - r2) / sqrt(2), before the
+high-pass, is that noise wherever the scene has no structure at the photosite's own scale;
+the median absolute deviation (x 1.4826, squared) in each of N_LEVELS quantile bins of the
+level outvotes the cells where it has some. A per-position black offset is constant and
+leaves the band.
+
+Why not the greens' shared part alone (mean(r1 r2), free of any noise estimate): the greens
+sit half a plane pixel apart in each axis, so their shared part misses the finest band,
+which is what a finer grid adds; on the four tuning scenes it did not tell the scenes a
+288-wide last stage helps from those it hurts (docs/results.md, "Refining where the frames
+show detail"). Heavy-tailed read noise makes the median read a little under the variance,
+most in the darkest frames, which raises the reading there.
 
 Measured on tiles of TILE x TILE photosites spread evenly over every EVERY-th training
-frame, at most MAX_RAYS photosites in all, rendered by the stage's grid in low-light camera
-RGB (the data term's own prediction: exposure-normalised raw, lens falloff taken off as
-the training targets are, gridnerf.dataset.targets); saturated photosites are left out.
+frame, at most MAX_RAYS photosites in all, rendered by the grid in low-light camera RGB (the
+data term's own prediction: exposure-normalised raw, lens falloff taken off as the
+training targets are, gridnerf.dataset.targets); saturated photosites are left out.
 """
 
 from __future__ import annotations
@@ -42,6 +49,7 @@ SIGMA = 1.0  # the high-pass's Gaussian, in pixels of one CFA plane (two photosi
 EVERY = 4  # every this many training frames are measured
 MAX_RAYS = 1 << 19  # photosites rendered at most (tiles thinned evenly above it)
 _TRIM = 3  # plane pixels at each tile edge left out of the band (the blur's reach)
+N_LEVELS = 16  # quantile bins of the render's level the noise is read in
 
 
 @dataclass(frozen=True)
@@ -76,24 +84,50 @@ def highpass(planes: np.ndarray) -> np.ndarray:
     return (planes - low)[:, _TRIM:-_TRIM, _TRIM:-_TRIM]
 
 
-def band_powers(resid: np.ndarray, valid: np.ndarray, cfa: np.ndarray) -> tuple[float, float,
-                                                                               int]:
-    """(detail, noise, pairs) of residual tiles resid, valid (T, TILE, TILE) (photosite
-    residuals and their validity): the module docstring's shared and noise band powers of
-    the two green planes, over the cells whose band both greens see unsaturated."""
+def white_gain() -> float:
+    """G: the band power highpass leaves of unit white noise (its kernel's sum of squares,
+    from its response to a delta)."""
+    n = 2 * _TRIM + 1 + 16
+    delta = np.zeros((1, n, n))
+    delta[0, n // 2, n // 2] = 1.0
+    low = ndimage.gaussian_filter(delta, sigma=(0, SIGMA, SIGMA), mode="constant")
+    return float(((delta - low) ** 2).sum())
+
+
+def level_noise(diff: np.ndarray, level: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(edges (N_LEVELS + 1,), var (N_LEVELS,)): one photosite's noise variance in quantile
+    bins of `level`, from `diff` = (r1 - r2) / sqrt(2) of the same cells (1-D each): the
+    squared median absolute deviation x 1.4826 of each bin."""
+    edges = np.quantile(level, np.linspace(0.0, 1.0, N_LEVELS + 1))
+    idx = np.clip(np.searchsorted(edges, level, side="right") - 1, 0, N_LEVELS - 1)
+    var = np.array([(1.4826 * np.median(np.abs(diff[idx == b]))) ** 2 if (idx == b).any()
+                    else np.nan for b in range(N_LEVELS)])
+    return edges, np.where(np.isfinite(var), var, np.nanmean(var))
+
+
+def band_powers(resid: np.ndarray, level: np.ndarray, valid: np.ndarray, cfa: np.ndarray
+                ) -> tuple[float, float, int]:
+    """(detail, noise, cells) of residual tiles resid, level, valid (T, TILE, TILE) (each
+    photosite's residual, the render's level there and its validity): the module
+    docstring's band powers of the two green planes, over the cells whose band both greens
+    see unsaturated."""
     (a0, a1), (b0, b1) = green_positions(cfa)
     r1, r2 = resid[:, a0::2, a1::2], resid[:, b0::2, b1::2]
+    lv = 0.5 * (level[:, a0::2, a1::2] + level[:, b0::2, b1::2])
     ok = valid[:, a0::2, a1::2] & valid[:, b0::2, b1::2]
     # a cell counts where no invalid photosite lies within the blur's reach of it
-    ok = ~ndimage.binary_dilation(~ok, structure=np.ones((1, 2 * _TRIM + 1, 2 * _TRIM + 1)))
+    band = ~ndimage.binary_dilation(~ok, structure=np.ones((1, 2 * _TRIM + 1, 2 * _TRIM + 1)))
     h1, h2 = highpass(np.where(ok, r1, 0.0)), highpass(np.where(ok, r2, 0.0))
-    ok = ok[:, _TRIM:-_TRIM, _TRIM:-_TRIM]
-    n = int(ok.sum())
+    band = band[:, _TRIM:-_TRIM, _TRIM:-_TRIM]
+    n = int(band.sum())
     if n == 0:
         return float("nan"), float("nan"), 0
-    detail = float((h1 * h2)[ok].mean())
-    noise = float(0.5 * ((h1**2)[ok].mean() + (h2**2)[ok].mean())) - detail
-    return detail, noise, n
+    edges, var = level_noise(((r1 - r2) / math.sqrt(2.0))[ok], lv[ok])
+    at = lv[:, _TRIM:-_TRIM, _TRIM:-_TRIM][band]
+    idx = np.clip(np.searchsorted(edges, at, side="right") - 1, 0, N_LEVELS - 1)
+    noise = white_gain() * float(var[idx].mean())
+    total = float(0.5 * ((h1**2)[band].mean() + (h2**2)[band].mean()))
+    return total - noise, noise, n
 
 
 def tiles(image_hw: tuple[int, int], n_frames: int, max_rays: int = MAX_RAYS
@@ -136,9 +170,9 @@ def measure(structure, params, scene, data_cfg, render_cfg, near_t: float, far_t
     out = render.render_image(structure, params, rays["origins"], rays["directions"],
                               near_t, far_t, render_cfg)
     mask = np.asarray(rays["mask"], np.float64)
-    resid = (mask * (np.asarray(rays["target"], np.float64)
-                     - np.asarray(out["rgb_low"], np.float64))).sum(-1)
-    detail, noise, pairs = band_powers(resid, mask.sum(-1) > 0, scene.cfa)
+    level = (mask * np.asarray(out["rgb_low"], np.float64)).sum(-1)
+    resid = (mask * np.asarray(rays["target"], np.float64)).sum(-1) - level
+    detail, noise, pairs = band_powers(resid, level, mask.sum(-1) > 0, scene.cfa)
     views = len(scene.train_idx)
     ratio = detail * views / noise if pairs and noise > 0 else float("nan")
     return DetailReading(ratio=float(ratio), detail=detail, noise=noise, views=views,
