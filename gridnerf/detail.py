@@ -165,6 +165,9 @@ def measure(structure, params, scene, data_cfg, render_cfg, near_t: float, far_t
     data = vignetting.apply(
         dataset.build(scene, frames, binning=False, target=data_cfg.target,
                       exposure_ratio=data_cfg.exposure_ratio), falloff)
+    views = len(scene.train_idx)
+    if min(data.image_hw) < TILE:  # frames smaller than a tile: nothing to read
+        return DetailReading(float("nan"), float("nan"), float("nan"), views, 0)
     fr, v, u = tiles(data.image_hw, len(frames), max_rays)
     rays = dataset.rays_at_jit(data, *(np.ascontiguousarray(a) for a in (fr, v, u)))
     out = render.render_image(structure, params, rays["origins"], rays["directions"],
@@ -173,7 +176,6 @@ def measure(structure, params, scene, data_cfg, render_cfg, near_t: float, far_t
     level = (mask * np.asarray(out["rgb_low"], np.float64)).sum(-1)
     resid = (mask * np.asarray(rays["target"], np.float64)).sum(-1) - level
     detail, noise, pairs = band_powers(resid, level, mask.sum(-1) > 0, scene.cfa)
-    views = len(scene.train_idx)
     ratio = detail * views / noise if pairs and noise > 0 else float("nan")
     return DetailReading(ratio=float(ratio), detail=detail, noise=noise, views=views,
                          pairs=pairs)
@@ -199,7 +201,7 @@ def refinement(plan, structure, params, scene, cfg, near_t: float, far_t: float,
     refined = ok and reading.ratio > threshold
     last, finer = list(cfg.grid.resolutions[-1]), list(cfg.grid.refine_resolution)
     told = (f"{reading.ratio:.2f} times their noise after averaging the {reading.views} "
-            "views" if ok else "not measurable (no unsaturated green cells)")
+            "views" if ok else "not measurable on these frames")
     print(f"detail: the frames hold fine detail of {told} (grid.refine_detail "
           f"{threshold:g}): the last stage trains at {finer if refined else last}"
           + (f" in place of {last}" if refined else ""))
