@@ -161,12 +161,6 @@ class GridConfig(_Section):
     prune_threshold: float = 0.05  # carve vertices no training ray weighs by more (weight, 0-1)
     fit_box: bool = True  # after the first stage, shrink the box to the visible content
     background: Literal["black", "mean"] = "mean"  # behind the grid: the capture's mean or black
-    # vertex counts (x, y, z) of the last stage where the frames carry finer detail than
-    # the last but one holds (y = 0: from the image aspect), in place of the last resolution
-    refine_resolution: tuple[int, int, int] = (288, 0, 64)
-    # ...where that detail, read after the last stage but one, is over this many times the
-    # frames' noise after averaging the views (gridnerf.detail; ratio, 0: never)
-    refine_detail: float = 0.0
 
     def _check(self) -> None:
         self._require("resolutions", len(self.resolutions) >= 1
@@ -177,11 +171,6 @@ class GridConfig(_Section):
         self._require("sh_degree", 0 <= self.sh_degree <= MAX_SH_DEGREE,
                       f"a whole number from 0 to {MAX_SH_DEGREE}")
         self._range("prune_threshold", 0.0, 1.0)
-        r = self.refine_resolution
-        self._require("refine_resolution", len(r) == 3 and min(r[0], r[2]) >= 2
-                      and (r[1] >= 2 or r[1] == 0),
-                      "one [x,y,z], each vertex count >= 2 (y may be 0), e.g. [288,0,64]")
-        self._range("refine_detail", 0.0)
 
 
 @dataclass(frozen=True)
@@ -516,8 +505,7 @@ def get(cfg: Config, dotted: str) -> Any:
 # experiments.common.fingerprint leaves the field out at that value, so the kept results
 # of configs that do not use it stay valid
 ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0,
-                ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0,
-                ("grid", "refine_detail"): 0.0, ("grid", "refine_resolution"): (288, 0, 64)}
+                ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

@@ -227,11 +227,11 @@ def fitted_config(cfg: Config, downscale: int | None) -> Config:
     user's.
 
     Where the plan raises the downscale by a factor f, the last stage trains f times its
-    steps: a capture that large has
-    f^2 times the photosites a voxel, and its time target more room (`make bench`: 480x270
-    within 3 min, 1920x1080 within 15). At 1920x1080 (f = 2) twice the last stage's steps
-    lifted bucket by 0.27 dB (colour-aligned 0.65) and the held-out held_arc_table by 0.51
-    (0.61); docs/results.md, "At the capture's own resolution"."""
+    steps: a capture that large has f^2 times the photosites a voxel, and its time target
+    more room (`make bench`: 480x270 within 3 min, 1920x1080 within 15). At 1920x1080
+    (f = 2) twice the last stage's steps lifted bucket by 0.27 dB (colour-aligned 0.65)
+    and the held-out held_arc_table by 0.51 (0.61); docs/results.md, "At the capture's own
+    resolution"."""
     if downscale is None or downscale == cfg.data.downscale:
         return cfg
     factor = max(int(downscale) // cfg.data.downscale, 1)

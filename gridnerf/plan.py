@@ -17,10 +17,7 @@ training decides at run time from the capture goes here instead, is saved as
   (the L_ca target's anchor, where the gains start), one gain or the gain field;
 - per stage: the opacity prior's weight and the fitted candidate count of the step;
 - the lens falloff: estimated from the frames and taken off (gridnerf.vignetting), or
-  corrected by the raw files' own opcodes on loading (gridnerf.raw_layout);
-- whether the last stage trains at grid.refine_resolution in place of the config's last
-  resolution: where the last stage but one leaves fine detail in the training frames that
-  their noise does not explain (gridnerf.detail, grid.refine_detail).
+  corrected by the raw files' own opcodes on loading (gridnerf.raw_layout).
 
 The plan is built once before the first step (candidate counts are filled in as each
 stage's grid is made: `with_candidates`); a resumed run reads it back and keeps it.
@@ -100,12 +97,7 @@ class RunPlan:
     saved before the decision existed): the config's data.downscale. max_samples: each
     stage's occupied-sample slots per ray (stages.fitted_samples; 0: not decided yet), None
     (a plan saved before the decision existed): the config's render.max_samples; the last
-    stage's is the finished run's (render_config). detail_ratio: the fine detail the last
-    stage but one left in the training frames, in units of their noise after averaging the
-    views (gridnerf.detail.DetailReading.ratio), None where not measured or not
-    measurable; refined: whether the last stage trains at grid.refine_resolution in place
-    of the config's last resolution, None while not decided (or a plan saved before the
-    decision existed, or a config that never refines: the config's resolutions).
+    stage's is the finished run's (render_config).
     """
 
     method: str
@@ -121,8 +113,6 @@ class RunPlan:
     mosaic_stages: int | None = None
     downscale: int | None = None
     max_samples: tuple[int, ...] | None = None
-    detail_ratio: float | None = None
-    refined: bool | None = None
 
     @property
     def one_gain(self) -> tuple[float, float, float] | None:
@@ -143,11 +133,6 @@ class RunPlan:
         slots = list(self.max_samples or (0,) * len(self.n_candidates))
         slots[stage] = int(k)
         return replace(self, max_samples=tuple(slots))
-
-    def with_refinement(self, ratio: float | None, refined: bool) -> RunPlan:
-        """The plan with the detail reading (None: not measurable) and the decision on it."""
-        return replace(self, detail_ratio=None if ratio is None else float(ratio),
-                       refined=bool(refined))
 
     def samples(self, stage: int, cfg) -> int:
         """Stage `stage`'s occupied-sample slots per ray: the plan's where decided, else

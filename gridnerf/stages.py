@@ -12,8 +12,6 @@ hold (fitted_samples). All of this walks the training rays in chunks (training_r
 
 from __future__ import annotations
 
-import math
-from dataclasses import replace
 from functools import partial
 
 import jax
@@ -205,25 +203,3 @@ def initial_grid(data: dataset.RayData, scene, cfg: Config, key, init_log_gain):
         bbox_min, bbox_max, sh_degree=cfg.grid.sh_degree, init_density=INIT_DENSITY,
         init_log_gain=log_gain, color_scale=color_scale, background=background,
         key=jax.random.fold_in(key, 2))
-
-
-
-def schedule(cfg: Config, plan) -> list[tuple[tuple[int, int, int], int]]:
-    """(resolution, steps) of each stage of a run: the config's, the last at
-    grid.refine_resolution where the run plan refined it (plan.refined; gridnerf.detail)."""
-    out = list(zip(cfg.grid.resolutions, cfg.train.steps_per_stage, strict=True))
-    if plan is not None and plan.refined:
-        out[-1] = (tuple(cfg.grid.refine_resolution), out[-1][1])
-    return out
-
-
-def stage_render(cfg: Config, plan, stage: int):
-    """The render section a stage's candidates and slots are fitted under: the config's,
-    and for a refined last stage a cap on its slots raised by its ratio of vertices across
-    to the config's last resolution (a ray crosses that many more occupied voxels), in
-    multiples of 8: 64 -> 96 for 288 over 192."""
-    if not (plan.refined and stage == len(cfg.grid.resolutions) - 1):
-        return cfg.render
-    ratio = cfg.grid.refine_resolution[0] / max(cfg.grid.resolutions[-1][0], 1)
-    cap = -(-math.ceil(cfg.render.max_samples * ratio) // 8) * 8
-    return replace(cfg.render, max_samples=max(cfg.render.max_samples, cap))

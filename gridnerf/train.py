@@ -36,7 +36,6 @@ from gridnerf import (
     darkframes,
     data_term,
     dataset,
-    detail,
     grid,
     illuminant,
     methods,
@@ -139,16 +138,6 @@ def _vignetting(run: Path, plan, stage: int, structure, params, data, scene, nea
     return vignetting.apply(data, k), plan
 
 
-def _refinement(run: Path, plan, structure, params, scene, cfg: Config, near_t, far_t,
-                fits_raw: bool):
-    """The plan at the start of the last stage (detail.refinement), saved where it
-    changed."""
-    decided = detail.refinement(plan, structure, params, scene, cfg, near_t, far_t, fits_raw)
-    if decided is not plan:
-        planmod.save(run, decided)
-    return decided
-
-
 def stage_data(data, scene, cfg: Config, method, plan, stage: int):
     """The training data of `stage`: from the first of the plan's last mosaic stages on
     (DataConfig.mosaic_from), the raw Bayer mosaic, photosite by photosite, in place of
@@ -246,7 +235,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
                   f"frame, {np.percentile(spread, 90):.2f} deg from the capture's at the "
                   "90th percentile")
     key = jax.random.PRNGKey(cfg.train.seed)
-    schedule = stages.schedule(cfg, saved)
+    schedule = list(zip(cfg.grid.resolutions, cfg.train.steps_per_stage, strict=True))
 
     if resuming:
         structure, params, opt_leaves, header = load_state(run)
@@ -305,12 +294,6 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     )
     rate = 0.0
     while stage < len(schedule):
-        if stage == len(schedule) - 1 and start == 0 and not opt_leaves:
-            # the last stage's resolution: the config's, or finer where the frames show the
-            # detail for it
-            plan = _refinement(run, plan, structure, params, scene, cfg, near_t, far_t,
-                               method.fits_raw(cfg))
-            schedule = stages.schedule(cfg, plan)
         res, steps = schedule[stage]
         if stage > 0 and start == 0 and not opt_leaves:
             data, plan = _vignetting(run, plan, stage, structure, params, data, scene, near_t,
@@ -333,13 +316,12 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         # the stage's candidate count and sample slots: decided on its grid and its rays,
         # kept in the plan (one write)
         decided = plan
-        fitting = stages.stage_render(cfg, plan, stage)
         if not plan.n_candidates[stage]:
             plan = plan.with_candidates(stage, stages.fitted_candidates(
-                structure, data, near_t, far_t, fitting))
+                structure, data, near_t, far_t, cfg.render))
         if plan.max_samples is None or not plan.max_samples[stage]:
             plan = plan.with_samples(stage, stages.fitted_samples(
-                structure, data, near_t, far_t, fitting, plan.n_candidates[stage]))
+                structure, data, near_t, far_t, cfg.render, plan.n_candidates[stage]))
             print(f"stage {stage}: {plan.max_samples[stage]} occupied samples per ray "
                   f"(of {plan.n_candidates[stage]} candidates)")
         if plan is not decided:
@@ -424,10 +406,6 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         # the frames' photons per green photosite and the stages that fitted the raw mosaic
         "photosite_snr": plan.photosite_snr,
         "mosaic_stages": (n_stages - cfg.data.mosaic_from(n_stages, plan.mosaic_stages)),
-        # the fine detail the frames hold over their averaged noise (gridnerf.detail) and
-        # whether the last stage trained at grid.refine_resolution for it
-        "detail_ratio": plan.detail_ratio,
-        "refined": bool(plan.refined),
         # the binned training frames' box downscale (data_term.planned_downscale)
         "downscale": cfg.data.downscale,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
