@@ -155,7 +155,8 @@ class DataConfig(_Section):
 @dataclass(frozen=True)
 class GridConfig(_Section):
     _SECTION = "grid"
-    # vertex counts (x, y, z) of each coarse-to-fine stage; y = 0: from the image aspect
+    # vertex counts (x, y, z) of each coarse-to-fine stage; y = 0: from the image aspect,
+    # z = 0: from the views (depth cells that move in the views as far as x cells span)
     resolutions: tuple[tuple[int, int, int], ...] = ((48, 0, 24), (96, 0, 48), (192, 0, 64))
     sh_degree: int = 0  # spherical-harmonic degree of the low-light colour (0: no view dependence)
     prune_threshold: float = 0.05  # carve vertices no training ray weighs by more (weight, 0-1)
@@ -164,10 +165,10 @@ class GridConfig(_Section):
 
     def _check(self) -> None:
         self._require("resolutions", len(self.resolutions) >= 1
-                      and all(min(r[0], r[2]) >= 2 and (r[1] >= 2 or r[1] == 0)
+                      and all(r[0] >= 2 and all(v >= 2 or v == 0 for v in r[1:])
                               for r in self.resolutions),
                       "one [x,y,z] per stage, each vertex count >= 2 (y may be 0: from the "
-                      "image aspect), e.g. [[48,0,24],[64,0,32]]")
+                      "image aspect; z 0: from the views), e.g. [[48,0,24],[64,0,32]]")
         self._require("sh_degree", 0 <= self.sh_degree <= MAX_SH_DEGREE,
                       f"a whole number from 0 to {MAX_SH_DEGREE}")
         self._range("prune_threshold", 0.0, 1.0)

@@ -68,9 +68,8 @@ def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage:
     elif opt_leaves and stage < len(schedule):
         want = tuple(schedule[stage][0])
         have = tuple(structure.resolution)
-        if want[1] == 0:  # y from the aspect: compare x and z
-            have, want = have[::2], want[::2]
-        if have != want:
+        # y from the aspect, z from the views: compare only the counts given
+        if any(w not in (0, h) for w, h in zip(want, have, strict=True)):
             problem = (f"its grid is {tuple(structure.resolution)}, the config's stage {stage} "
                        f"is {tuple(schedule[stage][0])}")
         else:

@@ -456,6 +456,55 @@ def test_resolve_resolution_follows_the_aspect():
                               (270, 480), False) == (65, 33, 8)
 
 
+def _pixel_u(c2w, fx, cx, point):
+    """Pixel column of a world point in a camera looking down its -z axis."""
+    local = (point - c2w[:, 3]) @ c2w[:, :3]
+    return cx + fx * local[0] / -local[2]
+
+
+@pytest.mark.parametrize("reach", [0.2, 0.5, 1.0])
+def test_depth_count_matches_the_x_cells_footprint_in_the_views(reach):
+    """A z of 0: a depth cell of the count chosen moves, in the views (all but one at one
+    offset from the NDC centre here), at most the pixels an x cell spans, and one cell
+    fewer would move more; a point anywhere in depth moves alike."""
+    fx, width = 460.0, 480.0
+    lo, hi = np.array([-1.25, -1.25, -0.5]), np.array([1.25, 1.25, 0.9])
+    base = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
+    c2w = np.stack([base] + [np.concatenate([np.eye(3), np.array([[reach], [0.0], [0.0]])],
+                                            axis=1)] * 9)
+    ndc = np.array([fx, fx, width, 270.0])
+    rx = 192
+    rz = stages.resolve_resolution((rx, 0, 0), lo, hi, (270, 480), True, (c2w, ndc))[2]
+    x_px = width / 2 * (hi[0] - lo[0]) / (rx - 1)
+
+    def shift(cells):
+        dz = (hi[2] - lo[2]) / cells
+        moved = []
+        for z in (-0.3, 0.2, 0.7):  # NDC z = 1 - 2 / depth
+            a, b = (np.array([0.0, 0.0, -2.0 / (1.0 - v)]) for v in (z, z + dz))
+            moved.append(abs(_pixel_u(c2w[1], fx, width / 2, a)
+                             - _pixel_u(c2w[1], fx, width / 2, b)))
+        np.testing.assert_allclose(moved, moved[0], rtol=1e-6)
+        return moved[0]
+    assert shift(rz - 1) <= x_px * (1 + 1e-9) < shift(rz - 2)
+    # tripod-like reach gets fewer depth cells than x cells, an arc's reach more
+    assert (rz < 64) == (reach <= 0.5)
+
+
+def test_depth_count_without_parallax_or_views():
+    """Views that only turn about the NDC centre see no depth: the fewest cells;
+    a world box, or no views, takes z from the box's extents as y is."""
+    lo, hi = np.array([-1.25, -1.25, -0.5]), np.array([1.25, 1.25, 0.9])
+    turn = np.array([[np.cos(0.3), 0.0, np.sin(0.3)], [0.0, 1.0, 0.0],
+                     [-np.sin(0.3), 0.0, np.cos(0.3)]])
+    c2w = np.stack([np.concatenate([r, np.zeros((3, 1))], axis=1) for r in (np.eye(3), turn)])
+    ndc = np.array([460.0, 460.0, 480.0, 270.0])
+    assert stages.resolve_resolution((96, 0, 0), lo, hi, (270, 480), True, (c2w, ndc))[2] == 2
+    assert stages.resolve_resolution((96, 0, 0), lo, hi, (270, 480), True)[2] == 54
+    assert stages.resolve_resolution((65, 40, 0), np.zeros(3), np.array([2.0, 1.0, 1.0]),
+                                     (270, 480), False) == (65, 40, 33)
+
+
 def test_forward_facing_box_starts_at_the_near_bound():
     from types import SimpleNamespace
 
@@ -472,13 +521,14 @@ def test_forward_facing_box_starts_at_the_near_bound():
 
 
 def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch):
-    """y = 0 stages: the y count follows the frame aspect and the fitted box, and a run
-    interrupted inside such a stage resumes (the checkpoint's y is not compared)."""
+    """y = 0 stages: the y count follows the frame aspect and the fitted box, z = 0 the
+    training views, and a run interrupted inside such a stage resumes (the checkpoint's y
+    and z are not compared)."""
     from gridnerf import stages
     from gridnerf import train as trainmod
 
     cfg = cfgmod.override(cfgmod.preset("tiny"), [
-        "grid.resolutions=[[16,0,8],[24,0,12]]", "train.steps_per_stage=[10,10]",
+        "grid.resolutions=[[16,0,8],[24,0,0]]", "train.steps_per_stage=[10,10]",
         "train.checkpoint_every=5"])
     monkeypatch.setattr(trainmod, "CHECKPOINT_SECONDS", float("inf"))
     run = tmp_path / "run"
@@ -494,8 +544,12 @@ def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch
     from gridnerf.scene import load_scene
     scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
     h, w = scene.cameras.height // 2, scene.cameras.width // 2
+    from gridnerf.dataset import ndc_intrinsics
+    views = (scene.cameras.c2w[scene.train_idx], ndc_intrinsics(scene))
     assert structure.resolution == stages.resolve_resolution(
-        (24, 0, 12), lo, hi, (h, w), scene.forward_facing)
+        (24, 0, 0), lo, hi, (h, w), scene.forward_facing, views)
+    assert structure.resolution[2] != stages.resolve_resolution(
+        (24, 0, 0), lo, hi, (h, w), scene.forward_facing)[2]  # the views, not the box
     monkeypatch.setattr(optim, "make_step", real_make_step)
     summary = trainmod.train(small_scene, run, cfg)
     assert summary["resolution"] == list(structure.resolution)
