@@ -58,10 +58,10 @@ def scene_dir(scene: str, quick: bool = False, light: float = 1.0) -> Path:
 
 def quick_sets(cfg: cfgmod.Config) -> list[str]:
     """Overrides that shrink a preset for quick mode and keep its shape: every stage's
-    resolution / 4 (at least 8; a y from the aspect and a z from the views stay so),
-    steps / 20 (at least 10), 8 patches a batch, up to 24 samples a ray, carving at 1 % (a
-    few coarse steps leave fog, which the default threshold would cut into the content)."""
-    res = [[max(8, r[0] // 4)] + [0 if v == 0 else max(8, v // 4) for v in r[1:]]
+    resolution / 4 (at least 8; y stays from the aspect), steps / 20 (at least 10), 8
+    patches a batch, up to 24 samples a ray, carving at 1 % (a few coarse steps leave fog,
+    which the default threshold would cut into the content)."""
+    res = [[max(8, r[0] // 4), 0 if r[1] == 0 else max(8, r[1] // 4), max(8, r[2] // 4)]
            for r in cfg.grid.resolutions]
     steps = [max(10, s // 20) for s in cfg.train.steps_per_stage]
     return [f"grid.resolutions={json.dumps(res).replace(' ', '')}",

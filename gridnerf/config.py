@@ -155,23 +155,26 @@ class DataConfig(_Section):
 @dataclass(frozen=True)
 class GridConfig(_Section):
     _SECTION = "grid"
-    # vertex counts (x, y, z) of each coarse-to-fine stage; y = 0: from the image aspect,
-    # z = 0: from the views (depth cells that move in the views as far as x cells span)
+    # vertex counts (x, y, z) of each coarse-to-fine stage; y = 0: from the image aspect
     resolutions: tuple[tuple[int, int, int], ...] = ((48, 0, 24), (96, 0, 48), (192, 0, 64))
     sh_degree: int = 0  # spherical-harmonic degree of the low-light colour (0: no view dependence)
+    # the last stage's depth cells move in the training views at most this share of an x
+    # cell's pixels: z is raised where the views' reach asks for it (0: z as given; NDC)
+    depth_parallax: float = 0.0
     prune_threshold: float = 0.05  # carve vertices no training ray weighs by more (weight, 0-1)
     fit_box: bool = True  # after the first stage, shrink the box to the visible content
     background: Literal["black", "mean"] = "mean"  # behind the grid: the capture's mean or black
 
     def _check(self) -> None:
         self._require("resolutions", len(self.resolutions) >= 1
-                      and all(r[0] >= 2 and all(v >= 2 or v == 0 for v in r[1:])
+                      and all(min(r[0], r[2]) >= 2 and (r[1] >= 2 or r[1] == 0)
                               for r in self.resolutions),
                       "one [x,y,z] per stage, each vertex count >= 2 (y may be 0: from the "
-                      "image aspect; z 0: from the views), e.g. [[48,0,24],[64,0,32]]")
+                      "image aspect), e.g. [[48,0,24],[64,0,32]]")
         self._require("sh_degree", 0 <= self.sh_degree <= MAX_SH_DEGREE,
                       f"a whole number from 0 to {MAX_SH_DEGREE}")
         self._range("prune_threshold", 0.0, 1.0)
+        self._range("depth_parallax", 0.0)
 
 
 @dataclass(frozen=True)
@@ -506,7 +509,8 @@ def get(cfg: Config, dotted: str) -> Any:
 # experiments.common.fingerprint leaves the field out at that value, so the kept results
 # of configs that do not use it stay valid
 ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0,
-                ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0}
+                ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0,
+                ("grid", "depth_parallax"): 0.0}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

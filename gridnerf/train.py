@@ -68,8 +68,11 @@ def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage:
     elif opt_leaves and stage < len(schedule):
         want = tuple(schedule[stage][0])
         have = tuple(structure.resolution)
-        # y from the aspect, z from the views: compare only the counts given
-        if any(w not in (0, h) for w, h in zip(want, have, strict=True)):
+        if want[1] == 0:  # y from the aspect
+            want = (want[0], have[1], want[2])
+        if cfg.grid.depth_parallax > 0 and stage == len(schedule) - 1 and have[2] > want[2]:
+            want = (*want[:2], have[2])  # z raised for the views (stages.depth_count)
+        if have != want:
             problem = (f"its grid is {tuple(structure.resolution)}, the config's stage {stage} "
                        f"is {tuple(schedule[stage][0])}")
         else:
@@ -300,7 +303,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
             data = stage_data(data, scene, cfg, method, plan, stage)
             structure, params, info = stages.next_stage_grid(
                 structure, params, res, data, cfg, near_t, far_t,
-                fit=cfg.grid.fit_box and stage == 1, forward_facing=scene.forward_facing)
+                fit=cfg.grid.fit_box and stage == 1, forward_facing=scene.forward_facing,
+                parallax=cfg.grid.depth_parallax if stage == len(schedule) - 1 else 0.0)
             print(f"stage {stage}: {info['resolution']} grid, box "
                   f"{np.round(info['bbox_min'], 3).tolist()}.."
                   f"{np.round(info['bbox_max'], 3).tolist()}, "

@@ -462,19 +462,19 @@ def _pixel_u(c2w, fx, cx, point):
     return cx + fx * local[0] / -local[2]
 
 
-@pytest.mark.parametrize("reach", [0.2, 0.5, 1.0])
-def test_depth_count_matches_the_x_cells_footprint_in_the_views(reach):
-    """A z of 0: a depth cell of the count chosen moves, in the views (all but one at one
-    offset from the NDC centre here), at most the pixels an x cell spans, and one cell
-    fewer would move more; a point anywhere in depth moves alike."""
+@pytest.mark.parametrize("reach,parallax", [(0.2, 1.0), (0.5, 1.0), (1.0, 1.0), (1.0, 0.5)])
+def test_depth_count_bounds_the_depth_cells_parallax_in_the_views(reach, parallax):
+    """grid.depth_parallax: a depth cell of the count chosen moves, in the views (all but
+    one at one offset from the NDC centre here), at most `parallax` of the pixels an x cell
+    spans, and one cell fewer would move more; a point anywhere in depth moves alike."""
     fx, width = 460.0, 480.0
     lo, hi = np.array([-1.25, -1.25, -0.5]), np.array([1.25, 1.25, 0.9])
     base = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
     c2w = np.stack([base] + [np.concatenate([np.eye(3), np.array([[reach], [0.0], [0.0]])],
                                             axis=1)] * 9)
-    ndc = np.array([fx, fx, width, 270.0])
+    views = (c2w, np.array([fx, fx, width, 270.0]))
     rx = 192
-    rz = stages.resolve_resolution((rx, 0, 0), lo, hi, (270, 480), True, (c2w, ndc))[2]
+    rz = stages.depth_count(rx, hi - lo, *views, parallax=parallax)
     x_px = width / 2 * (hi[0] - lo[0]) / (rx - 1)
 
     def shift(cells):
@@ -486,23 +486,29 @@ def test_depth_count_matches_the_x_cells_footprint_in_the_views(reach):
                              - _pixel_u(c2w[1], fx, width / 2, b)))
         np.testing.assert_allclose(moved, moved[0], rtol=1e-6)
         return moved[0]
-    assert shift(rz - 1) <= x_px * (1 + 1e-9) < shift(rz - 2)
-    # tripod-like reach gets fewer depth cells than x cells, an arc's reach more
-    assert (rz < 64) == (reach <= 0.5)
+    assert shift(rz - 1) <= parallax * x_px * (1 + 1e-9) < shift(rz - 2)
+    # the stage's z is raised to it, never lowered
+    got = stages.resolve_resolution((rx, 0, 64), lo, hi, (270, 480), True, views, parallax)
+    assert got[2] == max(64, rz)
+    assert (rz < 64) == (reach <= 0.5 and parallax == 1.0)
 
 
 def test_depth_count_without_parallax_or_views():
-    """Views that only turn about the NDC centre see no depth: the fewest cells;
-    a world box, or no views, takes z from the box's extents as y is."""
+    """Views that only turn about the NDC centre see no depth: the fewest cells, so z stays
+    as given; so it does without views, on a world box, or with depth_parallax 0."""
     lo, hi = np.array([-1.25, -1.25, -0.5]), np.array([1.25, 1.25, 0.9])
     turn = np.array([[np.cos(0.3), 0.0, np.sin(0.3)], [0.0, 1.0, 0.0],
                      [-np.sin(0.3), 0.0, np.cos(0.3)]])
     c2w = np.stack([np.concatenate([r, np.zeros((3, 1))], axis=1) for r in (np.eye(3), turn)])
-    ndc = np.array([460.0, 460.0, 480.0, 270.0])
-    assert stages.resolve_resolution((96, 0, 0), lo, hi, (270, 480), True, (c2w, ndc))[2] == 2
-    assert stages.resolve_resolution((96, 0, 0), lo, hi, (270, 480), True)[2] == 54
-    assert stages.resolve_resolution((65, 40, 0), np.zeros(3), np.array([2.0, 1.0, 1.0]),
-                                     (270, 480), False) == (65, 40, 33)
+    views = (c2w, np.array([460.0, 460.0, 480.0, 270.0]))
+    assert stages.depth_count(96, hi - lo, *views) == 2
+    assert stages.resolve_resolution((96, 0, 8), lo, hi, (270, 480), True, views, 1.0)[2] == 8
+    far = (c2w + np.array([0.0, 0.0, 0.0, 3.0])[None, None, :] * np.eye(3)[0][None, :, None],
+           views[1])
+    assert stages.resolve_resolution((96, 0, 8), lo, hi, (270, 480), True, far, 1.0)[2] > 8
+    assert stages.resolve_resolution((96, 0, 8), lo, hi, (270, 480), True, far, 0.0)[2] == 8
+    assert stages.resolve_resolution((96, 0, 8), lo, hi, (270, 480), False, far, 1.0)[2] == 8
+    assert stages.resolve_resolution((96, 0, 8), lo, hi, (270, 480), True, None, 1.0)[2] == 8
 
 
 def test_forward_facing_box_starts_at_the_near_bound():
@@ -521,15 +527,15 @@ def test_forward_facing_box_starts_at_the_near_bound():
 
 
 def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch):
-    """y = 0 stages: the y count follows the frame aspect and the fitted box, z = 0 the
-    training views, and a run interrupted inside such a stage resumes (the checkpoint's y
-    and z are not compared)."""
+    """y = 0 stages: the y count follows the frame aspect and the fitted box, the last
+    stage's z the training views (grid.depth_parallax), and a run interrupted inside such a
+    stage resumes (the checkpoint's y and raised z are not compared)."""
     from gridnerf import stages
     from gridnerf import train as trainmod
 
     cfg = cfgmod.override(cfgmod.preset("tiny"), [
-        "grid.resolutions=[[16,0,8],[24,0,0]]", "train.steps_per_stage=[10,10]",
-        "train.checkpoint_every=5"])
+        "grid.resolutions=[[16,0,8],[24,0,2]]", "train.steps_per_stage=[10,10]",
+        "train.checkpoint_every=5", "grid.depth_parallax=0.5"])
     monkeypatch.setattr(trainmod, "CHECKPOINT_SECONDS", float("inf"))
     run = tmp_path / "run"
     real_make_step = optim.make_step
@@ -545,11 +551,12 @@ def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch
     scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
     h, w = scene.cameras.height // 2, scene.cameras.width // 2
     from gridnerf.dataset import ndc_intrinsics
-    views = (scene.cameras.c2w[scene.train_idx], ndc_intrinsics(scene))
+    bounds = json.loads((run / "bounds.json").read_text())  # the run's own, estimated
+    trained = load_scene(small_scene, near_far=(bounds["near"], bounds["far"]))
+    views = (trained.cameras.c2w[trained.train_idx], ndc_intrinsics(trained))
     assert structure.resolution == stages.resolve_resolution(
-        (24, 0, 0), lo, hi, (h, w), scene.forward_facing, views)
-    assert structure.resolution[2] != stages.resolve_resolution(
-        (24, 0, 0), lo, hi, (h, w), scene.forward_facing)[2]  # the views, not the box
+        (24, 0, 2), lo, hi, (h, w), scene.forward_facing, views, 0.5)
+    assert structure.resolution[2] > 2  # raised for the views
     monkeypatch.setattr(optim, "make_step", real_make_step)
     summary = trainmod.train(small_scene, run, cfg)
     assert summary["resolution"] == list(structure.resolution)
