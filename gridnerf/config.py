@@ -163,6 +163,7 @@ class GridConfig(_Section):
     depth_parallax: float = 0.0
     prune_threshold: float = 0.05  # carve vertices no training ray weighs by more (weight, 0-1)
     fit_box: bool = True  # after the first stage, shrink the box to the visible content
+    refit_box: bool = False  # with fit_box: shrink it again before every later stage
     background: Literal["black", "mean"] = "mean"  # behind the grid: the capture's mean or black
 
     def _check(self) -> None:
@@ -510,7 +511,7 @@ def get(cfg: Config, dotted: str) -> Any:
 # of configs that do not use it stay valid
 ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0,
                 ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0,
-                ("grid", "depth_parallax"): 0.0}
+                ("grid", "depth_parallax"): 0.0, ("grid", "refit_box"): False}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

@@ -303,7 +303,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
             data = stage_data(data, scene, cfg, method, plan, stage)
             structure, params, info = stages.next_stage_grid(
                 structure, params, res, data, cfg, near_t, far_t,
-                fit=cfg.grid.fit_box and stage == 1, forward_facing=scene.forward_facing,
+                fit=cfg.grid.fit_box and (stage == 1 or cfg.grid.refit_box),
+                forward_facing=scene.forward_facing,
                 parallax=cfg.grid.depth_parallax if stage == len(schedule) - 1 else 0.0)
             print(f"stage {stage}: {info['resolution']} grid, box "
                   f"{np.round(info['bbox_min'], 3).tolist()}.."

@@ -966,3 +966,31 @@ def test_a_run_keeps_its_fitted_slots_and_renders_with_them(small_scene, tmp_pat
     loaded = eval_run.load_run(tmp_path / "run")[0]
     assert loaded.render.max_samples == plan.max_samples[-1]
     assert loaded.render.truncated_share == 0.05
+
+
+@pytest.mark.parametrize("refit", [False, True])
+def test_refit_box_fits_the_box_before_every_later_stage(small_scene, tmp_path, monkeypatch,
+                                                         refit):
+    """grid.fit_box fits the box to the content after the first stage; grid.refit_box
+    again before each later one, on the trained grid's mass, so its box lies inside the
+    one before it (the depth count is raised only with grid.depth_parallax > 0)."""
+    from gridnerf import train as trainmod
+
+    calls = []
+    real = stages.next_stage_grid
+
+    def spy(*args, **kwargs):
+        out = real(*args, **kwargs)
+        calls.append((kwargs["fit"], kwargs["parallax"], out[2]))
+        return out
+    monkeypatch.setattr(stages, "next_stage_grid", spy)
+    cfg = cfgmod.override(cfgmod.preset("tiny"), [
+        "grid.resolutions=[[16,0,8],[20,0,10],[24,0,12]]", "train.steps_per_stage=[8,4,2]",
+        f"grid.refit_box={str(refit).lower()}"])
+    trainmod.train(small_scene, tmp_path / "run", cfg)
+    assert [c[:2] for c in calls] == [(True, 0.0), (refit, 0.0)]
+    (_, _, first), (_, _, second) = calls
+    assert np.all(np.asarray(second["bbox_min"]) >= np.asarray(first["bbox_min"]) - 1e-6)
+    assert np.all(np.asarray(second["bbox_max"]) <= np.asarray(first["bbox_max"]) + 1e-6)
+    if not refit:
+        assert second["bbox_min"] == first["bbox_min"]
