@@ -57,6 +57,12 @@ CHECKPOINT = runfolder.CHECKPOINT
 CHECKPOINT_SECONDS = 30.0  # a checkpoint also when this long has passed since the last
 
 
+def _stage_parallax(cfg: Config, stage: int, n_stages: int) -> float:
+    """grid.depth_parallax where `stage` is the last of n_stages, else 0: only the last
+    stage's depth count follows the views (stages.resolve_resolution)."""
+    return cfg.grid.depth_parallax if stage == n_stages - 1 else 0.0
+
+
 def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage: int,
                   schedule: list) -> None:
     """CheckpointError unless the checkpoint's arrays fit `cfg` (shapes and stage count)."""
@@ -70,7 +76,7 @@ def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage:
         have = tuple(structure.resolution)
         if want[1] == 0:  # y from the aspect
             want = (want[0], have[1], want[2])
-        if cfg.grid.depth_parallax > 0 and stage == len(schedule) - 1 and have[2] > want[2]:
+        if _stage_parallax(cfg, stage, len(schedule)) > 0 and have[2] > want[2]:
             want = (*want[:2], have[2])  # z raised for the views (stages.depth_count)
         if have != want:
             problem = (f"its grid is {tuple(structure.resolution)}, the config's stage {stage} "
@@ -305,7 +311,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
                 structure, params, res, data, cfg, near_t, far_t,
                 fit=cfg.grid.fit_box and (stage == 1 or cfg.grid.refit_box),
                 forward_facing=scene.forward_facing,
-                parallax=cfg.grid.depth_parallax if stage == len(schedule) - 1 else 0.0)
+                parallax=_stage_parallax(cfg, stage, len(schedule)))
             print(f"stage {stage}: {info['resolution']} grid, box "
                   f"{np.round(info['bbox_min'], 3).tolist()}.."
                   f"{np.round(info['bbox_max'], 3).tolist()}, "

@@ -503,8 +503,9 @@ def test_depth_count_without_parallax_or_views():
     views = (c2w, np.array([460.0, 460.0, 480.0, 270.0]))
     assert stages.depth_count(96, hi - lo, *views) == 2
     assert stages.resolve_resolution((96, 0, 8), lo, hi, (270, 480), True, views, 1.0)[2] == 8
-    far = (c2w + np.array([0.0, 0.0, 0.0, 3.0])[None, None, :] * np.eye(3)[0][None, :, None],
-           views[1])
+    shifted = c2w.copy()
+    shifted[:, 0, 3] = 3.0  # both views 3 units across the axis
+    far = (shifted, views[1])
     assert stages.resolve_resolution((96, 0, 8), lo, hi, (270, 480), True, far, 1.0)[2] > 8
     assert stages.resolve_resolution((96, 0, 8), lo, hi, (270, 480), True, far, 0.0)[2] == 8
     assert stages.resolve_resolution((96, 0, 8), lo, hi, (270, 480), False, far, 1.0)[2] == 8
@@ -545,15 +546,13 @@ def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch
     structure, _, _, header = trainmod.load_state(run)
     assert (header["stage"], header["step"]) == (1, 5)
     lo, hi = np.asarray(structure.bbox_min), np.asarray(structure.bbox_max)
-    from conftest import sim_near_far
 
-    from gridnerf.scene import load_scene
-    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
-    h, w = scene.cameras.height // 2, scene.cameras.width // 2
     from gridnerf.dataset import ndc_intrinsics
+    from gridnerf.scene import load_scene
     bounds = json.loads((run / "bounds.json").read_text())  # the run's own, estimated
-    trained = load_scene(small_scene, near_far=(bounds["near"], bounds["far"]))
-    views = (trained.cameras.c2w[trained.train_idx], ndc_intrinsics(trained))
+    scene = load_scene(small_scene, near_far=(bounds["near"], bounds["far"]))
+    h, w = scene.cameras.height // 2, scene.cameras.width // 2
+    views = (scene.cameras.c2w[scene.train_idx], ndc_intrinsics(scene))
     assert structure.resolution == stages.resolve_resolution(
         (24, 0, 2), lo, hi, (h, w), scene.forward_facing, views, 0.5)
     assert structure.resolution[2] > 2  # raised for the views
