@@ -12,7 +12,6 @@ hold (fitted_samples). All of this walks the training rays in chunks (training_r
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from functools import partial
 
@@ -113,21 +112,6 @@ SAMPLE_QUANTUM = 8
 # fitted_samples marches every this-many-th training pixel per axis (a 480x270 capture's
 # last stage: 2.7M photosites, 42k rays marched)
 SAMPLE_STRIDE = 8
-
-
-def deepened_slots(render_cfg, given_z: int, z: int):
-    """render_cfg with max_samples raised as the depth count was (z vertices where the
-    stage's config gives given_z, grid.depth_parallax): a ray crossing the same content
-    crosses (z - 1) / (given_z - 1) times the depth cells and holds as many times the
-    occupied samples, so a cap that stayed would cut its far part off (a path-traced room
-    at 157 deep held 130 at its 99.5th percentile and 15 % of its rays more than 64: -1.1
-    dB, docs/results.md). Rounded up to a multiple of SAMPLE_QUANTUM; render_cfg itself
-    where z is not above given_z."""
-    if z <= given_z:
-        return render_cfg
-    cap = int(render_cfg.max_samples) * (z - 1) / max(1, given_z - 1)
-    cap = SAMPLE_QUANTUM * int(math.ceil(cap / SAMPLE_QUANTUM - 1e-9))
-    return dataclasses.replace(render_cfg, max_samples=cap)
 
 
 def fitted_samples(structure, data: dataset.RayData, near_t: float, far_t: float,

@@ -330,10 +330,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
             plan = plan.with_candidates(stage, stages.fitted_candidates(
                 structure, data, near_t, far_t, cfg.render))
         if plan.max_samples is None or not plan.max_samples[stage]:
-            slots = stages.deepened_slots(cfg.render, int(schedule[stage][0][2]),
-                                          int(structure.resolution[2]))
             plan = plan.with_samples(stage, stages.fitted_samples(
-                structure, data, near_t, far_t, slots, plan.n_candidates[stage]))
+                structure, data, near_t, far_t, cfg.render, plan.n_candidates[stage]))
             print(f"stage {stage}: {plan.max_samples[stage]} occupied samples per ray "
                   f"(of {plan.n_candidates[stage]} candidates)")
         if plan is not decided:

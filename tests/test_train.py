@@ -512,40 +512,6 @@ def test_depth_count_without_parallax_or_views():
     assert stages.resolve_resolution((96, 0, 8), lo, hi, (270, 480), True, None, 1.0)[2] == 8
 
 
-def test_deepened_slots_cover_the_rays_of_a_deeper_stage():
-    """Rays through a slab of content hold more occupied samples the more depth cells
-    cross it: slots that held every ray on a grid 16 deep, raised by deepened_slots for a
-    deeper one, hold every ray there too (a multiple of SAMPLE_QUANTUM); z not raised leaves
-    the render config as it is."""
-    import jax.numpy as jnp
-
-    from gridnerf import grid, render
-    from gridnerf.config import RenderConfig
-
-    lo, hi = -np.ones(3), np.ones(3)
-    g = np.linspace(-0.6, 0.6, 5)
-    o = np.stack([*np.meshgrid(g, g, indexing="ij"), np.full((5, 5), -1.5)], -1)
-    o = jnp.asarray(o.reshape(-1, 3), jnp.float32)
-    d = jnp.asarray(np.tile([0.0, 0.0, 1.0], (25, 1)), jnp.float32)
-    wide = RenderConfig(samples_per_voxel=1.5, max_samples=256)
-
-    def most_occupied(rz):
-        structure, params = grid.init_grid((6, 6, rz), lo, hi)
-        z = lo[2] + np.asarray(structure.coords)[:, 2] * (hi[2] - lo[2]) / (rz - 1)
-        params["density"] = jnp.asarray(np.where(np.abs(z) <= 0.5, 8.0, -30.0), jnp.float32)
-        structure = grid.update_occupancy(structure, params)
-        return int(np.asarray(render.march(structure, o, d, 0.0, 5.0, wide)[3]).max())
-
-    given = RenderConfig(samples_per_voxel=1.5, max_samples=most_occupied(16))
-    assert stages.deepened_slots(given, 16, 16) is given
-    assert stages.deepened_slots(given, 16, 12) is given
-    counts = {rz: most_occupied(rz) for rz in (31, 40, 64)}
-    assert counts[64] > 3 * given.max_samples  # the cap that stayed would cut them off
-    for rz, need in counts.items():
-        cap = stages.deepened_slots(given, 16, rz).max_samples
-        assert cap % stages.SAMPLE_QUANTUM == 0 and need <= cap <= 2 * need
-
-
 def test_forward_facing_box_starts_at_the_near_bound():
     from types import SimpleNamespace
 
