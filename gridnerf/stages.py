@@ -52,6 +52,11 @@ def resolve_resolution(res, bbox_min, bbox_max, image_hw: tuple[int, int],
 # the training views that set the depth count: the offset from the NDC centre that this
 # share of them stay within (one stray frame does not decide it)
 DEPTH_VIEW_QUANTILE = 0.9
+# the depth count is raised only where the raised grid keeps at least this many training
+# measurements (photosites, or binned pixels x 3) per occupied row: on dev_arc_shop the
+# rule gained 0.13 dB at 4.8 (480x270) and lost 0.06 at 2.0 (320x180); 3 lies between
+# (docs/results.md, "The depth of the box and its cells")
+DEPTH_MIN_MEASUREMENTS_PER_ROW = 3.0
 
 
 def depth_count(rx: int, extent, c2w, ndc_intrinsics, parallax: float = 1.0) -> int:
@@ -195,7 +200,8 @@ def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fi
                     forward_facing: bool = True, parallax: float = 0.0):
     """Carve, optionally refit the box to the content, and resample to resolution `res`
     (a y of 0 is resolved on the new box, and z raised where `parallax` > 0: see
-    resolve_resolution).
+    resolve_resolution, but only where the raised grid keeps
+    DEPTH_MIN_MEASUREMENTS_PER_ROW of the stage's training measurements per row).
 
     Carving keeps the vertices some training ray weighs by more than grid.prune_threshold,
     dilated by PRUNE_DILATE; the fitted box leaves FIT_QUANTILE of the rendered mass out at
@@ -215,9 +221,16 @@ def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fi
         lo[:], hi[:] = fit_lo, fit_hi
     old_box = np.prod(np.asarray(structure.bbox_max) - np.asarray(structure.bbox_min))
     structure, params = grid.prune(structure, params, keep)
-    res = resolve_resolution(res, lo, hi, data.image_hw, forward_facing,
-                             (data.c2w, data.ndc_intrinsics), parallax)
-    structure, params = grid.resample(structure, params, res, lo, hi)
+    given = resolve_resolution(res, lo, hi, data.image_hw, forward_facing)
+    deeper = resolve_resolution(res, lo, hi, data.image_hw, forward_facing,
+                                (data.c2w, data.ndc_intrinsics), parallax)
+    res = given
+    if deeper != given:  # raised for the views' parallax, where the frames can fill it
+        fine = grid.resample(structure, params, deeper, lo, hi)
+        if data.pixels.size >= DEPTH_MIN_MEASUREMENTS_PER_ROW * fine[0].n_rows:
+            res = deeper
+    structure, params = (fine if res != given else
+                         grid.resample(structure, params, res, lo, hi))
     info = {"bbox_min": np.asarray(lo).tolist(), "bbox_max": np.asarray(hi).tolist(),
             "box_fraction_of_previous": float(np.prod(hi - lo) / old_box),
             "occupied_fraction": structure.n_rows / float(np.prod(res)),

@@ -527,6 +527,21 @@ def test_forward_facing_box_starts_at_the_near_bound():
     assert lo[2] == -1.0 and near_t == 0.0
 
 
+def test_depth_is_raised_only_where_the_frames_fill_it(small_scene, tmp_path, monkeypatch):
+    """grid.depth_parallax raises the last stage's z only where the raised grid keeps
+    stages.DEPTH_MIN_MEASUREMENTS_PER_ROW training measurements per row: asked for more
+    than the frames hold, the stage keeps the z it was given, as without parallax."""
+    from gridnerf import stages
+    from gridnerf import train as trainmod
+
+    cfg = cfgmod.override(cfgmod.preset("tiny"), [
+        "grid.resolutions=[[16,0,8],[24,0,2]]", "train.steps_per_stage=[10,10]",
+        "grid.depth_parallax=0.5"])
+    monkeypatch.setattr(stages, "DEPTH_MIN_MEASUREMENTS_PER_ROW", 1e12)
+    summary = trainmod.train(small_scene, tmp_path / "run", cfg)
+    assert summary["resolution"][2] == 2
+
+
 def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch):
     """y = 0 stages: the y count follows the frame aspect and the fitted box, the last
     stage's z the training views (grid.depth_parallax), and a run interrupted inside such a
