@@ -222,15 +222,13 @@ def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fi
     old_box = np.prod(np.asarray(structure.bbox_max) - np.asarray(structure.bbox_min))
     structure, params = grid.prune(structure, params, keep)
     given = resolve_resolution(res, lo, hi, data.image_hw, forward_facing)
-    deeper = resolve_resolution(res, lo, hi, data.image_hw, forward_facing,
-                                (data.c2w, data.ndc_intrinsics), parallax)
-    res = given
-    if deeper != given:  # raised for the views' parallax, where the frames can fill it
-        fine = grid.resample(structure, params, deeper, lo, hi)
-        if data.pixels.size >= DEPTH_MIN_MEASUREMENTS_PER_ROW * fine[0].n_rows:
-            res = deeper
-    structure, params = (fine if res != given else
-                         grid.resample(structure, params, res, lo, hi))
+    res = resolve_resolution(res, lo, hi, data.image_hw, forward_facing,
+                             (data.c2w, data.ndc_intrinsics), parallax)
+    pruned = structure, params
+    structure, params = grid.resample(*pruned, res, lo, hi)
+    if res != given and data.pixels.size < DEPTH_MIN_MEASUREMENTS_PER_ROW * structure.n_rows:
+        res = given  # raised for the views' parallax, but the frames cannot fill it
+        structure, params = grid.resample(*pruned, res, lo, hi)
     info = {"bbox_min": np.asarray(lo).tolist(), "bbox_max": np.asarray(hi).tolist(),
             "box_fraction_of_previous": float(np.prod(hi - lo) / old_box),
             "occupied_fraction": structure.n_rows / float(np.prod(res)),
