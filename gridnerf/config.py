@@ -158,12 +158,8 @@ class GridConfig(_Section):
     # vertex counts (x, y, z) of each coarse-to-fine stage; y = 0: from the image aspect
     resolutions: tuple[tuple[int, int, int], ...] = ((48, 0, 24), (96, 0, 48), (192, 0, 64))
     sh_degree: int = 0  # spherical-harmonic degree of the low-light colour (0: no view dependence)
-    # the last stage's depth cells move in the training views at most this share of an x
-    # cell's pixels: z is raised where the views' reach asks for it (0: z as given; NDC)
-    depth_parallax: float = 0.0
     prune_threshold: float = 0.05  # carve vertices no training ray weighs by more (weight, 0-1)
     fit_box: bool = True  # after the first stage, shrink the box to the visible content
-    refit_box: bool = False  # with fit_box: shrink it again before every later stage
     background: Literal["black", "mean"] = "mean"  # behind the grid: the capture's mean or black
 
     def _check(self) -> None:
@@ -175,7 +171,6 @@ class GridConfig(_Section):
         self._require("sh_degree", 0 <= self.sh_degree <= MAX_SH_DEGREE,
                       f"a whole number from 0 to {MAX_SH_DEGREE}")
         self._range("prune_threshold", 0.0, 1.0)
-        self._range("depth_parallax", 0.0)
 
 
 @dataclass(frozen=True)
@@ -203,6 +198,7 @@ class LossConfig(_Section):
     w_data: float = 1.0  # lambda_1: RawNeRF's relative L2 on the raw (weight)
     data_eps: float = 1e-3  # eps of that term, (C - y)^2 / (sg(C) + eps)^2 (normalised raw)
     data_eps_sigmas: float = 2.0  # cap of data_eps in noise sigmas of the frames (0: no cap)
+    data_power: float = 2.0  # p of that term's weight (sg(C) + eps)^-p (2: RawNeRF; 1: shot noise)
     w_ca: float = 0.1  # lambda_2: chromatic adaptation loss L_ca (eq. 14; weight)
     w_smooth: float = 0.1  # lambda_3: smoothness of the gains (weight)
     smooth_mode: Literal["patch", "tv"] = "tv"  # "tv": edge-aware grid TV; "patch": eq. 15
@@ -235,6 +231,7 @@ class LossConfig(_Section):
         self._range("tv_fraction", 0.0, 1.0, lo_open=True)
         self._range("data_eps", 0.0, lo_open=True)
         self._range("data_eps_sigmas", 0.0)
+        self._range("data_power", 0.0, 2.0)
         self._require("opacity_stages", self.opacity_stages >= 0,
                       "a whole number >= 0 (0: the opacity prior in every stage)")
         self._require("ca_illuminant", self.ca_illuminant not in ("consensus", "consistent")
@@ -511,7 +508,7 @@ def get(cfg: Config, dotted: str) -> Any:
 # of configs that do not use it stay valid
 ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0,
                 ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0,
-                ("grid", "depth_parallax"): 0.0, ("grid", "refit_box"): False}
+                ("loss", "data_power"): 2.0}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

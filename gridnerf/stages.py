@@ -12,7 +12,6 @@ hold (fitted_samples). All of this walks the training rays in chunks (training_r
 
 from __future__ import annotations
 
-import math
 from functools import partial
 
 import jax
@@ -24,62 +23,21 @@ from gridnerf.errors import NumericsError
 
 
 def resolve_resolution(res, bbox_min, bbox_max, image_hw: tuple[int, int],
-                       forward_facing: bool, views=None, parallax: float = 0.0
-                       ) -> tuple[int, int, int]:
+                       forward_facing: bool) -> tuple[int, int, int]:
     """Vertex counts of a stage: `res` (x, y, z), where y = 0 means "from the aspect".
 
     A y of 0 becomes the count that gives y voxels the footprint of x voxels: in NDC the
     box's x and y extents map to image pixels at W/2 and H/2 pixels per unit, so a 16:9
     frame gets y = 0.56 x on the full NDC box (a square grid would spend 1.8x the vertices
     on y for nothing); a world box uses the ratio of its extents.
-
-    parallax > 0 (grid.depth_parallax) raises z, in NDC, to depth_count's: the count at
-    which a depth cell moves, in the training views, at most `parallax` of the pixels an x
-    cell spans (views: (c2w (N, 3, 4), ndc_intrinsics (4,)), the RayData fields). z is never
-    lowered.
     """
     rx, ry, rz = (int(r) for r in res)
+    if ry > 0:
+        return rx, ry, rz
     ext = np.asarray(bbox_max, np.float64) - np.asarray(bbox_min, np.float64)
-    if ry <= 0:
-        h, w = image_hw
-        ratio = ext[1] * h / (ext[0] * w) if forward_facing else ext[1] / ext[0]
-        ry = max(2, int(round((rx - 1) * ratio)) + 1)
-    if parallax > 0 and forward_facing and views is not None:
-        rz = max(rz, depth_count(rx, ext, *views, parallax=parallax))
-    return rx, ry, rz
-
-
-# the training views that set the depth count: the offset from the NDC centre that this
-# share of them stay within (one stray frame does not decide it)
-DEPTH_VIEW_QUANTILE = 0.9
-# the depth count is raised only where the raised grid keeps at least this many training
-# measurements (photosites, or binned pixels x 3) per occupied row: on dev_arc_shop the
-# rule gained 0.13 dB at 4.8 (480x270) and lost 0.06 at 2.0 (320x180); 3 lies between
-# (docs/results.md, "The depth of the box and its cells")
-DEPTH_MIN_MEASUREMENTS_PER_ROW = 3.0
-
-
-def depth_count(rx: int, extent, c2w, ndc_intrinsics, parallax: float = 1.0) -> int:
-    """NDC depth vertex count at which a depth cell moves, in the views, at most `parallax`
-    of the pixels an x cell spans.
-
-    The NDC warp projects the normalised world about its origin, the average camera,
-    looking along -z (rays.normalize_world, near plane 1): a point at depth d has
-    z = 1 - 2 / d, so a step dz along a line of constant NDC x, y (a ray from the origin) is
-    a step d^2 dz / 2 in depth, and a camera displaced by b across that ray sees it move
-    f b dz / 2 pixels (f the focal length in pixels), whatever the depth; an x cell spans
-    W dx / 2 pixels (W the width). So dz = parallax W dx / (f b), b the
-    DEPTH_VIEW_QUANTILE of the views' offsets from the origin across the z axis. A rotation
-    about a camera's centre adds no parallax, so only the offsets count. extent: (3,) the
-    box's size; c2w (N, 3, 4) the training views in the normalised world; ndc_intrinsics
-    (4,) fx, fy, width, height of the NDC warp.
-    """
-    c2w = np.asarray(c2w, np.float64)
-    fx, _, width, _ = (float(v) for v in np.asarray(ndc_intrinsics, np.float64))
-    b = float(np.quantile(np.hypot(c2w[:, 0, 3], c2w[:, 1, 3]), DEPTH_VIEW_QUANTILE))
-    dx = float(extent[0]) / (rx - 1)
-    cells = float(extent[2]) * fx * b / (parallax * width * dx) if b > 0 else 1.0
-    return max(2, int(math.ceil(cells)) + 1)
+    h, w = image_hw
+    ratio = ext[1] * h / (ext[0] * w) if forward_facing else ext[1] / ext[0]
+    return rx, max(2, int(round((rx - 1) * ratio)) + 1), rz
 
 
 # margin on the longest training ray when fitting the candidate count (a batch ray's pixel
@@ -197,11 +155,9 @@ def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, nea
 
 
 def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fit: bool,
-                    forward_facing: bool = True, parallax: float = 0.0):
+                    forward_facing: bool = True):
     """Carve, optionally refit the box to the content, and resample to resolution `res`
-    (a y of 0 is resolved on the new box, and z raised where `parallax` > 0: see
-    resolve_resolution, but only where the raised grid keeps
-    DEPTH_MIN_MEASUREMENTS_PER_ROW of the stage's training measurements per row).
+    (a y of 0 is resolved on the new box, see resolve_resolution).
 
     Carving keeps the vertices some training ray weighs by more than grid.prune_threshold,
     dilated by PRUNE_DILATE; the fitted box leaves FIT_QUANTILE of the rendered mass out at
@@ -221,14 +177,8 @@ def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fi
         lo[:], hi[:] = fit_lo, fit_hi
     old_box = np.prod(np.asarray(structure.bbox_max) - np.asarray(structure.bbox_min))
     structure, params = grid.prune(structure, params, keep)
-    given = resolve_resolution(res, lo, hi, data.image_hw, forward_facing)
-    res = resolve_resolution(res, lo, hi, data.image_hw, forward_facing,
-                             (data.c2w, data.ndc_intrinsics), parallax)
-    pruned = structure, params
-    structure, params = grid.resample(*pruned, res, lo, hi)
-    if res != given and data.pixels.size < DEPTH_MIN_MEASUREMENTS_PER_ROW * structure.n_rows:
-        res = given  # raised for the views' parallax, but the frames cannot fill it
-        structure, params = grid.resample(*pruned, res, lo, hi)
+    res = resolve_resolution(res, lo, hi, data.image_hw, forward_facing)
+    structure, params = grid.resample(structure, params, res, lo, hi)
     info = {"bbox_min": np.asarray(lo).tolist(), "bbox_max": np.asarray(hi).tolist(),
             "box_fraction_of_previous": float(np.prod(hi - lo) / old_box),
             "occupied_fraction": structure.n_rows / float(np.prod(res)),

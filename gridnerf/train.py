@@ -57,12 +57,6 @@ CHECKPOINT = runfolder.CHECKPOINT
 CHECKPOINT_SECONDS = 30.0  # a checkpoint also when this long has passed since the last
 
 
-def _stage_parallax(cfg: Config, stage: int, n_stages: int) -> float:
-    """grid.depth_parallax where `stage` is the last of n_stages, else 0: only the last
-    stage's depth count follows the views (stages.resolve_resolution)."""
-    return cfg.grid.depth_parallax if stage == n_stages - 1 else 0.0
-
-
 def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage: int,
                   schedule: list) -> None:
     """CheckpointError unless the checkpoint's arrays fit `cfg` (shapes and stage count)."""
@@ -74,10 +68,8 @@ def _check_resume(path: Path, cfg: Config, structure, params, opt_leaves, stage:
     elif opt_leaves and stage < len(schedule):
         want = tuple(schedule[stage][0])
         have = tuple(structure.resolution)
-        if want[1] == 0:  # y from the aspect
-            want = (want[0], have[1], want[2])
-        if _stage_parallax(cfg, stage, len(schedule)) > 0 and have[2] > want[2]:
-            want = (*want[:2], have[2])  # z raised for the views (stages.depth_count)
+        if want[1] == 0:  # y from the aspect: compare x and z
+            have, want = have[::2], want[::2]
         if have != want:
             problem = (f"its grid is {tuple(structure.resolution)}, the config's stage {stage} "
                        f"is {tuple(schedule[stage][0])}")
@@ -309,9 +301,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
             data = stage_data(data, scene, cfg, method, plan, stage)
             structure, params, info = stages.next_stage_grid(
                 structure, params, res, data, cfg, near_t, far_t,
-                fit=cfg.grid.fit_box and (stage == 1 or cfg.grid.refit_box),
-                forward_facing=scene.forward_facing,
-                parallax=_stage_parallax(cfg, stage, len(schedule)))
+                fit=cfg.grid.fit_box and stage == 1, forward_facing=scene.forward_facing)
             print(f"stage {stage}: {info['resolution']} grid, box "
                   f"{np.round(info['bbox_min'], 3).tolist()}.."
                   f"{np.round(info['bbox_max'], 3).tolist()}, "

@@ -456,62 +456,6 @@ def test_resolve_resolution_follows_the_aspect():
                               (270, 480), False) == (65, 33, 8)
 
 
-def _pixel_u(c2w, fx, cx, point):
-    """Pixel column of a world point in a camera looking down its -z axis."""
-    local = (point - c2w[:, 3]) @ c2w[:, :3]
-    return cx + fx * local[0] / -local[2]
-
-
-@pytest.mark.parametrize("reach,parallax", [(0.2, 1.0), (0.5, 1.0), (1.0, 1.0), (1.0, 0.5)])
-def test_depth_count_bounds_the_depth_cells_parallax_in_the_views(reach, parallax):
-    """grid.depth_parallax: a depth cell of the count chosen moves, in the views (all but
-    one at one offset from the NDC centre here), at most `parallax` of the pixels an x cell
-    spans, and one cell fewer would move more; a point anywhere in depth moves alike."""
-    fx, width = 460.0, 480.0
-    lo, hi = np.array([-1.25, -1.25, -0.5]), np.array([1.25, 1.25, 0.9])
-    base = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
-    c2w = np.stack([base] + [np.concatenate([np.eye(3), np.array([[reach], [0.0], [0.0]])],
-                                            axis=1)] * 9)
-    views = (c2w, np.array([fx, fx, width, 270.0]))
-    rx = 192
-    rz = stages.depth_count(rx, hi - lo, *views, parallax=parallax)
-    x_px = width / 2 * (hi[0] - lo[0]) / (rx - 1)
-
-    def shift(cells):
-        dz = (hi[2] - lo[2]) / cells
-        moved = []
-        for z in (-0.3, 0.2, 0.7):  # NDC z = 1 - 2 / depth
-            a, b = (np.array([0.0, 0.0, -2.0 / (1.0 - v)]) for v in (z, z + dz))
-            moved.append(abs(_pixel_u(c2w[1], fx, width / 2, a)
-                             - _pixel_u(c2w[1], fx, width / 2, b)))
-        np.testing.assert_allclose(moved, moved[0], rtol=1e-6)
-        return moved[0]
-    assert shift(rz - 1) <= parallax * x_px * (1 + 1e-9) < shift(rz - 2)
-    # the stage's z is raised to it, never lowered
-    got = stages.resolve_resolution((rx, 0, 64), lo, hi, (270, 480), True, views, parallax)
-    assert got[2] == max(64, rz)
-    assert (rz < 64) == (reach <= 0.5 and parallax == 1.0)
-
-
-def test_depth_count_without_parallax_or_views():
-    """Views that only turn about the NDC centre see no depth: the fewest cells, so z stays
-    as given; so it does without views, on a world box, or with depth_parallax 0."""
-    lo, hi = np.array([-1.25, -1.25, -0.5]), np.array([1.25, 1.25, 0.9])
-    turn = np.array([[np.cos(0.3), 0.0, np.sin(0.3)], [0.0, 1.0, 0.0],
-                     [-np.sin(0.3), 0.0, np.cos(0.3)]])
-    c2w = np.stack([np.concatenate([r, np.zeros((3, 1))], axis=1) for r in (np.eye(3), turn)])
-    views = (c2w, np.array([460.0, 460.0, 480.0, 270.0]))
-    assert stages.depth_count(96, hi - lo, *views) == 2
-    assert stages.resolve_resolution((96, 0, 8), lo, hi, (270, 480), True, views, 1.0)[2] == 8
-    shifted = c2w.copy()
-    shifted[:, 0, 3] = 3.0  # both views 3 units across the axis
-    far = (shifted, views[1])
-    assert stages.resolve_resolution((96, 0, 8), lo, hi, (270, 480), True, far, 1.0)[2] > 8
-    assert stages.resolve_resolution((96, 0, 8), lo, hi, (270, 480), True, far, 0.0)[2] == 8
-    assert stages.resolve_resolution((96, 0, 8), lo, hi, (270, 480), False, far, 1.0)[2] == 8
-    assert stages.resolve_resolution((96, 0, 8), lo, hi, (270, 480), True, None, 1.0)[2] == 8
-
-
 def test_forward_facing_box_starts_at_the_near_bound():
     from types import SimpleNamespace
 
@@ -527,31 +471,15 @@ def test_forward_facing_box_starts_at_the_near_bound():
     assert lo[2] == -1.0 and near_t == 0.0
 
 
-def test_depth_is_raised_only_where_the_frames_fill_it(small_scene, tmp_path, monkeypatch):
-    """grid.depth_parallax raises the last stage's z only where the raised grid keeps
-    stages.DEPTH_MIN_MEASUREMENTS_PER_ROW training measurements per row: asked for more
-    than the frames hold, the stage keeps the z it was given, as without parallax."""
-    from gridnerf import stages
-    from gridnerf import train as trainmod
-
-    cfg = cfgmod.override(cfgmod.preset("tiny"), [
-        "grid.resolutions=[[16,0,8],[24,0,2]]", "train.steps_per_stage=[10,10]",
-        "grid.depth_parallax=0.5"])
-    monkeypatch.setattr(stages, "DEPTH_MIN_MEASUREMENTS_PER_ROW", 1e12)
-    summary = trainmod.train(small_scene, tmp_path / "run", cfg)
-    assert summary["resolution"][2] == 2
-
-
 def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch):
-    """y = 0 stages: the y count follows the frame aspect and the fitted box, the last
-    stage's z the training views (grid.depth_parallax), and a run interrupted inside such a
-    stage resumes (the checkpoint's y and raised z are not compared)."""
+    """y = 0 stages: the y count follows the frame aspect and the fitted box, and a run
+    interrupted inside such a stage resumes (the checkpoint's y is not compared)."""
     from gridnerf import stages
     from gridnerf import train as trainmod
 
     cfg = cfgmod.override(cfgmod.preset("tiny"), [
-        "grid.resolutions=[[16,0,8],[24,0,2]]", "train.steps_per_stage=[10,10]",
-        "train.checkpoint_every=5", "grid.depth_parallax=0.5"])
+        "grid.resolutions=[[16,0,8],[24,0,12]]", "train.steps_per_stage=[10,10]",
+        "train.checkpoint_every=5"])
     monkeypatch.setattr(trainmod, "CHECKPOINT_SECONDS", float("inf"))
     run = tmp_path / "run"
     real_make_step = optim.make_step
@@ -561,16 +489,13 @@ def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch
     structure, _, _, header = trainmod.load_state(run)
     assert (header["stage"], header["step"]) == (1, 5)
     lo, hi = np.asarray(structure.bbox_min), np.asarray(structure.bbox_max)
+    from conftest import sim_near_far
 
-    from gridnerf.dataset import ndc_intrinsics
     from gridnerf.scene import load_scene
-    bounds = json.loads((run / "bounds.json").read_text())  # the run's own, estimated
-    scene = load_scene(small_scene, near_far=(bounds["near"], bounds["far"]))
+    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
     h, w = scene.cameras.height // 2, scene.cameras.width // 2
-    views = (scene.cameras.c2w[scene.train_idx], ndc_intrinsics(scene))
     assert structure.resolution == stages.resolve_resolution(
-        (24, 0, 2), lo, hi, (h, w), scene.forward_facing, views, 0.5)
-    assert structure.resolution[2] > 2  # raised for the views
+        (24, 0, 12), lo, hi, (h, w), scene.forward_facing)
     monkeypatch.setattr(optim, "make_step", real_make_step)
     summary = trainmod.train(small_scene, run, cfg)
     assert summary["resolution"] == list(structure.resolution)
@@ -980,31 +905,3 @@ def test_a_run_keeps_its_fitted_slots_and_renders_with_them(small_scene, tmp_pat
     loaded = eval_run.load_run(tmp_path / "run")[0]
     assert loaded.render.max_samples == plan.max_samples[-1]
     assert loaded.render.truncated_share == 0.05
-
-
-@pytest.mark.parametrize("refit", [False, True])
-def test_refit_box_fits_the_box_before_every_later_stage(small_scene, tmp_path, monkeypatch,
-                                                         refit):
-    """grid.fit_box fits the box to the content after the first stage; grid.refit_box
-    again before each later one, on the trained grid's mass, so its box lies inside the
-    one before it (the depth count is raised only with grid.depth_parallax > 0)."""
-    from gridnerf import train as trainmod
-
-    calls = []
-    real = stages.next_stage_grid
-
-    def spy(*args, **kwargs):
-        out = real(*args, **kwargs)
-        calls.append((kwargs["fit"], kwargs["parallax"], out[2]))
-        return out
-    monkeypatch.setattr(stages, "next_stage_grid", spy)
-    cfg = cfgmod.override(cfgmod.preset("tiny"), [
-        "grid.resolutions=[[16,0,8],[20,0,10],[24,0,12]]", "train.steps_per_stage=[8,4,2]",
-        f"grid.refit_box={str(refit).lower()}"])
-    trainmod.train(small_scene, tmp_path / "run", cfg)
-    assert [c[:2] for c in calls] == [(True, 0.0), (refit, 0.0)]
-    (_, _, first), (_, _, second) = calls
-    assert np.all(np.asarray(second["bbox_min"]) >= np.asarray(first["bbox_min"]) - 1e-6)
-    assert np.all(np.asarray(second["bbox_max"]) <= np.asarray(first["bbox_max"]) + 1e-6)
-    if not refit:
-        assert second["bbox_min"] == first["bbox_min"]
