@@ -253,6 +253,7 @@ class TrainConfig(_Section):
     # drawn on its own (patches only for loss.smooth_mode=patch or a batch grey edge)
     patch_size: int = 1
     lr_density: float = 0.3  # Adam learning rate of the raw density
+    lr_density_last: float = 1.0  # the last stage's density rate, a share of lr_density
     lr_rgb: float = 0.1  # Adam learning rate of the low-light colour
     lr_gain: float = 0.02  # Adam learning rate of the log gains
     lr_decay: float = 0.01  # final / initial learning rate over each stage (exponential)
@@ -272,6 +273,7 @@ class TrainConfig(_Section):
         for name in ("lr_density", "lr_rgb", "lr_gain"):
             self._range(name, 0.0)
         self._range("lr_decay", 0.0, lo_open=True)
+        self._range("lr_density_last", 0.0)
         self._require("warmup_steps", self.warmup_steps >= 0, "a whole number >= 0")
         self._require("seed", self.seed >= 0, "a whole number >= 0")
         self._require("log_every", self.log_every >= 1, "a whole number >= 1")
@@ -508,7 +510,7 @@ def get(cfg: Config, dotted: str) -> Any:
 # of configs that do not use it stay valid
 ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0,
                 ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0,
-                ("loss", "data_power"): 2.0}
+                ("loss", "data_power"): 2.0, ("train", "lr_density_last"): 1.0}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

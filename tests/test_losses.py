@@ -467,6 +467,32 @@ def test_stage_warmup_ramps_the_rates_of_later_stages_only():
     np.testing.assert_allclose(-float(upd["rgb"][0, 0]), lr, rtol=1e-5)
 
 
+@pytest.mark.parametrize("share", [0.0, 0.1])
+def test_last_stage_density_rate_is_its_share(share):
+    """train.lr_density_last: the last stage's first density update is share x lr_density
+    (Adam on a constant gradient moves by its rate), the earlier stages' and every colour
+    update as before; 1 (the default) changes nothing."""
+    from gridnerf import config as cfgmod
+
+    cfg = cfgmod.override(cfgmod.preset("default"), [f"train.lr_density_last={share}"])
+    params = {"density": jnp.zeros(4), "rgb": jnp.zeros((4, 3)), "log_gain": jnp.zeros((4, 3))}
+    grads = jax.tree_util.tree_map(jnp.ones_like, params)
+    last = len(cfg.train.steps_per_stage) - 1
+
+    def first_update(c, stage):
+        tx = optim.make_optimizer(c, 100, stage)
+        upd, _ = tx.update(grads, tx.init(params), params)
+        return -float(upd["density"][0]), -float(upd["rgb"][0, 0])
+
+    lr = cfg.train.lr_density
+    np.testing.assert_allclose(first_update(cfg, last), (share * lr, cfg.train.lr_rgb),
+                               rtol=1e-5, atol=1e-12)
+    np.testing.assert_allclose(first_update(cfg, last - 1), (lr, cfg.train.lr_rgb), rtol=1e-5)
+    plain = cfgmod.preset("default")
+    assert plain.train.lr_density_last == 1.0
+    np.testing.assert_allclose(first_update(plain, last)[0], lr, rtol=1e-5)
+
+
 def test_grid_sample_feeds_every_prior_as_its_own_gather_would():
     """One grid_sample serves all grid priors: each equals the prior computed from its own
     rows (tv_loss on the same neighbour_rows), the sample's entries are the params at
