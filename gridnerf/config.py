@@ -198,7 +198,6 @@ class LossConfig(_Section):
     w_data: float = 1.0  # lambda_1: RawNeRF's relative L2 on the raw (weight)
     data_eps: float = 1e-3  # eps of that term, (C - y)^2 / (sg(C) + eps)^2 (normalised raw)
     data_eps_sigmas: float = 2.0  # cap of data_eps in noise sigmas of the frames (0: no cap)
-    data_power: float = 2.0  # p of that term's weight (sg(C) + eps)^-p (2: RawNeRF; 1: shot noise)
     w_ca: float = 0.1  # lambda_2: chromatic adaptation loss L_ca (eq. 14; weight)
     w_smooth: float = 0.1  # lambda_3: smoothness of the gains (weight)
     smooth_mode: Literal["patch", "tv"] = "tv"  # "tv": edge-aware grid TV; "patch": eq. 15
@@ -231,7 +230,6 @@ class LossConfig(_Section):
         self._range("tv_fraction", 0.0, 1.0, lo_open=True)
         self._range("data_eps", 0.0, lo_open=True)
         self._range("data_eps_sigmas", 0.0)
-        self._range("data_power", 0.0, 2.0)
         self._require("opacity_stages", self.opacity_stages >= 0,
                       "a whole number >= 0 (0: the opacity prior in every stage)")
         self._require("ca_illuminant", self.ca_illuminant not in ("consensus", "consistent")
@@ -253,7 +251,6 @@ class TrainConfig(_Section):
     # drawn on its own (patches only for loss.smooth_mode=patch or a batch grey edge)
     patch_size: int = 1
     lr_density: float = 0.3  # Adam learning rate of the raw density
-    lr_density_last: float = 1.0  # the last stage's density rate, a share of lr_density
     lr_rgb: float = 0.1  # Adam learning rate of the low-light colour
     lr_gain: float = 0.02  # Adam learning rate of the log gains
     lr_decay: float = 0.01  # final / initial learning rate over each stage (exponential)
@@ -273,7 +270,6 @@ class TrainConfig(_Section):
         for name in ("lr_density", "lr_rgb", "lr_gain"):
             self._range(name, 0.0)
         self._range("lr_decay", 0.0, lo_open=True)
-        self._range("lr_density_last", 0.0)
         self._require("warmup_steps", self.warmup_steps >= 0, "a whole number >= 0")
         self._require("seed", self.seed >= 0, "a whole number >= 0")
         self._require("log_every", self.log_every >= 1, "a whole number >= 1")
@@ -509,8 +505,7 @@ def get(cfg: Config, dotted: str) -> Any:
 # experiments.common.fingerprint leaves the field out at that value, so the kept results
 # of configs that do not use it stay valid
 ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0,
-                ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0,
-                ("loss", "data_power"): 2.0, ("train", "lr_density_last"): 1.0}
+                ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

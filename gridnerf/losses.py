@@ -21,7 +21,7 @@ _TINY = 1e-30
 
 
 def data_loss(rgb_low: jax.Array, target: jax.Array, mask: jax.Array,
-              eps: float = 1e-3, power: float = 2.0) -> jax.Array:
+              eps: float = 1e-3) -> jax.Array:
     """RawNeRF linearised log-L2 (eq. 16 as RawNeRF implements it, eps 1e-3).
 
     rgb_low: (n, 3) rendered low-light camera RGB; target: (n, 3) normalised raw, may be
@@ -29,25 +29,11 @@ def data_loss(rgb_low: jax.Array, target: jax.Array, mask: jax.Array,
     channels and saturated pixels; eps > 0 (loss.data_eps: scaling C, y and eps alike
     scales nothing else).
     Returns sum m (min(C,1) - y)^2 / (sg(min(C,1)) + eps)^2 / sum m, a scalar.
-
-    power (loss.data_power) p != 2 weighs a residual by (sg(C) + eps)^-p (sg(cbar) +
-    eps)^(p - 2) instead, cbar the batch's masked mean level (stop-gradient): the same
-    weight as RawNeRF's at the mean level, and still scale-free. p = 1 is the shot noise's
-    inverse variance (Var y = k C + r2 in normalised raw: the Poisson-Gaussian model of
-    gridnerf.noisefit, eps standing in for r2 / k), under which the fit of one surface is
-    the photon-weighted average of its measurements; p = 2 weighs every residual by its
-    relative size (RawNeRF: the error a tone map would show).
     """
     c = jnp.minimum(rgb_low, 1.0)
     diff = jnp.where(mask > 0, c - target, 0.0)  # masked targets may hold anything, even NaN
-    level = jax.lax.stop_gradient(c) + eps
-    scaled = diff / level
-    if power == 2.0:  # RawNeRF's (static: compiled as it always was)
-        return jnp.sum(mask * scaled**2) / jnp.maximum(jnp.sum(mask), _TINY)
-    total = jnp.maximum(jnp.sum(mask), _TINY)
-    cbar = jnp.sum(mask * level) / total  # (mean of sg(C)) + eps
-    weight = (level / cbar) ** (2.0 - power)
-    return jnp.sum(mask * weight * scaled**2) / total
+    scaled = diff / (jax.lax.stop_gradient(c) + eps)
+    return jnp.sum(mask * scaled**2) / jnp.maximum(jnp.sum(mask), _TINY)
 
 
 def ca_loss(rgb_low: jax.Array, gain: jax.Array, eps: float = 1e-6,

@@ -22,17 +22,13 @@ from gridnerf.plan import RunPlan, StepPlan
 def make_optimizer(cfg: Config, steps: int, stage: int = 0) -> optax.GradientTransformation:
     """Adam per field with an exponential decay to lr * lr_decay over the stage's `steps`;
     in a stage after the first the rates first ramp up from 0 over train.warmup_steps. The
-    gains are not trained without a gain model (loss.gain_model "none"). The last stage
-    trains the density at train.lr_density_last x lr_density (1: as every stage; below 1
-    its geometry stays nearer the coarser, higher-SNR stages').
+    gains are not trained without a gain model (loss.gain_model "none").
 
     Why the ramp: Adam's first update is lr * sign(gradient) on every parameter a batch
     touches, whatever the gradient's size. A stage starts from the previous grid upsampled,
     near its optimum, so that first update is noise: on bucket (480x270) the test PSNR fell
     from 23.51 to 21.65 dB in the last stage's first 100 steps without it (docs/speed.md)."""
     warm = min(cfg.train.warmup_steps, steps - 1) if stage > 0 else 0
-    last = stage == len(cfg.train.steps_per_stage) - 1
-    density_share = cfg.train.lr_density_last if last else 1.0
 
     def adam(lr):
         if warm > 0:
@@ -47,7 +43,7 @@ def make_optimizer(cfg: Config, steps: int, stage: int = 0) -> optax.GradientTra
 
     gain_tx = adam(cfg.train.lr_gain) if cfg.loss.use_gains else optax.set_to_zero()
     return optax.multi_transform(
-        {"density": adam(cfg.train.lr_density * density_share), "rgb": adam(cfg.train.lr_rgb),
+        {"density": adam(cfg.train.lr_density), "rgb": adam(cfg.train.lr_rgb),
          "log_gain": gain_tx},
         {"density": "density", "rgb": "rgb", "log_gain": "log_gain"},
     )

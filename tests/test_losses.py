@@ -73,40 +73,6 @@ def test_data_loss_is_relative_error_at_any_exposure():
     assert float(data_loss(0.05 * y, 0.05 * y, m)) == 0.0
 
 
-@pytest.mark.parametrize("power", [1.0, 1.5])
-def test_data_power_weighs_by_the_level_and_keeps_the_scale_free(power):
-    """loss.data_power p: a residual's weight is (sg(C) + eps)^-p (sg(cbar) + eps)^(p - 2),
-    cbar the masked mean level; RawNeRF's at the mean level, scale-free (C, y and eps scaled
-    alike change nothing), finite at the hard cases, and p = 1 leaves bright residuals a
-    larger share than RawNeRF's relative weight does."""
-    c = np.array([[0.01, 0.2, 3.0], [0.05, 0.0, 0.1]], np.float32)
-    y = np.array([[-0.005, 0.25, 0.5], [0.04, 0.02, 0.12]], np.float32)
-    m = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 1.0]], np.float32)
-    eps = 1e-3
-    level = np.minimum(c, 1.0) + eps
-    cbar = (m * level).sum() / m.sum()
-    expect = (m * (c - y) ** 2 * level ** -power * cbar ** (power - 2)).sum() / m.sum()
-    loss = jax.jit(losses.data_loss, static_argnames=("power",))
-    np.testing.assert_allclose(loss(c, y, m, eps, power=power), expect, rtol=1e-5)
-    for ratio in (0.05, 20.0):
-        np.testing.assert_allclose(loss(c * ratio / 20, y * ratio / 20, m, eps * ratio / 20,
-                                        power=power),
-                                   loss(c / 20, y / 20, m, eps / 20, power=power), rtol=1e-4)
-    value, g = jax.value_and_grad(loss)(jnp.asarray(c), jnp.asarray(y), jnp.asarray(m), eps,
-                                        power)
-    assert finite(value, g) and float(value) > 0.0 and g[0, 2] == 0.0
-    # the same 10 % error on a bright and on a dark channel: p = 2 weighs them alike, p
-    # weighs the bright one (C_b / C_d)^(2 - p) times the dark one (eps far below both)
-    two = np.array([[0.5, 0.01, 0.0]], np.float32)
-    m2 = np.array([[1.0, 1.0, 0.0]], np.float32)
-    off_bright = two * np.array([0.9, 1.0, 1.0], np.float32)  # the targets 10 % off the render
-    off_dark = two * np.array([1.0, 0.9, 1.0], np.float32)
-    for p in (2.0, power):
-        ratio = (float(loss(two, off_bright, m2, 1e-6, power=p))
-                 / float(loss(two, off_dark, m2, 1e-6, power=p)))
-        np.testing.assert_allclose(ratio, 50.0 ** (2.0 - p), rtol=2e-3)
-
-
 def test_ca_loss_grey_world_target():
     rgb = np.array([[0.02, 0.01, 0.005], [0.04, 0.01, 0.015]], np.float32)
     cbar = rgb.mean(0)
@@ -465,32 +431,6 @@ def test_stage_warmup_ramps_the_rates_of_later_stages_only():
     tx = optim.make_optimizer(plain, 100, 2)
     upd, _ = tx.update(grads, tx.init(params), params)
     np.testing.assert_allclose(-float(upd["rgb"][0, 0]), lr, rtol=1e-5)
-
-
-@pytest.mark.parametrize("share", [0.0, 0.1])
-def test_last_stage_density_rate_is_its_share(share):
-    """train.lr_density_last: the last stage's first density update is share x lr_density
-    (Adam on a constant gradient moves by its rate), the earlier stages' and every colour
-    update as before; 1 (the default) changes nothing."""
-    from gridnerf import config as cfgmod
-
-    cfg = cfgmod.override(cfgmod.preset("default"), [f"train.lr_density_last={share}"])
-    params = {"density": jnp.zeros(4), "rgb": jnp.zeros((4, 3)), "log_gain": jnp.zeros((4, 3))}
-    grads = jax.tree_util.tree_map(jnp.ones_like, params)
-    last = len(cfg.train.steps_per_stage) - 1
-
-    def first_update(c, stage):
-        tx = optim.make_optimizer(c, 100, stage)
-        upd, _ = tx.update(grads, tx.init(params), params)
-        return -float(upd["density"][0]), -float(upd["rgb"][0, 0])
-
-    lr = cfg.train.lr_density
-    np.testing.assert_allclose(first_update(cfg, last), (share * lr, cfg.train.lr_rgb),
-                               rtol=1e-5, atol=1e-12)
-    np.testing.assert_allclose(first_update(cfg, last - 1), (lr, cfg.train.lr_rgb), rtol=1e-5)
-    plain = cfgmod.preset("default")
-    assert plain.train.lr_density_last == 1.0
-    np.testing.assert_allclose(first_update(plain, last)[0], lr, rtol=1e-5)
 
 
 def test_grid_sample_feeds_every_prior_as_its_own_gather_would():

@@ -74,7 +74,7 @@ def batch_terms(structure, params, flat: dict, out: dict, shape, sample: dict, c
     grid_sample `sample`, or eq. 15 on the batch's patches)."""
     lc = cfg.loss
     terms = {"data": losses.data_loss(out["rgb_low"], flat["target"], flat["mask"],
-                                      step.data_eps, lc.data_power)}
+                                      step.data_eps)}
     if step.train_gains:
         # divided by the opacity: half-transparent rays are not pushed to target / acc
         gain = losses.normalized_gain(*render.frozen_density_gain(out))
