@@ -489,10 +489,10 @@ def test_aspect_resolution_trains_and_resumes(small_scene, tmp_path, monkeypatch
     structure, _, _, header = trainmod.load_state(run)
     assert (header["stage"], header["step"]) == (1, 5)
     lo, hi = np.asarray(structure.bbox_min), np.asarray(structure.bbox_max)
-    from conftest import sim_near_far
 
     from gridnerf.scene import load_scene
-    scene = load_scene(small_scene, near_far=sim_near_far(small_scene))
+    bounds = json.loads((run / "bounds.json").read_text())  # the run's own, estimated
+    scene = load_scene(small_scene, near_far=(bounds["near"], bounds["far"]))
     h, w = scene.cameras.height // 2, scene.cameras.width // 2
     assert structure.resolution == stages.resolve_resolution(
         (24, 0, 12), lo, hi, (h, w), scene.forward_facing)
