@@ -19,12 +19,14 @@ cover (nine built-in, tuning, held out, mixed light, held-out mixed light), each
 
 Other studies (--study) compare the gains' smoothness weight, one gain against the field,
 the grid regularisers' row sample, the data term's targets (binned raw or mosaic) and the
-chroma TV prior on the same footing, each in reports/ablation_<study>.
+chroma TV prior on the same footing, and the density's Adam rate on today's default, each
+in reports/ablation_<study>.
 The parts' means (nine built-in, held out) written to reports/ablation also go into
 docs/results.md between its ablation markers.
 
     python -m experiments.ablate [--scenes all|nine|heldout|a,b]
-                                 [--study parts|smoothness|gain_model|tv_fraction|data_term|chroma]
+                                 [--study parts|smoothness|gain_model|tv_fraction|data_term|chroma
+                                          |density_rate]
                                  [--quick]
 """
 
@@ -110,9 +112,18 @@ CHROMA_VARIANTS = [
     ("chroma", "chroma TV, loss.tv_chroma = 0.01 (the default's)", "chroma", "default",
      [*FOOTING, "loss.tv_chroma=0.01"]),
 ]
+# --study density_rate: the raw density's Adam rate (train.lr_density) at twice the
+# default's. Chosen on the four tuning scenes (bucket, scoreboard, dev_arc_shop,
+# dev_slide_bench; docs/results.md "The density's learning rate"); every other group is
+# trained after that choice, on today's default footing
+DENSITY_RATE_VARIANTS = [
+    ("rate_0.3", "density rate 0.3 (the default's)", "default", "default", []),
+    ("rate_0.6", "density rate 0.6", "lrd0.6", "default", ["train.lr_density=0.6"]),
+]
 STUDIES = {"parts": VARIANTS, "smoothness": SMOOTHNESS_VARIANTS,
            "gain_model": GAIN_MODEL_VARIANTS, "tv_fraction": TV_FRACTION_VARIANTS,
-           "data_term": DATA_TERM_VARIANTS, "chroma": CHROMA_VARIANTS}
+           "data_term": DATA_TERM_VARIANTS, "chroma": CHROMA_VARIANTS,
+           "density_rate": DENSITY_RATE_VARIANTS}
 # (column, eval summary key) shown for every variant; the no-gain run adds its global gain
 OUTPUTS = [("matrix", "gridnerf"), ("matrix_free", "gridnerf_matrix_free"),
            ("global_gain", "global_grey_world")]
@@ -196,7 +207,8 @@ def main() -> None:
                     help="parts: Bright-NeRF's parts; smoothness: the gains' TV weight; "
                     "gain_model: one gain where one light against the field; tv_fraction: the "
                     "grid regularisers' row sample; data_term: the binned raw against the "
-                    "mosaic; chroma: the chroma TV prior")
+                    "mosaic; chroma: the chroma TV prior; density_rate: the density's Adam "
+                    "rate")
     args = ap.parse_args()
     out = args.out or ("reports/ablation" if args.study == "parts"
                        else f"reports/ablation_{args.study}")

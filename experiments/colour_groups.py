@@ -5,19 +5,18 @@ experiments.common.run_variant), test views, PSNR (dB) / CIEDE2000: the default;
 grey-world gain for the capture on the same trained field (the reference a gain field must
 not fall below); the per-frame pipeline (2x2 binning, grey world, colour matrix, exposure
 matched to the reference); one frame denoised by non-local means. "margin" is default - one
-gain; "colour" what the run shipped where its run folder is here (the end-of-training check
-of gridnerf.shipped_colour: the field, or one grey-world gain, and the gain distance of the
-field's white from the nearest of the frames' estimates), "kept result" where only the
-numbers are kept (reports/results.json); "black level" the one the run's plan took (the
-lens-cap frames' or the file's: a run trained before the lens-cap frames became the
-default says "file").
+gain; "colour" what the run shipped (the end-of-training check of gridnerf.shipped_colour:
+the field, or one grey-world gain, and the gain distance of the field's white from the
+nearest of the frames' estimates), from its run folder or the facts kept with its result
+(common.run_facts), "kept result" where only the numbers are kept (reports/results.json);
+"black level" the one the run's plan took (the lens-cap frames' or the file's: a run
+trained before the lens-cap frames became the default says "file").
 
     python -m experiments.colour_groups [--scenes all] [--runs runs]
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +25,7 @@ from experiments.common import (
     GROUPS,
     RESULTS_DOC,
     markdown_table,
+    run_facts,
     run_variant,
     scene_dir,
     scene_names,
@@ -40,23 +40,29 @@ LABELS = {"nine": "nine built-in", "dev": "tuning", "heldout": "held out",
           "heldquirk": "held-out quirky camera"}
 
 
-def shipped(run: Path) -> str:
-    """What the run's summary says was shipped, or "kept result" without the run."""
-    path = run / "summary.json"
-    if not path.is_file():
+def facts_of(run: Path, kept: dict) -> dict | None:
+    """The run folder's facts (common.run_facts) where it is here, else those kept with its
+    result (`kept`, run_variant's return), else None (a result kept before them)."""
+    if (run / "summary.json").is_file():
+        return run_facts(run)
+    return kept.get("facts") or None
+
+
+def shipped(facts: dict | None) -> str:
+    """What the run's summary says was shipped, or "kept result" without its facts."""
+    if facts is None:
         return "kept result"
-    record = json.loads(path.read_text()).get("colour")
+    record = facts.get("colour")
     if not record or "distance" not in record:
         return record["shipped"] if record else "trained before the check"
     return f"{record['shipped']} ({record['distance']:.2f})"
 
 
-def black_level(run: Path) -> str:
+def black_level(facts: dict | None) -> str:
     """The black level the run's plan took ("lens cap", "file"), or "kept result"."""
-    path = run / "plan.json"
-    if not path.is_file():
+    if facts is None:
         return "kept result"
-    return json.loads(path.read_text()).get("black_level", "file").replace("_", " ")
+    return facts.get("black_level", "file").replace("_", " ")
 
 
 def main() -> None:
@@ -73,8 +79,8 @@ def main() -> None:
             row = {k: (s[k]["psnr"], s[k]["delta_e"]) for k in
                    ("gridnerf", "global_grey_world", "baseline_binned_matched",
                     "baseline_denoised")}
-            row["colour"] = shipped(Path(args.runs) / name / "default")
-            row["black"] = black_level(Path(args.runs) / name / "default")
+            facts = facts_of(Path(args.runs) / name / "default", m)
+            row["colour"], row["black"] = shipped(facts), black_level(facts)
             record["scenes"][name] = {"group": g, **row}
             vals.append(row)
             margin = row["gridnerf"][0] - row["global_grey_world"][0]

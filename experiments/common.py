@@ -171,20 +171,45 @@ def load_results(path: Path = RESULTS) -> dict:
 
 def cached_result(scene: str, name: str, cfg: cfgmod.Config,
                   results: dict | None = None) -> dict | None:
-    """{"summary": ...} of <scene>/<name> from `results` (default: RESULTS read now) when
-    its fingerprint is cfg's."""
+    """{"summary": ..., "facts": ...} of <scene>/<name> from `results` (default: RESULTS
+    read now) when its fingerprint is cfg's; facts ({} for results kept before them):
+    run_facts of the run folder it was evaluated in."""
     entry = (load_results() if results is None else results).get(f"{scene}/{name}")
     if entry and entry.get("fingerprint") == fingerprint(cfg):
-        return {"summary": entry["summary"], "cached": True}
+        return {"summary": entry["summary"], "facts": entry.get("facts", {}), "cached": True}
     return None
 
 
+# what the tables read from a run folder besides its scores: (file, keys)
+RUN_FACTS = (("summary.json", ("resolution", "occupied_fraction", "train_seconds", "colour")),
+             ("plan.json", ("black_level",)))
+
+
+def run_facts(run: Path) -> dict:
+    """The run folder's facts the tables show beside its scores (RUN_FACTS: the final grid,
+    its occupancy, the training seconds, the colour it shipped, the black level its plan
+    took; bounds.json whole under "bounds"), kept with its scores so that a machine without
+    the folder shows them too. Files or keys the folder lacks are left out."""
+    facts: dict = {}
+    for name, keys in RUN_FACTS:
+        path = Path(run) / name
+        if path.is_file():
+            record = json.loads(path.read_text())
+            facts |= {k: record[k] for k in keys if k in record}
+    if (Path(run) / "bounds.json").is_file():
+        facts["bounds"] = json.loads((Path(run) / "bounds.json").read_text())
+    return facts
+
+
 def record_result(scene: str, name: str, cfg: cfgmod.Config, metrics: dict,
-                  path: Path = RESULTS) -> None:
-    """Keep an evaluated run's summary in `path` under its config's fingerprint (the file
-    is rewritten only when that changes it)."""
+                  path: Path = RESULTS, run: Path | None = None) -> None:
+    """Keep an evaluated run's summary in `path` under its config's fingerprint, with the
+    facts of its folder `run` (run_facts) where given (the file is rewritten only when that
+    changes it)."""
     results = load_results(path)
     entry = {"fingerprint": fingerprint(cfg), "summary": metrics["summary"]}
+    if run is not None and (facts := run_facts(run)):
+        entry["facts"] = facts
     if results.get(f"{scene}/{name}") != entry:
         results[f"{scene}/{name}"] = entry
         atomic.write_text(path, json.dumps(results, indent=1, sort_keys=True) + "\n")
@@ -217,7 +242,7 @@ def run_variant(scene: str, name: str, preset: str, overrides: list[str],
     metrics = (json.loads(metrics_path.read_text()) if metrics_path.exists()
                else evaluate_run(run))
     if keep and not quick:
-        record_result(scene_name, name, cfg, metrics)
+        record_result(scene_name, name, cfg, metrics, run=run)
     return metrics
 
 

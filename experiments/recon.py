@@ -7,8 +7,10 @@ gridnerf.baseline.process_binned_frame), scored on the test views. The nine buil
 scenes, the tuning scenes with an arc and a slide rig (gridnerf.sim.DEV: defaults may be
 chosen on them) and the held-out scenes (gridnerf.sim.HELDOUT, which no default is tuned
 on) are reported in separate tables. Runs are cached in runs/<scene>/<preset>/ (re-running
-reuses finished runs). Writes reports/recon.md and reports/recon.json and, with --scenes
-all, the tables in docs/results.md between the recon markers.
+reuses finished runs); without the folder, a kept result of the same config
+(reports/results.json) and the folder's facts kept beside it stand in for the run. Writes
+reports/recon.md and reports/recon.json and, with --scenes all, the tables in
+docs/results.md between the recon markers.
 
     python -m experiments.recon [--scenes all|nine|dev|heldout|name,name]
                                 [--oracle all|heldout|none]
@@ -17,7 +19,6 @@ all, the tables in docs/results.md between the recon markers.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -31,6 +32,7 @@ from experiments.common import (
     fmt,
     markdown_table,
     preset_config,
+    run_facts,
     run_variant,
     scene_names,
     update_doc,
@@ -40,12 +42,15 @@ from gridnerf.sim import DEV, HELDOUT
 
 
 def row_for(scene: str, oracle: bool) -> dict:
-    ours = run_variant(scene, "default", "default", [], need_run=True)
+    """One scene's row: the default's run folder where it is here (trained where neither
+    it nor a kept result of today's default is), else its kept result and kept facts
+    (common.run_facts; "n/a" for a result kept before them)."""
+    ours = run_variant(scene, "default", "default", [])
     s = ours["summary"]
     # the folder run_variant trained: a metrics file's recorded path goes stale when a run
     # folder is renamed
-    summary = json.loads((Path("runs") / Path(scene).name / "default" / "summary.json")
-                         .read_text())
+    run = Path("runs") / Path(scene).name / "default"
+    summary = run_facts(run) if (run / "summary.json").is_file() else ours.get("facts", {})
     row = {
         "scene": scene,
         "held_out": scene in HELDOUT,
@@ -57,15 +62,14 @@ def row_for(scene: str, oracle: bool) -> dict:
         "baseline_ssim": s["baseline_binned_matched"]["ssim"],
         "resolution": summary.get("resolution"),
         "occupied_fraction": summary.get("occupied_fraction"),
-        "train_seconds": summary["train_seconds"],
+        "train_seconds": summary.get("train_seconds"),
         "oracle_psnr": None,
     }
     for key, name in (("global", "global_grey_world"), ("denoised", "baseline_denoised")):
         if name in s:  # runs evaluated before these rows existed lack them
             row[f"{key}_psnr"], row[f"{key}_delta_e"] = s[name]["psnr"], s[name]["delta_e"]
-    bounds = Path(ours["run"]) / "bounds.json"
-    if bounds.is_file():
-        row["bounds"] = json.loads(bounds.read_text())
+    if "bounds" in summary:
+        row["bounds"] = summary["bounds"]
     if oracle:
         o = run_variant(scene, "oracle", "oracle", [])  # its scores: a cached result will do
         row["oracle_psnr"] = o["summary"]["gridnerf"]["psnr"]
@@ -81,14 +85,15 @@ def table(rows: list[dict]) -> str:
                      fmt(r["psnr"] - r["baseline_psnr"]),
                      "x".join(str(v) for v in r["resolution"] or []),
                      fmt(100 * r["occupied_fraction"], 1) if r["occupied_fraction"] else "n/a",
-                     fmt(r["train_seconds"], 0)])
+                     fmt(r["train_seconds"], 0) if r["train_seconds"] is not None else "n/a"])
     if rows:
         mean = lambda k: float(np.mean([r[k] for r in rows]))  # noqa: E731
         oracle = [r["oracle_psnr"] for r in rows if r["oracle_psnr"] is not None]
+        secs = [r["train_seconds"] for r in rows if r["train_seconds"] is not None]
         body.append(["**mean**", fmt(mean("psnr")), fmt(mean("ssim"), 3), fmt(mean("delta_e")),
                      fmt(float(np.mean(oracle))) if oracle else "n/a",
                      fmt(mean("baseline_psnr")), fmt(mean("psnr") - mean("baseline_psnr")),
-                     "", "", fmt(mean("train_seconds"), 0)])
+                     "", "", fmt(float(np.mean(secs)), 0) if secs else "n/a"])
     return markdown_table(["scene", "PSNR", "SSIM", "CIEDE2000", "oracle PSNR",
                            "per-frame PSNR", "ours - per-frame", "final grid", "occupied %",
                            "train s"], body)

@@ -126,6 +126,42 @@ def test_run_variant_keeps_and_reuses_results(tmp_path, monkeypatch):
     assert kept["bucket/default"]["summary"]["gridnerf"]["psnr"] == 19.0  # the newest
 
 
+def test_kept_results_carry_their_run_folders_facts(tmp_path, monkeypatch):
+    """Beside an evaluated run's scores run_variant keeps the facts the tables read from its
+    folder (common.run_facts); without the folder the kept result gives them back, and the
+    colour-group and reconstruction rows show them as they would from the folder."""
+    from experiments import colour_groups, common, recon
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(common, "train", lambda *a, **k: pytest.fail("nothing to train"))
+    run = tmp_path / "runs" / "bucket" / "default"
+    metrics = _metrics(20.0)
+    metrics["summary"]["baseline_binned_matched"] = {"psnr": 16.0, "ssim": 0.3}
+    _write(tmp_path / "runs", "bucket", "default", metrics)
+    summary = {"resolution": [192, 113, 64], "occupied_fraction": 0.25, "train_seconds": 180.0,
+               "colour": {"shipped": "one_gain", "distance": 0.04}, "rays_per_second": 9.0}
+    (run / "summary.json").write_text(json.dumps(summary))
+    (run / "plan.json").write_text(json.dumps({"black_level": "lens_cap", "downscale": 1}))
+    (run / "bounds.json").write_text(json.dumps({"near": 1.5, "far": 15.0}))
+    common.run_variant("bucket", "default", "default", [], tmp_path / "runs")
+    facts = common.load_results()["bucket/default"]["facts"]
+    assert facts == {"resolution": [192, 113, 64], "occupied_fraction": 0.25,
+                     "train_seconds": 180.0, "colour": summary["colour"],
+                     "black_level": "lens_cap", "bounds": {"near": 1.5, "far": 15.0}}
+    here = colour_groups.facts_of(run, {})
+    (tmp_path / "runs").rename(tmp_path / "elsewhere")  # a fresh machine: no run folders
+    got = common.run_variant("bucket", "default", "default", [], tmp_path / "runs")
+    assert got["cached"] and got["facts"] == facts
+    kept = colour_groups.facts_of(run, got)
+    assert kept == here
+    assert colour_groups.shipped(kept) == "one_gain (0.04)"
+    assert colour_groups.black_level(kept) == "lens cap"
+    assert colour_groups.shipped(colour_groups.facts_of(run, {"facts": {}})) == "kept result"
+    row = recon.row_for("bucket", oracle=False)
+    assert row["resolution"] == [192, 113, 64] and row["train_seconds"] == 180.0
+    assert row["bounds"] == {"near": 1.5, "far": 15.0} and row["psnr"] == 20.0
+
+
 def test_readme_means_table_names_every_row_and_count():
     from experiments import report
 
