@@ -25,7 +25,6 @@ from experiments.common import (
     GROUPS,
     RESULTS_DOC,
     markdown_table,
-    run_facts,
     run_variant,
     scene_dir,
     scene_names,
@@ -38,14 +37,6 @@ LABELS = {"nine": "nine built-in", "dev": "tuning", "heldout": "held out",
           "mixed": "mixed light", "heldmixed": "held-out mixed light",
           "heldcolour": "held-out colour", "cycles": "path-traced (Blender Cycles)",
           "heldquirk": "held-out quirky camera"}
-
-
-def facts_of(run: Path, kept: dict) -> dict | None:
-    """The run folder's facts (common.run_facts) where it is here, else those kept with its
-    result (`kept`, run_variant's return), else None (a result kept before them)."""
-    if (run / "summary.json").is_file():
-        return run_facts(run)
-    return kept.get("facts") or None
 
 
 def shipped(facts: dict | None) -> str:
@@ -79,7 +70,7 @@ def main() -> None:
             row = {k: (s[k]["psnr"], s[k]["delta_e"]) for k in
                    ("gridnerf", "global_grey_world", "baseline_binned_matched",
                     "baseline_denoised")}
-            facts = facts_of(Path(args.runs) / name / "default", m)
+            facts = m.get("facts") or None  # none: a result kept before its facts
             row["colour"], row["black"] = shipped(facts), black_level(facts)
             record["scenes"][name] = {"group": g, **row}
             vals.append(row)

@@ -202,14 +202,14 @@ def run_facts(run: Path) -> dict:
 
 
 def record_result(scene: str, name: str, cfg: cfgmod.Config, metrics: dict,
-                  path: Path = RESULTS, run: Path | None = None) -> None:
-    """Keep an evaluated run's summary in `path` under its config's fingerprint, with the
-    facts of its folder `run` (run_facts) where given (the file is rewritten only when that
-    changes it)."""
+                  path: Path = RESULTS) -> None:
+    """Keep an evaluated run's summary in `path` under its config's fingerprint, with its
+    folder's facts where `metrics` carries them (run_variant's "facts"; the file is
+    rewritten only when that changes it)."""
     results = load_results(path)
     entry = {"fingerprint": fingerprint(cfg), "summary": metrics["summary"]}
-    if run is not None and (facts := run_facts(run)):
-        entry["facts"] = facts
+    if metrics.get("facts"):
+        entry["facts"] = metrics["facts"]
     if results.get(f"{scene}/{name}") != entry:
         results[f"{scene}/{name}"] = entry
         atomic.write_text(path, json.dumps(results, indent=1, sort_keys=True) + "\n")
@@ -225,7 +225,8 @@ def run_variant(scene: str, name: str, preset: str, overrides: list[str],
     ({"summary", "cached": True}), unless the caller needs the run itself (`need_run`:
     its renders or files); every result evaluated here is kept there (not in quick mode).
     white_ref: train's --white-ref; its runs are not kept in RESULTS (keep=False: the
-    fingerprint is the config's alone), the caller keeps their numbers."""
+    fingerprint is the config's alone), the caller keeps their numbers. "facts" in the
+    result: run_facts of the folder, or those kept with the result."""
     scene_name = Path(scene).name  # scene_dir's folder name, without simulating it yet
     run = Path(runs) / scene_name / name
     cfg = cfgmod.override(cfgmod.preset(preset), overrides)
@@ -241,8 +242,9 @@ def run_variant(scene: str, name: str, preset: str, overrides: list[str],
     metrics_path = run / "eval" / "metrics.json"
     metrics = (json.loads(metrics_path.read_text()) if metrics_path.exists()
                else evaluate_run(run))
+    metrics["facts"] = run_facts(run)
     if keep and not quick:
-        record_result(scene_name, name, cfg, metrics, run=run)
+        record_result(scene_name, name, cfg, metrics)
     return metrics
 
 

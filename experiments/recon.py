@@ -32,7 +32,6 @@ from experiments.common import (
     fmt,
     markdown_table,
     preset_config,
-    run_facts,
     run_variant,
     scene_names,
     update_doc,
@@ -47,10 +46,7 @@ def row_for(scene: str, oracle: bool) -> dict:
     (common.run_facts; "n/a" for a result kept before them)."""
     ours = run_variant(scene, "default", "default", [])
     s = ours["summary"]
-    # the folder run_variant trained: a metrics file's recorded path goes stale when a run
-    # folder is renamed
-    run = Path("runs") / Path(scene).name / "default"
-    summary = run_facts(run) if (run / "summary.json").is_file() else ours.get("facts", {})
+    summary = ours.get("facts", {})  # the folder's (run_variant), or kept with the result
     row = {
         "scene": scene,
         "held_out": scene in HELDOUT,

@@ -143,20 +143,19 @@ def test_kept_results_carry_their_run_folders_facts(tmp_path, monkeypatch):
     (run / "summary.json").write_text(json.dumps(summary))
     (run / "plan.json").write_text(json.dumps({"black_level": "lens_cap", "downscale": 1}))
     (run / "bounds.json").write_text(json.dumps({"near": 1.5, "far": 15.0}))
-    common.run_variant("bucket", "default", "default", [], tmp_path / "runs")
+    here = common.run_variant("bucket", "default", "default", [], tmp_path / "runs")["facts"]
     facts = common.load_results()["bucket/default"]["facts"]
     assert facts == {"resolution": [192, 113, 64], "occupied_fraction": 0.25,
                      "train_seconds": 180.0, "colour": summary["colour"],
                      "black_level": "lens_cap", "bounds": {"near": 1.5, "far": 15.0}}
-    here = colour_groups.facts_of(run, {})
     (tmp_path / "runs").rename(tmp_path / "elsewhere")  # a fresh machine: no run folders
     got = common.run_variant("bucket", "default", "default", [], tmp_path / "runs")
     assert got["cached"] and got["facts"] == facts
-    kept = colour_groups.facts_of(run, got)
+    kept = got["facts"]
     assert kept == here
     assert colour_groups.shipped(kept) == "one_gain (0.04)"
     assert colour_groups.black_level(kept) == "lens cap"
-    assert colour_groups.shipped(colour_groups.facts_of(run, {"facts": {}})) == "kept result"
+    assert colour_groups.shipped(None) == "kept result"  # a result kept before its facts
     row = recon.row_for("bucket", oracle=False)
     assert row["resolution"] == [192, 113, 64] and row["train_seconds"] == 180.0
     assert row["bounds"] == {"near": 1.5, "far": 15.0} and row["psnr"] == 20.0
