@@ -104,7 +104,9 @@ GROUPS = {"nine": SCENES, "heldout": HELDOUT, "dev": DEV, "mixed": MIXED,
           "heldquirk": HELDOUT_QUIRK}
 # (label, scenes) of the groups a colour study reports its means over, each apart
 REPORT_GROUPS = (("nine", SCENES), ("tuning", DEV), ("held out", HELDOUT),
-                 ("mixed light", MIXED), ("held-out mixed light", HELDOUT_MIXED))
+                 ("mixed light", MIXED), ("held-out mixed light", HELDOUT_MIXED),
+                 ("held-out colour", HELDOUT_COLOUR), ("held-out quirky camera", HELDOUT_QUIRK),
+                 ("path-traced", tuple(CYCLES)))
 
 
 def scene_names(spec: str, all_groups: tuple[str, ...] = ("nine", "heldout")) -> list[str]:

@@ -212,6 +212,12 @@ def test_ablation_scene_groups_and_gain_model_study():
                            ablate.GAIN_MODEL_VARIANTS)
     assert "| **mean, mixed light** (n=1) | gain field (default) | matrix | 25.00 |" in text
     assert "mean, nine" not in text
+    # each held-out generator apart: a path-traced capture is not averaged into another group
+    traced = {"cycles_cornell": {"field": {"matrix": _m(23.0)}}}
+    text = ablate.markdown(traced, ablate.group_means(traced, ablate.GAIN_MODEL_VARIANTS),
+                           ablate.GAIN_MODEL_VARIANTS)
+    assert "| **mean, path-traced** (n=1) | gain field (default) | matrix | 23.00 |" in text
+    assert "mean, held out" not in text and "mean, mixed light" not in text
 
 
 def test_every_study_variant_is_a_valid_config_and_shared_folders_agree():
