@@ -103,10 +103,10 @@ GROUPS = {"nine": SCENES, "heldout": HELDOUT, "dev": DEV, "mixed": MIXED,
           "heldmixed": HELDOUT_MIXED, "heldcolour": HELDOUT_COLOUR, "cycles": tuple(CYCLES),
           "heldquirk": HELDOUT_QUIRK}
 # (label, scenes) of the groups a colour study reports its means over, each apart
-REPORT_GROUPS = (("nine", SCENES), ("tuning", DEV), ("held out", HELDOUT),
-                 ("mixed light", MIXED), ("held-out mixed light", HELDOUT_MIXED),
-                 ("held-out colour", HELDOUT_COLOUR), ("held-out quirky camera", HELDOUT_QUIRK),
-                 ("path-traced", tuple(CYCLES)))
+REPORT_GROUPS = tuple((label, GROUPS[key]) for key, label in (
+    ("nine", "nine"), ("dev", "tuning"), ("heldout", "held out"), ("mixed", "mixed light"),
+    ("heldmixed", "held-out mixed light"), ("heldcolour", "held-out colour"),
+    ("heldquirk", "held-out quirky camera"), ("cycles", "path-traced")))
 
 
 def scene_names(spec: str, all_groups: tuple[str, ...] = ("nine", "heldout")) -> list[str]:
