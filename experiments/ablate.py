@@ -120,10 +120,22 @@ DENSITY_RATE_VARIANTS = [
     ("rate_0.3", "density rate 0.3 (the default's)", "default", "default", []),
     ("rate_0.6", "density rate 0.6", "lrd0.6", "default", ["train.lr_density=0.6"]),
 ]
+# --study last_width: the last stage 288 vertices across instead of 192 (the same 64 in
+# depth; the slots' cap raised so the stage may fit more). Does a finer grid across the
+# view hold detail the frames show, or their noise? docs/results.md, "Resolution from the
+# frames' detail"
+LAST_WIDTH_VARIANTS = [
+    ("w192", "last stage 192 wide (the default's)", "default", "default", []),
+    ("w288", "last stage 288 wide", "w288", "default",
+     ["grid.resolutions=[[48,0,24],[96,0,48],[288,0,64]]", "render.max_samples=96"]),
+    ("w288_tv", "last stage 288 wide, its TVs x 1.5 (loss.tv_ref_width = 192)", "w288tv",
+     "default", ["grid.resolutions=[[48,0,24],[96,0,48],[288,0,64]]", "render.max_samples=96",
+                 "loss.tv_ref_width=192"]),
+]
 STUDIES = {"parts": VARIANTS, "smoothness": SMOOTHNESS_VARIANTS,
            "gain_model": GAIN_MODEL_VARIANTS, "tv_fraction": TV_FRACTION_VARIANTS,
            "data_term": DATA_TERM_VARIANTS, "chroma": CHROMA_VARIANTS,
-           "density_rate": DENSITY_RATE_VARIANTS}
+           "density_rate": DENSITY_RATE_VARIANTS, "last_width": LAST_WIDTH_VARIANTS}
 # (column, eval summary key) shown for every variant; the no-gain run adds its global gain
 OUTPUTS = [("matrix", "gridnerf"), ("matrix_free", "gridnerf_matrix_free"),
            ("global_gain", "global_grey_world")]

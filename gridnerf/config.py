@@ -208,6 +208,9 @@ class LossConfig(_Section):
     opacity: float = 0.1  # weight of mean (1 - acc)^2: every ray ends on a surface
     opacity_stages: int = 1  # the opacity prior acts in this many first stages (0: all)
     tv_fraction: float = 0.1  # share of the grid's rows the grid priors sample per step
+    # width (vertices across x) the TV weights are set for: a wider stage scales them by its
+    # width over this (optim.tv_scale; 0: never scaled)
+    tv_ref_width: int = 0
     # what restores the colour: "field" (per-voxel von Kries gains), "global" (one gain for
     # the capture), "auto" (one gain under one light, the field where lights mix), "none"
     gain_model: Literal["field", "auto", "global", "none"] = "field"
@@ -228,6 +231,8 @@ class LossConfig(_Section):
                      "opacity"):
             self._range(name, 0.0)
         self._range("tv_fraction", 0.0, 1.0, lo_open=True)
+        self._require("tv_ref_width", self.tv_ref_width >= 0,
+                      "a whole number >= 0 (0: the TV weights are never scaled)")
         self._range("data_eps", 0.0, lo_open=True)
         self._range("data_eps_sigmas", 0.0)
         self._require("opacity_stages", self.opacity_stages >= 0,
@@ -505,7 +510,8 @@ def get(cfg: Config, dotted: str) -> Any:
 # experiments.common.fingerprint leaves the field out at that value, so the kept results
 # of configs that do not use it stay valid
 ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0,
-                ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0}
+                ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0,
+                ("loss", "tv_ref_width"): 0}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

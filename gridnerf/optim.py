@@ -49,6 +49,20 @@ def make_optimizer(cfg: Config, steps: int, stage: int = 0) -> optax.GradientTra
     )
 
 
+def tv_scale(cfg: Config, stage: int) -> float:
+    """The factor on the TVs of density, colour and chroma in `stage`: the stage's width
+    (vertices across x) over loss.tv_ref_width where the stage is wider, else 1.
+
+    Why: the TV is a mean over vertices of |forward difference|, and a field that varies
+    smoothly changes by h |grad| between vertices h apart, so a fixed weight w asks for
+    w h |grad| per unit volume: a finer grid is smoothed less for the same field, while
+    each of its vertices sees fewer rays and more noise. w / h keeps the prior's strength in
+    the scene's units where a stage is finer than the one the weights were set on."""
+    ref = cfg.loss.tv_ref_width
+    width = cfg.grid.resolutions[stage][0]
+    return float(width) / ref if ref > 0 and width > ref else 1.0
+
+
 def step_plan(cfg: Config, plan: RunPlan, stage: int, scene) -> StepPlan:
     """The StepPlan of stage `stage` of a run: its plan's eps, opacity weight, candidate
     count and occupied-sample slots; the gain terms where the colour is the gain field; the
@@ -63,7 +77,8 @@ def step_plan(cfg: Config, plan: RunPlan, stage: int, scene) -> StepPlan:
     return StepPlan(data_eps=plan.data_eps, opacity=plan.opacity[stage],
                     n_candidates=plan.n_candidates[stage],
                     max_samples=plan.samples(stage, cfg),
-                    train_gains=plan.colour.model == "field", anchor=anchor, locus=locus)
+                    train_gains=plan.colour.model == "field", anchor=anchor, locus=locus,
+                    tv_scale=tv_scale(cfg, stage))
 
 
 def loss_fn(params, structure, rays: dict, key, cfg: Config, step: StepPlan, near_t: float,
@@ -90,8 +105,9 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, step: StepPlan, nea
     if lc.tv_chroma <= 0:
         del priors["tv_chroma"]
     terms.update(priors)
-    weights = {**weights, "opacity": step.opacity, "tv_density": lc.tv_density,
-               "tv_rgb": lc.tv_rgb, "tv_chroma": lc.tv_chroma, "sparsity": lc.sparsity}
+    weights = {**weights, "opacity": step.opacity, "tv_density": lc.tv_density * step.tv_scale,
+               "tv_rgb": lc.tv_rgb * step.tv_scale, "tv_chroma": lc.tv_chroma * step.tv_scale,
+               "sparsity": lc.sparsity}
     total = sum(weights[k] * v for k, v in terms.items())
     return total, terms
 

@@ -211,6 +211,7 @@ class StepPlan:
     (L_ca, smoothness) are in the loss (False with one gain or no gains); anchor: (3,)
     float32 the capture's illuminant (the "scene" and "map" targets) or None; locus: (n, 3)
     float32 the camera's Planckian locus for the "batch" target with loss.ca_locus, or None.
+    tv_scale: the factor on the colour and density TVs this stage (optim.tv_scale).
     """
 
     data_eps: float
@@ -220,3 +221,4 @@ class StepPlan:
     anchor: object = None
     locus: object = None
     max_samples: int = 0
+    tv_scale: float = 1.0

@@ -456,3 +456,29 @@ def test_grid_sample_feeds_every_prior_as_its_own_gather_would():
     zeros = losses.grid_priors(losses.grid_sample(empty, pe, sample_key=key, fraction=0.5))
     assert all(float(v) == 0.0 for v in zeros.values())
     assert float(losses.edge_aware_gain_tv(losses.grid_sample(empty, pe))) == 0.0
+
+
+def test_tv_scale_strengthens_the_tvs_of_stages_finer_than_the_reference_only():
+    """loss.tv_ref_width: a stage wider than it has its density, colour and chroma TVs
+    weighted by width / ref (the prior's strength per unit of the scene kept); narrower
+    stages and the default (0) are unscaled, and nothing else in the loss changes."""
+    from gridnerf import config as cfgmod
+
+    c = cfgmod.override(cfgmod.preset("tiny"), [
+        "render.max_samples=16", "loss.ca_target=scene", "loss.tv_ref_width=8",
+        "loss.tv_chroma=0.01",
+        "grid.resolutions=[[6,6,6],[8,8,8],[12,12,12]]", "train.steps_per_stage=[1,1,1]"])
+    assert [optim.tv_scale(c, s) for s in range(3)] == [1.0, 1.0, 1.5]
+    plain = cfgmod.override(c, ["loss.tv_ref_width=0"])
+    assert [optim.tv_scale(plain, s) for s in range(3)] == [1.0, 1.0, 1.0]
+    structure, params, rays = _foggy_scene()
+    args = (params, structure, rays, jax.random.PRNGKey(0), c)
+    total1, terms = optim.loss_fn(*args, _step(train_gains=False), -1.0, 1.0)
+    total2, terms2 = optim.loss_fn(*args, _step(train_gains=False, tv_scale=1.5),
+                                   -1.0, 1.0)
+    extra = 0.5 * sum(w * float(terms[k]) for k, w in
+                      (("tv_density", c.loss.tv_density), ("tv_rgb", c.loss.tv_rgb),
+                       ("tv_chroma", c.loss.tv_chroma)))
+    assert extra > 0
+    assert float(total2) - float(total1) == pytest.approx(extra, rel=1e-4, abs=1e-9)
+    assert all(float(terms2[k]) == pytest.approx(float(terms[k]), rel=1e-6) for k in terms)
