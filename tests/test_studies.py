@@ -244,29 +244,35 @@ def test_every_study_variant_is_a_valid_config_and_shared_folders_agree():
     assert seen["gain_auto_dark"].data.black_offset == "dark"
     assert seen["binned_gamma0.3"].data.exposure_ratio == 0.3
     # the factor studies' runs fit the binned raw throughout; the default, the data-term
-    # study's mosaic run, the chroma study's two runs and the density-rate study's run are
-    # the only ones with a mosaic stage
+    # study's mosaic run, the chroma study's two runs, the density-rate study's run and the
+    # last-width study's are the only ones with a mosaic stage
     mosaic = sorted(f for f, c in seen.items()
                     if c.data.target == "raw" and c.data.mosaic_from(3) < 3)
-    assert mosaic == ["chroma", "default", "lrd0.6", "mosaic", "mosaic_last"], mosaic
+    assert mosaic == ["chroma", "default", "lrd0.6", "mosaic", "mosaic_last", "w288tv"], mosaic
+    assert seen["w288tv"].loss.tv_ref_width == 192
+    assert seen["w288tv"].grid.resolutions[-1] == (288, 0, 64)
     # the chroma prior: the default's, and the chroma study's run of it on the measured
     # footing, which is the default's footing in all else (cfgmod.FOOTING); mosaic_last is
     # that run without the prior
     chroma = sorted(f for f, c in seen.items() if c.loss.tv_chroma > 0)
-    assert chroma == ["chroma", "default", "lrd0.6"]
+    assert chroma == ["chroma", "default", "lrd0.6", "w288tv"]
     assert seen["chroma"] == cfgmod.override(
         seen["default"], [*cfgmod.FOOTING, "loss.tv_chroma=0.01"])
     assert seen["mosaic_last"] == cfgmod.override(seen["chroma"], ["loss.tv_chroma=0"])
     # the density-rate study's run: today's default with the density's rate doubled
     assert seen["lrd0.6"] == cfgmod.override(seen["default"], ["train.lr_density=0.6"])
     assert seen["lrd0.6"] != seen["default"]
+    # the last-width study's runs: today's default with a 288-wide last stage
+    assert seen["w288tv"] == cfgmod.override(seen["default"], [
+        "grid.resolutions=[[48,0,24],[96,0,48],[288,0,64]]", "render.max_samples=96",
+        "loss.tv_ref_width=192"])
     # every preset but the default and every variant is on the measured footing
     for f, c in seen.items():
-        if f not in ("default", "chroma", "tv0.1", "lrd0.6"):
+        if f not in ("default", "chroma", "tv0.1", "lrd0.6", "w288tv"):
             assert c.train.steps_per_stage[:3] == (600, 600, 1200), f
             assert c.loss.tv_fraction == 0.25 and c.loss.tv_chroma == 0, f
     assert set(ablate.STUDIES) == {"parts", "smoothness", "gain_model", "tv_fraction",
-                                   "data_term", "chroma", "density_rate"}
+                                   "data_term", "chroma", "density_rate", "last_width"}
     assert seen["default"].data.mosaic_from(3) == 2 and seen["mosaic"].data.mosaic_from(3) == 0
     assert seen["binned"].data.mosaic_from(3) == 3
 
