@@ -126,11 +126,11 @@ DENSITY_RATE_VARIANTS = [
 # finer grid across the view hold detail the frames show, or their noise? The same stage
 # without the scaling was measured first (`<scene>/w288` in RESULTS; docs/results.md,
 # "A finer last stage")
-W288 = ["grid.resolutions=[[48,0,24],[96,0,48],[288,0,64]]", "render.max_samples=96"]
 LAST_WIDTH_VARIANTS = [
     ("w192", "last stage 192 wide (the default's)", "default", "default", []),
     ("w288_tv", "last stage 288 wide, its TVs x 1.5 (loss.tv_ref_width = 192)", "w288tv",
-     "default", [*W288, "loss.tv_ref_width=192"]),
+     "default", ["grid.resolutions=[[48,0,24],[96,0,48],[288,0,64]]",
+                 "render.max_samples=96", "loss.tv_ref_width=192"]),
 ]
 STUDIES = {"parts": VARIANTS, "smoothness": SMOOTHNESS_VARIANTS,
            "gain_model": GAIN_MODEL_VARIANTS, "tv_fraction": TV_FRACTION_VARIANTS,

@@ -211,7 +211,7 @@ class StepPlan:
     (L_ca, smoothness) are in the loss (False with one gain or no gains); anchor: (3,)
     float32 the capture's illuminant (the "scene" and "map" targets) or None; locus: (n, 3)
     float32 the camera's Planckian locus for the "batch" target with loss.ca_locus, or None.
-    tv_scale: the factor on the colour and density TVs this stage (optim.tv_scale).
+    tv_scale: the factor on the TVs of density, colour and chroma this stage (optim.tv_scale).
     """
 
     data_eps: float
