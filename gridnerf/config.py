@@ -262,6 +262,10 @@ class TrainConfig(_Section):
     # steps over which each stage after the first ramps its rates up from 0 (linear): the
     # upsampled grid starts near its optimum, and Adam's first steps move every parameter
     warmup_steps: int = 0
+    # L-BFGS iterations of the colour solve after the last stage (gridnerf.colour_solve: the
+    # vertex colours fitted to every training ray with the geometry fixed); 0: none
+    colour_solve_iters: int = 0
+    colour_solve_samples: int = 8  # heaviest samples a ray the colour solve refits
     seed: int = 0  # PRNG seed of the init and the batches
     log_every: int = 50  # steps between metrics.jsonl lines
     checkpoint_every: int = 300  # steps between checkpoints (also every CHECKPOINT_SECONDS)
@@ -276,6 +280,10 @@ class TrainConfig(_Section):
             self._range(name, 0.0)
         self._range("lr_decay", 0.0, lo_open=True)
         self._require("warmup_steps", self.warmup_steps >= 0, "a whole number >= 0")
+        self._require("colour_solve_iters", self.colour_solve_iters >= 0,
+                      "a whole number >= 0 (0: no colour solve)")
+        self._require("colour_solve_samples", self.colour_solve_samples >= 1,
+                      "a whole number >= 1")
         self._require("seed", self.seed >= 0, "a whole number >= 0")
         self._require("log_every", self.log_every >= 1, "a whole number >= 1")
         self._require("checkpoint_every", self.checkpoint_every >= 1, "a whole number >= 1")
@@ -511,7 +519,8 @@ def get(cfg: Config, dotted: str) -> Any:
 # of configs that do not use it stay valid
 ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0,
                 ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0,
-                ("loss", "tv_ref_width"): 0}
+                ("loss", "tv_ref_width"): 0, ("train", "colour_solve_iters"): 0,
+                ("train", "colour_solve_samples"): 8}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

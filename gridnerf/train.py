@@ -33,6 +33,7 @@ from tqdm import tqdm
 from gridnerf import (
     atomic,
     checkpoint,
+    colour_solve,
     darkframes,
     data_term,
     dataset,
@@ -136,6 +137,35 @@ def _vignetting(run: Path, plan, stage: int, structure, params, data, scene, nea
     plan = replace(plan, vignetting=(float(total[0]), float(total[1])))
     planmod.save(run, plan)
     return vignetting.apply(data, k), plan
+
+
+def _colour_solve(run: Path, cfg: Config, plan, scene, method, structure, params, data,
+                  near_t, far_t, key, elapsed: float):
+    """(params, record) after the colour solve of the finished stages (gridnerf.colour_solve;
+    train.colour_solve_iters > 0, the brightnerf data term), saved in the checkpoint with
+    its record so a resumed run does not solve twice; (params, None) without one."""
+    iters = cfg.train.colour_solve_iters
+    if iters <= 0:
+        return params, None
+    if method.NAME != "brightnerf":
+        print(f"colour solve: skipped, the {method.NAME} method's data term is not the one "
+              "it fits")
+        return params, None
+    header = load_state(run)[3]
+    if "colour_solve" in header:
+        return params, header["colour_solve"]
+    last = len(cfg.grid.resolutions) - 1
+    data = stage_data(data, scene, cfg, method, plan, last)
+    params, record = colour_solve.solve(structure, params, data, near_t, far_t, cfg,
+                                        plan.data_eps, plan.n_candidates[last],
+                                        optim.tv_scale(cfg, last))
+    print(f"colour solve: {record['iterations']} L-BFGS iterations over {record['rays']:,} "
+          f"rays in {record['seconds']:.0f} s, data term {record['data_before']:.4g} -> "
+          f"{record['data_after']:.4g} ({record['kept']} colour kept)")
+    save_state(run, structure, params, [], {
+        "stage": last + 1, "step": 0, "train_seconds": elapsed,
+        "key": np.asarray(key).tolist(), "colour_solve": record})
+    return params, record
 
 
 def stage_data(data, scene, cfg: Config, method, plan, stage: int):
@@ -383,6 +413,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     log.close()
 
     cfg = planmod.render_config(cfg, plan)  # renders shade the last stage's slots
+    params, solved = _colour_solve(run, cfg, plan, scene, method, structure, params, data,
+                                   near_t, far_t, key, elapsed)
     # the safety net: the field's white checked against the frames before the run is done
     colour_record = {"shipped": plan.colour.model}
     if plan.colour.model == "field" and plan.colour.evidence:
@@ -410,6 +442,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         "downscale": cfg.data.downscale,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
+    if solved is not None:
+        summary["colour_solve"] = solved
     if plan.black_level == "lens_cap" and (offset := darkframes.load(run)) is not None:
         summary["black_offset_dn"] = offset.tolist()
     if plan.one_gain is not None:
