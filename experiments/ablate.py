@@ -132,10 +132,19 @@ LAST_WIDTH_VARIANTS = [
      "default", ["grid.resolutions=[[48,0,24],[96,0,48],[288,0,64]]",
                  "render.max_samples=96", "loss.tv_ref_width=192"]),
 ]
+# --study colour_solve: after the last stage, the vertex colours fitted to every training
+# ray at once with the geometry fixed (train.colour_solve_iters, gridnerf.colour_solve)
+# against Adam's colour. Does Adam leave noise a converged fit would average away?
+COLOUR_SOLVE_VARIANTS = [
+    ("adam", "Adam's colour (the default's)", "default", "default", []),
+    ("solve20", "colour solved, 20 L-BFGS iterations", "cs20", "default",
+     ["train.colour_solve_iters=20"]),
+]
 STUDIES = {"parts": VARIANTS, "smoothness": SMOOTHNESS_VARIANTS,
            "gain_model": GAIN_MODEL_VARIANTS, "tv_fraction": TV_FRACTION_VARIANTS,
            "data_term": DATA_TERM_VARIANTS, "chroma": CHROMA_VARIANTS,
-           "density_rate": DENSITY_RATE_VARIANTS, "last_width": LAST_WIDTH_VARIANTS}
+           "density_rate": DENSITY_RATE_VARIANTS, "last_width": LAST_WIDTH_VARIANTS,
+           "colour_solve": COLOUR_SOLVE_VARIANTS}
 # (column, eval summary key) shown for every variant; the no-gain run adds its global gain
 OUTPUTS = [("matrix", "gridnerf"), ("matrix_free", "gridnerf_matrix_free"),
            ("global_gain", "global_grey_world")]
@@ -220,7 +229,8 @@ def main() -> None:
                     "gain_model: one gain where one light against the field; tv_fraction: the "
                     "grid regularisers' row sample; data_term: the binned raw against the "
                     "mosaic; chroma: the chroma TV prior; density_rate: the density's Adam "
-                    "rate; last_width: a 288-wide last stage")
+                    "rate; last_width: a 288-wide last stage; colour_solve: the colours "
+                    "solved to convergence after the last stage")
     args = ap.parse_args()
     out = args.out or ("reports/ablation" if args.study == "parts"
                        else f"reports/ablation_{args.study}")
