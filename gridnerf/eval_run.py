@@ -38,12 +38,14 @@ from gridnerf import (
     evaluate,
     image_io,
     look,
+    losses,
     methods,
     outputs,
     pose_refine,
     raw,
     rays,
     render,
+    vignetting,
 )
 from gridnerf import config as cfgmod
 from gridnerf import plan as planmod
@@ -99,6 +101,28 @@ def main_output(cfg) -> str:
     return methods.get(cfg.loss.method).MAIN_OUTPUT
 
 
+def own_raw_term(rgb_low: np.ndarray, scene, frame: int, cfg, plan) -> float | None:
+    """The data term of a test view's render against its own dark raw frame, photosite by
+    photosite: losses.data_loss (RawNeRF's relative squared error at the run's eps) of the
+    render's low-light camera RGB rgb_low (H, W, 3), rendered at the capture's pixels, and
+    the frame's raw mosaic (its lens falloff taken off as in training). None for a run that
+    does not fit the raw, or a render at another size.
+
+    A score with no reference: the test frames are part of the capture, left out of
+    training. Their noise is the same for every field of one capture, so of two fields the
+    one with the lower term explains the unseen views better (the noise adds the same
+    expected amount to both); the term alone does not split noise from error."""
+    if cfg.data.target != "raw" or rgb_low.shape[:2] != (scene.cameras.height,
+                                                         scene.cameras.width):
+        return None
+    data = vignetting.apply(dataset.build(scene, np.array([frame]), False, 1, "raw",
+                                          cfg.data.exposure_ratio), plan.vignetting)
+    h, w = data.image_hw
+    v, u = jnp.meshgrid(jnp.arange(h), jnp.arange(w), indexing="ij")
+    target, mask = dataset.targets(data, jnp.zeros_like(v), v, u)
+    return float(losses.data_loss(jnp.asarray(rgb_low[:h, :w]), target, mask, plan.data_eps))
+
+
 def evaluate_run(run: Path, refine_poses: bool = False) -> dict:
     """Render the test views, compare with gt/, write eval/ images and eval/metrics.json.
 
@@ -127,7 +151,7 @@ def evaluate_run(run: Path, refine_poses: bool = False) -> dict:
     cams = scene.cameras
     ds = cfg.data.eval_downscale
     h, w = cams.height // ds, cams.width // ds
-    refined = {}
+    refined, own_raw = {}, {}
     for i in scene.test_idx:
         name = scene.names[i]
         intr = cams.intrinsics(i) / ds
@@ -141,6 +165,9 @@ def evaluate_run(run: Path, refine_poses: bool = False) -> dict:
                   f"{r.rotation_deg:.3f} deg, moved {r.translation:.4f} x the near bound, "
                   f"data term {r.loss_before:.4g} -> {r.loss_after:.4g}")
         out = render_view(structure, params, scene, cfg, c2w, intr, h, w)
+        own = own_raw_term(out["rgb_low"], scene, int(i), cfg, plan)
+        if own is not None:
+            own_raw[name] = own
         gt_linear = reference_linear(scene, name, h, w)
         for method, output in shown.items():
             pred_linear, pred_srgb = output.show(out)
@@ -195,10 +222,17 @@ def evaluate_run(run: Path, refine_poses: bool = False) -> dict:
         "liqe": evaluate.lpips_status(),
         "per_view": per_view,
         "summary": {m: evaluate.summarize(v) for m, v in per_view.items() if v},
+        # each test view's render against its own raw frame (own_raw_term), and their mean
+        "own_raw": {"per_view": own_raw,
+                    "mean": float(np.mean(list(own_raw.values()))) if own_raw else None},
     }
     if not result["summary"]:
-        print(f"eval: the scene has no references (gt/) for its test views: nothing to score "
+        print("eval: the scene has no references (gt/) for its test views: nothing to score "
               f"against; the test renders are in {out_dir}")
+    if own_raw:
+        print(f"eval: the test views against their own raw frames: data term "
+              f"{result['own_raw']['mean']:.4g} (lower explains the unseen views better; "
+              "compare runs of this capture only)")
     atomic.write_text(out_dir / "metrics.json", json.dumps(result, indent=2))
     return result
 
