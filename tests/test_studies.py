@@ -409,3 +409,36 @@ def test_error_budget_reuses_a_true_white_fit_only_under_its_config(tmp_path):
     assert eb.fit_config("clean_eps") == replace(clean, loss=replace(clean.loss,
                                                                      data_eps=eb.CLEAN_EPS))
     assert eb.CLEAN_EPS < clean.loss.data_eps
+
+
+def test_own_raw_study_reads_pairs_of_evaluated_runs(tmp_path, monkeypatch):
+    """experiments.own_raw: the change between two evaluated runs of a scene, and whether
+    the own-raw score agrees with the references' PSNR; a pair with a run missing or
+    evaluated without own_raw is left out."""
+    from experiments import own_raw
+
+    def run(name, psnr, own):
+        folder = tmp_path / "runs" / "bucket" / name / "eval"
+        folder.mkdir(parents=True)
+        metrics = {"summary": {"gridnerf": {"psnr": psnr, "ssim": 0.8, "delta_e": 5.0}},
+                   "own_raw": {"mean": own}}
+        (folder / "metrics.json").write_text(json.dumps(metrics))
+
+    run("a", 25.0, 0.100)
+    run("b", 25.2, 0.098)  # better on both
+    run("c", 24.8, 0.097)  # worse references, better score: disagree
+    run("old", 25.0, None)
+    d = own_raw.compare(own_raw.scores(tmp_path / "runs/bucket/a"),
+                        own_raw.scores(tmp_path / "runs/bucket/b"))
+    assert d["agree"] and d["psnr"] == pytest.approx(0.2)
+    assert d["own_raw_rel"] == pytest.approx(-0.02)
+    assert own_raw.scores(tmp_path / "runs/bucket/old") is None
+    out = tmp_path / "own"
+    monkeypatch.setattr(sys, "argv", ["own_raw", "--scenes", "bucket", "--runs",
+                                      str(tmp_path / "runs"), "--out", str(out),
+                                      "--pairs", "a:b,a:c,a:old,a:gone"])
+    own_raw.main()
+    record = json.loads(out.with_suffix(".json").read_text())
+    assert sorted(record["bucket"]) == ["a:b", "a:c"]
+    assert record["bucket"]["a:b"]["agree"] and not record["bucket"]["a:c"]["agree"]
+    assert "agree on 1 of 2 pairs" in out.with_suffix(".md").read_text()
