@@ -73,11 +73,13 @@ def main() -> None:
     table = common.markdown_table(
         ["scene", "fields", "PSNR", "SSIM", "CIEDE2000", "own-raw score", "own-raw change",
          "agree"], rows)
+    summary = (f"`python -m experiments.own_raw --scenes {args.scenes} --pairs {args.pairs}`: "
+               "the change from the first field to the second (module docstring). The score "
+               f"and the references agree on {n_agree} of {len(rows)} pairs.\n\n" + table)
     common.write_report(args.out, "# The test views' own raw frames as a score\n\n"
-                        f"`python -m experiments.own_raw --scenes {args.scenes} --pairs "
-                        f"{args.pairs}`: the change from the first field to the second "
-                        "(module docstring). The score and the references agree on "
-                        f"{n_agree} of {len(rows)} pairs.\n\n" + table + "\n", record)
+                        + summary + "\n", record)
+    if Path(args.out) == Path("reports/own_raw"):
+        common.update_doc("own_raw", summary, common.RESULTS_DOC)
 
 
 if __name__ == "__main__":
