@@ -26,7 +26,7 @@ L-BFGS (optax.lbfgs with its zoom line search) for train.colour_solve_iters iter
 Samples. Each ray's samples are placed once, as rendering places them (the fixed mid
 offsets of gridnerf.render.march), and its `keep` heaviest are kept; what the rest
 contribute (and the backdrop) is frozen at x0 into b_r, so C_r(x0) is exactly the render.
-Memory: 16 bytes a kept sample, 2.7 M rays x 8 samples = 350 MB.
+Memory: 16 bytes a kept sample, 2.7 M rays x 8 samples = 350 MB (KEEP).
 """
 
 from __future__ import annotations
@@ -45,6 +45,9 @@ from gridnerf.config import Config
 from gridnerf.grid import GridStructure
 
 CHUNK = 1 << 15  # rays per chunk of the objective's scan (and of the sample placement)
+# the heaviest samples a ray the solve refits: on bucket's default run 8 carry a median 60 %
+# of a ray's rendering weight, 24 carry 93 % at 4x the time of an iteration (docs/results.md)
+KEEP = 8
 
 
 def _samples_chunk(structure: GridStructure, params, data: dataset.RayData, fr, v, u,
@@ -141,19 +144,20 @@ def make_objective(structure: GridStructure, params, samples: dict, data_eps: fl
 
 
 def solve(structure: GridStructure, params, data: dataset.RayData, near_t, far_t,
-          cfg: Config, data_eps: float, n_cand: int, tv_scale: float = 1.0) -> tuple[dict, dict]:
+          cfg: Config, data_eps: float, n_cand: int, tv_scale: float = 1.0,
+          keep: int = KEEP) -> tuple[dict, dict]:
     """(params with the colour solved, a record) for the last stage's grid and data.
 
     cfg: the run's config with the render config the last stage trained with (its slots);
     data_eps: the plan's eps; n_cand: the stage's candidate count; tv_scale: the stage's
-    factor on the TVs (optim.tv_scale). The record: iterations, seconds, the objective and
-    its data part before and after, rays, kept samples a ray. If an iteration leaves a
-    non-finite colour or a larger objective, Adam's colour is kept and the record says so.
+    factor on the TVs (optim.tv_scale); keep: samples a ray refitted. The record:
+    iterations, seconds, the objective and its data part before and after, rays, kept
+    samples a ray. If an iteration leaves a non-finite colour or a larger objective, Adam's
+    colour is kept and the record says so.
     """
     if structure.sh_degree != 0:
         raise ValueError("train.colour_solve_iters needs grid.sh_degree = 0")
     t0 = time.perf_counter()
-    keep = int(cfg.train.colour_solve_samples)
     samples = ray_samples(structure, params, data, near_t, far_t,
                           replace(cfg.render, skip_empty=True), n_cand, keep)
     lc = cfg.loss

@@ -265,7 +265,6 @@ class TrainConfig(_Section):
     # L-BFGS iterations of the colour solve after the last stage (gridnerf.colour_solve: the
     # vertex colours fitted to every training ray with the geometry fixed); 0: none
     colour_solve_iters: int = 0
-    colour_solve_samples: int = 8  # heaviest samples a ray the colour solve refits
     seed: int = 0  # PRNG seed of the init and the batches
     log_every: int = 50  # steps between metrics.jsonl lines
     checkpoint_every: int = 300  # steps between checkpoints (also every CHECKPOINT_SECONDS)
@@ -282,8 +281,6 @@ class TrainConfig(_Section):
         self._require("warmup_steps", self.warmup_steps >= 0, "a whole number >= 0")
         self._require("colour_solve_iters", self.colour_solve_iters >= 0,
                       "a whole number >= 0 (0: no colour solve)")
-        self._require("colour_solve_samples", self.colour_solve_samples >= 1,
-                      "a whole number >= 1")
         self._require("seed", self.seed >= 0, "a whole number >= 0")
         self._require("log_every", self.log_every >= 1, "a whole number >= 1")
         self._require("checkpoint_every", self.checkpoint_every >= 1, "a whole number >= 1")
@@ -519,8 +516,7 @@ def get(cfg: Config, dotted: str) -> Any:
 # of configs that do not use it stay valid
 ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0,
                 ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0,
-                ("loss", "tv_ref_width"): 0, ("train", "colour_solve_iters"): 0,
-                ("train", "colour_solve_samples"): 8}
+                ("loss", "tv_ref_width"): 0, ("train", "colour_solve_iters"): 0}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

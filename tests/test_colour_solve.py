@@ -104,3 +104,9 @@ def test_the_solve_is_off_by_default_and_validated():
 
     with pytest.raises(ConfigError, match="colour_solve_iters"):
         cfgmod.override(cfg, ["train.colour_solve_iters=-1"])
+    from gridnerf import methods
+
+    # refused before training starts, not after it: the solve fits view-independent colour
+    with pytest.raises(ConfigError, match="sh_degree"):
+        methods.get("brightnerf").check(cfgmod.override(
+            cfg, ["train.colour_solve_iters=5", "grid.sh_degree=1"]))

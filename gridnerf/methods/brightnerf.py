@@ -38,6 +38,10 @@ def check(cfg: Config) -> None:
                           f"{cfg.train.patch_size}",
                           "also set train.patch_size=8 train.batch_patches=64 (the `patch` "
                           "preset's)")
+    if cfg.train.colour_solve_iters > 0 and cfg.grid.sh_degree != 0:
+        raise ConfigError(None, "train.colour_solve_iters solves view-independent colours, "
+                          f"and grid.sh_degree = {cfg.grid.sh_degree}",
+                          "set train.colour_solve_iters=0 or grid.sh_degree=0")
 
 
 def fits_raw(cfg: Config) -> bool:
