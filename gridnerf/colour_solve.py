@@ -48,6 +48,10 @@ CHUNK = 1 << 15  # rays per chunk of the objective's scan (and of the sample pla
 # the heaviest samples a ray the solve refits: on bucket's default run 8 carry a median 60 %
 # of a ray's rendering weight, 24 carry 93 % at 4x the time of an iteration (docs/results.md)
 KEEP = 8
+# at most this many training rays take part (an even subset of the frames' pixels where
+# there are more): 16 bytes a kept sample and 36 a ray, so 4.2 M rays hold 0.7 GB; a
+# 480x270 capture's 21 frames have 2.7 M photosites, a 1920x1080 one's mosaic 44 M
+MAX_RAYS = 1 << 22
 
 
 def _samples_chunk(structure: GridStructure, params, data: dataset.RayData, fr, v, u,
@@ -77,13 +81,17 @@ _samples_jit = jax.jit(_samples_chunk, static_argnames=("render_cfg", "n_cand", 
 
 def ray_samples(structure: GridStructure, params, data: dataset.RayData, near_t, far_t,
                 render_cfg, n_cand: int, keep: int) -> dict:
-    """Every training pixel of `data` as a row of chunks: {"u": (c, CHUNK, keep, 3), "w":
-    (c, CHUNK, keep), "base": (c, CHUNK, 3), "target", "mask": (c, CHUNK, 3)}, the last
-    chunk padded with rays of mask 0. Only for sh_degree 0 (no view directions kept)."""
+    """Every training pixel of `data` (an even subset of MAX_RAYS where there are more) as a
+    row of chunks: {"u": (c, CHUNK, keep, 3), "w": (c, CHUNK, keep), "base": (c, CHUNK, 3),
+    "target", "mask": (c, CHUNK, 3)}, the last chunk padded with rays of mask 0. Only for
+    sh_degree 0 (no view directions kept)."""
     n, h, w = data.pixels.shape[0], *data.image_hw
-    total = n * h * w
+    ids = np.arange(n * h * w)
+    if ids.size > MAX_RAYS:
+        ids = ids[np.linspace(0, ids.size - 1, MAX_RAYS).astype(np.int64)]
+    total = ids.size
     n_chunks = -(-total // CHUNK)
-    flat = np.arange(n_chunks * CHUNK) % total
+    flat = ids[np.arange(n_chunks * CHUNK) % total]
     fr, rest = np.divmod(flat, h * w)
     vv, uu = np.divmod(rest, w)
     parts = []

@@ -110,3 +110,16 @@ def test_the_solve_is_off_by_default_and_validated():
     with pytest.raises(ConfigError, match="sh_degree"):
         methods.get("brightnerf").check(cfgmod.override(
             cfg, ["train.colour_solve_iters=5", "grid.sh_degree=1"]))
+
+
+def test_a_capture_with_more_rays_than_the_cap_solves_an_even_subset(solved_run, monkeypatch):
+    """ray_samples keeps MAX_RAYS of the frames' pixels where there are more (memory), and
+    the padding of the last chunk counts nothing."""
+    cfg, plan, structure, params, data, near_t, far_t = _loaded(solved_run[0])
+    monkeypatch.setattr(colour_solve, "MAX_RAYS", 1000)
+    s = colour_solve.ray_samples(structure, params, data, near_t, far_t, cfg.render,
+                                 plan.n_candidates[-1], 4)
+    assert s["u"].shape[:3] == (1, colour_solve.CHUNK, 4)
+    used = np.asarray(jnp.max(s["mask"], axis=-1)).reshape(-1) > 0
+    assert 990 <= used.sum() <= 1000  # a few may be saturated
+    assert not used[1000:].any()
