@@ -64,20 +64,20 @@ def test_the_solve_recovers_a_colour_field_from_its_renders(solved_run):
     samples = {**samples, "target": rendered, "mask": jnp.ones_like(rendered)}
     start = {**params, "rgb": truth + 0.5 * jax.random.normal(jax.random.PRNGKey(0),
                                                               truth.shape)}
-    objective, data_part = colour_solve.make_objective(structure, start, samples,
-                                                       plan.data_eps, 0.0, 0.0)
+    objective, data_part, aux = colour_solve.make_objective(structure, start, samples,
+                                                            plan.data_eps, 0.0, 0.0)
     import optax
 
     opt = optax.lbfgs()
     vg = jax.jit(optax.value_and_grad_from_state(objective))
     x, state = start["rgb"], opt.init(start["rgb"])
-    before = float(data_part(x))
+    before = float(data_part(x, aux))
     for _ in range(40):
-        value, grad = vg(x, state=state)
+        value, grad = vg(x, aux, state=state)
         updates, state = opt.update(grad, state, x, value=value, grad=grad,
-                                    value_fn=objective)
+                                    value_fn=objective, aux=aux)
         x = optax.apply_updates(x, updates)
-    after = float(data_part(x))
+    after = float(data_part(x, aux))
     assert np.isfinite(after) and after < before / 100, (before, after)
 
 
