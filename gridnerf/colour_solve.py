@@ -61,18 +61,12 @@ def _samples_chunk(structure: GridStructure, params, data: dataset.RayData, fr, 
     Returns u (n, keep, 3) index-space points, w (n, keep) compositing weights, base (n, 3)
     the render minus the kept samples' colour at x0, target (n, 3), mask (n, 3)."""
     rays = dataset.rays_at(data, fr, v, u)
-    pts, _, step, _ = render.march(structure, rays["origins"], rays["directions"], near_t,
-                                   far_t, render_cfg, key=None, n_cand=n_cand)
-    table = gridlib.feature_table(structure, params, pad_to=8)
-    feats = gridlib.trilinear_index_space(structure, table, pts)[..., : structure.n_channels]
-    sigma, rgb_low, _ = gridlib.decode(structure, feats)
-    w, sums = render.composite(sigma, step, {"rgb_low": rgb_low})
-    sums = render.composite_background(structure, {**sums, "rgb_restored": sums["rgb_low"]},
-                                       jnp.sum(w, axis=-1))
-    w_top, idx = jax.lax.top_k(w, keep)
-    pts_top = jnp.take_along_axis(pts, idx[..., None], axis=1)
-    rgb_top = jnp.take_along_axis(rgb_low, idx[..., None], axis=1)
-    base = sums["rgb_low"] - jnp.einsum("nk,nkc->nc", w_top, rgb_top)
+    out = render.render_rays(structure, params, rays["origins"], rays["directions"], near_t,
+                             far_t, render_cfg, n_cand=n_cand)
+    w_top, idx = jax.lax.top_k(out["weights"], keep)
+    pts_top = jnp.take_along_axis(out["points"], idx[..., None], axis=1)
+    rgb_top = jnp.take_along_axis(out["rgb_samples"], idx[..., None], axis=1)
+    base = out["rgb_low"] - jnp.einsum("nk,nkc->nc", w_top, rgb_top)
     return pts_top, w_top, base, rays["target"], rays["mask"]
 
 

@@ -176,8 +176,10 @@ def render_rays(structure: GridStructure, params, origins, directions, near_t, f
     Returns rgb_low (n,3) low-light camera RGB, gain (n,3) = sum w s, rgb_restored (n,3) =
     sum w c_l s, depth (n,) expected t (not divided by acc), acc (n,), n_occupied (n,) int32,
     and per sample (n, K): `weights` w_i, `s_vox` position along the ray in voxels from the
-    first sample, `step_vox` interval length in voxels (0 for unused slots), and
-    `gain_samples` (n, K, 3) the gains s_i (frozen_density_gain).
+    first sample, `step_vox` interval length in voxels (0 for unused slots),
+    `gain_samples` (n, K, 3) the gains s_i (frozen_density_gain), `rgb_samples` (n, K, 3)
+    the low-light colours c_i and `points` (n, K, 3) the samples in index space
+    (gridnerf.colour_solve). Outputs a jitted caller does not use cost nothing.
     """
     u, t, step, n_occupied = march(structure, origins, directions, near_t, far_t, cfg, key,
                                    n_cand)
@@ -194,7 +196,8 @@ def render_rays(structure: GridStructure, params, origins, directions, near_t, f
         structure.bbox_max - structure.bbox_min)
     speed = jnp.linalg.norm(directions * scale, axis=-1, keepdims=True)  # voxels per unit t
     return {**sums, "acc": acc, "n_occupied": n_occupied, "weights": w,
-            "s_vox": (t - t[:, :1]) * speed, "step_vox": step, "gain_samples": gain}
+            "s_vox": (t - t[:, :1]) * speed, "step_vox": step, "gain_samples": gain,
+            "rgb_samples": rgb_low, "points": u}
 
 
 def frozen_density_gain(out: dict) -> tuple[jax.Array, jax.Array]:
@@ -256,7 +259,7 @@ def cells_to_vertices(structure: GridStructure, c_max, c_sum) -> tuple[np.ndarra
 
 # per-sample outputs of render_rays, (n, K) each: needed by losses, not by images (at
 # 1920x1080 and K = 64 they are 1.6 GB per view; docs/speed.md)
-PER_SAMPLE = ("weights", "s_vox", "step_vox", "gain_samples")
+PER_SAMPLE = ("weights", "s_vox", "step_vox", "gain_samples", "rgb_samples", "points")
 
 
 def _render_pixels(structure, params, origins, directions, near_t, far_t, cfg, n_cand):

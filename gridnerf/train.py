@@ -140,20 +140,19 @@ def _vignetting(run: Path, plan, stage: int, structure, params, data, scene, nea
 
 
 def _colour_solve(run: Path, cfg: Config, plan, scene, method, structure, params, data,
-                  near_t, far_t, key, elapsed: float):
+                  near_t, far_t, key, elapsed: float, done: dict | None):
     """(params, record) after the colour solve of the finished stages (gridnerf.colour_solve;
     train.colour_solve_iters > 0, the brightnerf data term), saved in the checkpoint with
-    its record so a resumed run does not solve twice; (params, None) without one."""
-    iters = cfg.train.colour_solve_iters
-    if iters <= 0:
+    its record so a resumed run does not solve twice (done: the record a resumed
+    checkpoint already holds, or None); (params, None) without one."""
+    if cfg.train.colour_solve_iters <= 0:
         return params, None
     if method.NAME != "brightnerf":
         print(f"colour solve: skipped, the {method.NAME} method's data term is not the one "
               "it fits")
         return params, None
-    header = load_state(run)[3]
-    if "colour_solve" in header:
-        return params, header["colour_solve"]
+    if done is not None:
+        return params, done
     last = len(cfg.grid.resolutions) - 1
     data = stage_data(data, scene, cfg, method, plan, last)
     params, record = colour_solve.solve(structure, params, data, near_t, far_t, cfg,
@@ -270,6 +269,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     if resuming:
         structure, params, opt_leaves, header = load_state(run)
         stage, start, elapsed = header["stage"], header["step"], header["train_seconds"]
+        solved_before = header.get("colour_solve")  # the colour solve's record, once done
         key = jnp.asarray(np.array(header["key"], np.uint32))
         _check_resume(run / CHECKPOINT, cfg, structure, params, opt_leaves, stage, schedule)
         if stage >= len(schedule) and (run / "summary.json").exists():
@@ -286,6 +286,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
             data, scene, cfg, key,
             lambda scale, grey: method.init_log_gain(cfg, colour, scale, grey))
         stage, start, elapsed, opt_leaves = 0, 0, 0.0, []
+        solved_before = None
         # the frames' noise (the seed's key) and the data term's eps capped against it
         sigma = data_term.data_noise(data,
                                      jax.random.fold_in(jax.random.PRNGKey(cfg.train.seed), 7))
@@ -414,7 +415,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
 
     cfg = planmod.render_config(cfg, plan)  # renders shade the last stage's slots
     params, solved = _colour_solve(run, cfg, plan, scene, method, structure, params, data,
-                                   near_t, far_t, key, elapsed)
+                                   near_t, far_t, key, elapsed, solved_before)
     # the safety net: the field's white checked against the frames before the run is done
     colour_record = {"shipped": plan.colour.model}
     if plan.colour.model == "field" and plan.colour.evidence:
