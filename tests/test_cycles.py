@@ -53,3 +53,25 @@ def test_a_tiny_cycles_capture_loads_with_its_true_light(tmp_path):
     # the reference is the white-lit render: reused, not rendered again
     assert cycles.simulate_cycles("cycles_sodium_room", out, width=64, height=48,
                                   n_frames=3, samples=4) == out
+
+
+def test_the_truth_rebuilds_a_path_traced_captures_clean_raw(tmp_path, monkeypatch):
+    """truth.clean_mean of a path-traced capture (its light applied in sRGB, no kelvin) is
+    the mean its raw frames scatter around: the noise fitted on it finds the sensor's K.
+    Blender stands in for a smooth synthetic white render (no Blender needed)."""
+    from gridnerf import noisefit
+    from gridnerf.sim.truth import clean_mean, noise_truth
+
+    def render_views(spec, poses, intr, samples, seed, workdir):
+        y, x = np.mgrid[0:intr.h, 0:intr.w] / max(intr.h, intr.w)
+        base = np.stack([0.2 + 0.6 * x, 0.3 + 0.5 * y, 0.5 + 0.3 * x * y], -1)
+        return np.stack([base * (0.8 + 0.1 * i) for i in range(len(poses))]).astype(np.float32)
+
+    monkeypatch.setattr(cycles, "render_views", render_views)
+    out = cycles.simulate_cycles("cycles_sodium_room", tmp_path / "c", width=96, height=64,
+                                 n_frames=4, samples=1)
+    fit, scale = noisefit.fit_scene(out, clean_mean(out))
+    truth = noise_truth(out)
+    got = fit.in_dn(scale)
+    assert fit.converged
+    assert got["K_dn_per_electron"] == pytest.approx(truth["K_dn_per_electron"], rel=0.1)

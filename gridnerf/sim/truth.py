@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from gridnerf import raw
+from gridnerf.color import XYZ_FROM_SRGB
 from gridnerf.image_io import read_exr
 from gridnerf.noisefit import tukey_lambda_variance
 from gridnerf.sim import sensor
@@ -52,16 +53,29 @@ def clean_cam(scene_dir) -> Callable[[str], np.ndarray]:
     channel, in normalised raw (no offset), from its reference gt/<name>.exr and sim.json
     (the reference divided by gt_scale is the simulator's clean render; camera response
     under the scene's illuminant, electrons per unit signal, K, white - black; the lens
-    falloff and the frame's exposure factor of a quirky camera, not its defects)."""
+    falloff and the frame's exposure factor of a quirky camera, not its defects). A
+    path-traced capture (gridnerf.sim.cycles: no illuminant_kelvin) lights its white
+    render in linear sRGB: camera RGB = xyz_to_cam @ XYZ_FROM_SRGB @ (light_rgb * render)."""
     folder = Path(scene_dir)
     sim = json.loads((folder / "sim.json").read_text())
     if len(sim.get("illuminants", [None])) > 1:
         raise ValueError(f"{folder} is lit by several illuminants; its reference is white "
                          "balanced per light, so the raw signal cannot be rebuilt from it")
-    params = sensor.SensorParams(camera_model=sim["camera_model"],
-                                 cfa_pattern=sim["cfa_pattern"],
-                                 kelvin=float(sim["illuminant_kelvin"]),
-                                 tint_duv=float(sim.get("light_tint_duv", 0.0)))
+    if sim.get("illuminant_kelvin") is None:  # path-traced: the light applied in sRGB
+        to_cam = (sensor.SensorParams(camera_model=sim["camera_model"]).xyz_to_cam
+                  @ XYZ_FROM_SRGB)  # as gridnerf.sim.cycles lights its white render
+        light = np.asarray(sim["light_rgb"], np.float64)
+
+        def scene_to_cam(rgb_linear: np.ndarray) -> np.ndarray:
+            return (rgb_linear * light) @ to_cam.T
+    else:
+        params = sensor.SensorParams(camera_model=sim["camera_model"],
+                                     cfa_pattern=sim["cfa_pattern"],
+                                     kelvin=float(sim["illuminant_kelvin"]),
+                                     tint_duv=float(sim.get("light_tint_duv", 0.0)))
+
+        def scene_to_cam(rgb_linear: np.ndarray) -> np.ndarray:
+            return sensor.scene_to_cam(rgb_linear, params)
     gain = (sim["electrons_per_unit_signal"] * sim["K_dn_per_electron"]
             / (sim["white_level"] - sim["black_level"]) / sim["gt_scale"])
 
@@ -70,8 +84,8 @@ def clean_cam(scene_dir) -> Callable[[str], np.ndarray]:
                       strict=False))
 
     def cam(name: str) -> np.ndarray:
-        rgb_cam = np.maximum(sensor.scene_to_cam(read_exr(folder / "gt" / f"{name}.exr"),
-                                                 params), 0.0) * gain
+        rgb_cam = np.maximum(scene_to_cam(read_exr(folder / "gt" / f"{name}.exr")),
+                             0.0) * gain
         if stops:
             rgb_cam = rgb_cam * sensor.vignette_gain(*rgb_cam.shape[:2], stops)[..., None]
         return rgb_cam * factor[name] if name in factor else rgb_cam
