@@ -52,6 +52,12 @@ eps" = its best 3x3 - the clean fit's, what the noise's floor costs the noise-fr
 "representation: grid" = oracle - its best 3x3, what is left to the grid and the camera's
 data path.
 
+A last table sets the default against the noise in the raw itself (raw_discrepancy): its
+error per photosite in units of one frame's noise variance, beside 1 / the number of
+training views (what an ideal average leaves), and its residual on the training and the
+test frames (under 1 on the training frames: noise taken for detail). It needs the run
+folders; the rows of other scenes stay as recorded in <out>.json.
+
     python -m experiments.error_budget [--scenes nine,dev,heldout] [--runs runs]
     python -m experiments.error_budget --no-train   # no training: the fits already there
     python -m experiments.error_budget --train clean   # train only the missing clean fits
@@ -83,9 +89,10 @@ from experiments.common import (
 from gridnerf import atomic, dataset, exposure, illuminant, image_io, raw
 from gridnerf import config as cfgmod
 from gridnerf.color import srgb_encode
+from gridnerf.eval_run import load_run, render_view
 from gridnerf.evaluate import effective_crop, image_metrics
 from gridnerf.scene import load_scene
-from gridnerf.sim import truth
+from gridnerf.sim import sensor, truth
 
 CROP = 16  # the metrics' border crop (evaluate.image_metrics)
 # the ceilings (no reconstruction) and the fits: (record key, column heading)
@@ -195,6 +202,7 @@ def best_map_psnr(pred_linear: np.ndarray, gt_linear: np.ndarray, matrix: np.nda
 
 
 DETAIL_SIGMA = 1.0  # px: the Gaussian that leaves out the detail finer than about 2 pixels
+LUMA = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 luma weights: an error's grey part
 
 
 def by_scale(pred_linear: np.ndarray, gt_linear: np.ndarray) -> dict[str, float]:
@@ -206,7 +214,9 @@ def by_scale(pred_linear: np.ndarray, gt_linear: np.ndarray) -> dict[str, float]
       low-frequency noise, misplaced geometry);
     "detail_kept": the render's detail (its image minus its blur) as a share of the
       reference's, in RMS amplitude: 1 where the render holds the reference's fine
-      detail, near 0 where it is blurred (noise adds to it too: read it with the PSNR).
+      detail, near 0 where it is blurred (noise adds to it too: read it with the PSNR);
+    "chroma_share": the share of the squared error that is colour, not grey: the error
+      less its Rec. 709 luma-weighted grey (LUMA) at each pixel.
     pred_linear, gt_linear: (H, W, 3) linear sRGB."""
     c = effective_crop(*gt_linear.shape[:2], CROP)
     crop = (slice(c, gt_linear.shape[0] - c), slice(c, gt_linear.shape[1] - c))
@@ -216,17 +226,21 @@ def by_scale(pred_linear: np.ndarray, gt_linear: np.ndarray) -> dict[str, float]
     mse = float(np.mean((blur_pred[crop] - blur_gt[crop]) ** 2))
     detail_gt = float(np.mean((gt - blur_gt)[crop] ** 2))
     detail_pred = float(np.mean((pred - blur_pred)[crop] ** 2))
+    err = (pred - gt)[crop]
+    grey = err @ LUMA  # the error's grey part; the rest is its colour
+    total = float(np.mean(err**2))
     return {"coarse": -10.0 * np.log10(max(mse, 1e-20)),
-            "detail_kept": float(np.sqrt(detail_pred / max(detail_gt, 1e-20)))}
+            "detail_kept": float(np.sqrt(detail_pred / max(detail_gt, 1e-20))),
+            "chroma_share": float(np.mean((err - grey[..., None]) ** 2)) / max(total, 1e-20)}
 
 
 def best_maps(scene, run: Path) -> dict[str, float]:
     """Means over the test views of a loaded scene of best_map_psnr on a run's
     renders (<run>/eval/<view>_pred.exr, the shipped "gridnerf" output: the file's colour
     matrix): "best_white" (the diagonal) and "best_map" (any 3x3), and of by_scale
-    ("coarse", "detail_kept"); empty where a render is missing."""
+    ("coarse", "detail_kept", "chroma_share"); empty where a render is missing."""
     matrix = exposure.display_matrix(scene.xyz_to_cam, True)
-    out = {"best_white": [], "best_map": [], "coarse": [], "detail_kept": []}
+    out = {"best_white": [], "best_map": [], "coarse": [], "detail_kept": [], "chroma_share": []}
     for i in scene.test_idx:
         pred = run / "eval" / f"{scene.names[i]}_pred.exr"
         if not pred.is_file():
@@ -237,6 +251,42 @@ def best_maps(scene, run: Path) -> dict[str, float]:
         out["best_map"].append(best_map_psnr(pred, gt, matrix, full=True))
         for k, v in by_scale(pred, gt).items():
             out[k].append(v)
+    return {k: float(np.mean(v)) for k, v in out.items()}
+
+
+def raw_discrepancy(run: Path, every: int = 4) -> dict[str, float]:
+    """A fit against the noise in the raw, photosite by photosite, in units of one frame's
+    noise variance there (sim.json's noise model at the clean mean: truth.noise_truth,
+    truth.clean_mean): "train", the mean of (render - frame)^2 / variance over every
+    `every`-th training view; "test", the same over the test views; "error", (render -
+    clean)^2 / variance over the test views, the fit's own error. A train value under 1 is
+    a fit of the noise (the discrepancy principle: a fit that explains its frames better
+    than their noise allows has taken noise for detail). Empty where the run folder is
+    missing or the capture has lens falloff or exposure jitter (the render is not then the
+    frame's mean photosite for photosite)."""
+    if not (run / "summary.json").is_file():
+        return {}
+    cfg, _, scene, structure, params, _ = load_run(run)
+    sim = json.loads((scene.path / "sim.json").read_text())
+    if sim.get("vignetting") or sim.get("exposure_jitter"):
+        return {}
+    nt, mean = truth.noise_truth(sim), truth.clean_mean(scene.path)
+    cams = scene.cameras
+    h, w = cams.height, cams.width
+    sl = (slice(CROP, h - CROP), slice(CROP, w - CROP))
+    out: dict[str, list[float]] = {"train": [], "test": [], "error": []}
+    for split, views in (("train", list(scene.train_idx)[::every]), ("test", scene.test_idx)):
+        for i in views:
+            rgb_low = render_view(structure, params, scene, cfg, cams.c2w[i],
+                                  cams.intrinsics(i), h, w)["rgb_low"]
+            pred = sensor.mosaic(np.asarray(rgb_low, np.float64), scene.cfa)
+            clean = mean(scene.names[i])
+            var = (nt["K_dn_per_electron"] * np.maximum(clean, 0.0) * nt["scale"]
+                   + nt["read_var_dn2"]) / nt["scale"] ** 2
+            frame = np.asarray(scene.raw_normalized(i), np.float64)
+            out[split].append(float(np.mean(((pred - frame) ** 2 / var)[sl])))
+            if split == "test":
+                out["error"].append(float(np.mean(((pred - clean) ** 2 / var)[sl])))
     return {k: float(np.mean(v)) for k, v in out.items()}
 
 
@@ -338,11 +388,22 @@ def budget(name: str, runs: Path, train=tuple(FITS), earlier: dict | None = None
     # the clean fits re-shown by their best 3x3: from their renders, else this study's record
     old = (earlier or {}).get(name, {})
     for fit in ("clean", "clean_eps"):
-        shown = best_maps(scene, runs / name / FITS[fit][0]).get("best_map")
-        if shown is None and fit in row and old.get(fit) == row[fit]:
-            shown = old.get(f"{fit}_best_map")
-        if shown is not None:
-            row[f"{fit}_best_map"] = shown
+        maps = best_maps(scene, runs / name / FITS[fit][0])
+        for k in ("best_map", "chroma_share"):
+            shown = maps.get(k)
+            if shown is None and fit in row and old.get(fit) == row[fit]:
+                shown = old.get(f"{fit}_{k}")
+            if shown is not None:
+                row[f"{fit}_{k}"] = shown
+    # the default and the clean fit against the noise, in the raw (raw_discrepancy)
+    row["raw_ideal"] = 1.0 / len(scene.train_idx)
+    for fit, keys in (("default", ("train", "test", "error")), ("clean", ("error",))):
+        got = raw_discrepancy(runs / name / FITS[fit][0])
+        for k in keys:
+            if k in got:
+                row[f"raw_{fit}_{k}"] = got[k]
+            elif f"raw_{fit}_{k}" in old and old.get(fit) == row.get(fit):
+                row[f"raw_{fit}_{k}"] = old[f"raw_{fit}_{k}"]
     return row
 
 
@@ -360,13 +421,22 @@ GAPS = ((("oracle", "clean"), "pipeline"), (("clean", "noisy"), "noise"),
 
 # the default's error by scale (by_scale): (record key, column heading), and its gap
 SCALE_COLUMNS = (("default", "default"), ("coarse", f"default, both blurred {DETAIL_SIGMA:g} px"),
-                 ("detail_kept", "detail kept"))
+                 ("detail_kept", "detail kept"), ("chroma_share", "colour share of the error"),
+                 ("clean_chroma_share", "clean fit: colour share"))
 SCALE_GAPS = ((("coarse", "default"), "detail (dB)"),)
 
 
-def table_row(label: str, r: dict, columns=COLUMNS, gaps=GAPS) -> list[str]:
+BUDGET_GROUPS = ("nine", "dev", "heldout", "cycles")  # the groups the tables show, in order
+# the fits against the noise in the raw (raw_discrepancy), one frame's noise variance = 1
+RAW_COLUMNS = (("raw_ideal", "ideal average of the training views"),
+               ("raw_clean_error", "clean fit: error"), ("raw_default_error", "default: error"),
+               ("raw_default_train", "default: training frames"),
+               ("raw_default_test", "default: test frames"))
+
+
+def table_row(label: str, r: dict, columns=COLUMNS, gaps=GAPS, fmt: str = ".2f") -> list[str]:
     """A row's cells ("n/a" where a fit is missing) and its gaps."""
-    cells = [label, *(f"{r[k]:.2f}" if k in r else "n/a" for k, _ in columns)]
+    cells = [label, *(f"{r[k]:{fmt}}" if k in r else "n/a" for k, _ in columns)]
     return cells + [f"{r[a] - r[b]:+.2f}" if a in r and b in r else "n/a"
                     for (a, b), _ in gaps]
 
@@ -379,7 +449,7 @@ def main() -> None:
     ap.add_argument("--no-train", action="store_true",
                     help="train nothing: the fits whose runs or kept results are here")
     args = ap.parse_args()
-    names = scene_names(args.scenes, ("nine", "dev", "heldout"))
+    names = scene_names(args.scenes, BUDGET_GROUPS)
     train = () if args.no_train else tuple(args.train.split(","))
     if unknown := set(train) - set(FITS):
         ap.error(f"--train: unknown fit(s) {sorted(unknown)}; the fits are {', '.join(FITS)}")
@@ -389,10 +459,12 @@ def main() -> None:
     for name in names:
         record[name] = budget(name, Path(args.runs), train, earlier)
         print(name, table_row(name, record[name]), flush=True)
-    # the table shows every scene on record: a run on some scenes keeps the others' rows
+    # the table shows every scene on record, by group: a run on some keeps the others' rows
     record = {**earlier, **record}
+    order = [n for g in BUDGET_GROUPS for n in GROUPS[g] if n in record]
+    record = {n: record[n] for n in order + sorted(set(record) - set(order))}
     rows = dict(record)
-    for g in ("nine", "dev", "heldout", "cycles"):
+    for g in BUDGET_GROUPS:
         group = [r for n, r in record.items() if n in GROUPS[g]]
         if len(group) > 1:
             keys = set.intersection(*(set(r) for r in group)) - {"fingerprints"}
@@ -403,13 +475,24 @@ def main() -> None:
     fits = markdown_table(["scene", *(h for _, h in COLUMNS), *(h for _, h in GAPS)],
                           [table_row(n, r) for n, r in rows.items()])
     scales = markdown_table(["scene", *(h for _, h in SCALE_COLUMNS), *(h for _, h in SCALE_GAPS)],
-                            [table_row(n, r, SCALE_COLUMNS, SCALE_GAPS) for n, r in rows.items()])
+                            [table_row(n, r, SCALE_COLUMNS, SCALE_GAPS) for n, r in rows.items()
+                             if any(k in r for k, _ in SCALE_COLUMNS[1:])])
+    raws = markdown_table(["scene", *(h for _, h in RAW_COLUMNS)],
+                          [table_row(n, r, RAW_COLUMNS, (), ".3f") for n, r in rows.items()
+                           if any(k in r for k, _ in RAW_COLUMNS[1:])])
     table = ("What no reconstruction can beat (nothing trained):\n\n" + ceilings
              + "\nThe fits and where their dB go:\n\n" + fits
              + "\nThe default's error by scale (render and reference both blurred by a "
              f"Gaussian of {DETAIL_SIGMA:g} px in sRGB: the error above about two pixels; "
              "detail = that PSNR - the PSNR; detail kept: the render's fine detail, its "
-             "image minus its blur, as a share of the reference's in RMS):\n\n" + scales)
+             "image minus its blur, as a share of the reference's in RMS; colour share: "
+             "the share of the squared sRGB error that is colour rather than grey, the error "
+             "less its luma-weighted grey, for the default and the clean fit):\n\n" + scales
+             + "\nThe fits against the noise in the raw, photosite by photosite, in units of "
+             "one frame's noise variance (the simulator's noise model at the clean mean): the "
+             "ideal average, 1 / the training views; error, (render - clean raw)^2 on the "
+             "test views; training and test frames, (render - frame)^2, where under 1 the fit "
+             "has taken noise for detail (scenes whose run folders were measured):\n\n" + raws)
     md = ("# Error budget\n\n"
           f"`python -m experiments.error_budget --scenes {args.scenes}"
           f"{' --no-train' if args.no_train else ''}`: test-view PSNR (dB). Ceilings: "

@@ -383,6 +383,10 @@ def test_error_budget_by_scale_tells_a_blurred_render_from_a_shifted_colour():
     assert abs(c["coarse"] - image_metrics(cast, gt, 16)["psnr"]) < 1.0
     same = eb.by_scale(gt, gt)
     assert same["detail_kept"] == 1.0 and same["coarse"] > 100.0
+    # a cast is colour; a brighter render is grey where the reference is grey
+    assert c["chroma_share"] > 0.5
+    grey = np.repeat(gt[..., 1:2], 3, -1)
+    assert eb.by_scale(grey * 1.1, grey)["chroma_share"] < 1e-9
 
 
 def test_error_budget_reuses_a_true_white_fit_only_under_its_config(tmp_path):
@@ -442,3 +446,35 @@ def test_own_raw_study_reads_pairs_of_evaluated_runs(tmp_path, monkeypatch):
     assert sorted(record["bucket"]) == ["a:b", "a:c"]
     assert record["bucket"]["a:b"]["agree"] and not record["bucket"]["a:c"]["agree"]
     assert "agree on 1 of 2 pairs" in out.with_suffix(".md").read_text()
+
+
+def test_error_budget_raw_discrepancy_reads_the_noise_in_units_of_its_variance(
+        small_scene, tmp_path, monkeypatch):
+    """A render that is the clean raw itself has no error, and its residual against the
+    noisy frames is one frame's noise variance (chi^2 per photosite ~ 1) on training and test
+    views alike; a render twice as bright errs; no run folder, nothing measured."""
+    import numpy as np
+
+    from experiments import error_budget as eb
+    from gridnerf import config as cfgmod
+    from gridnerf.sim import truth
+    from gridnerf.train import train
+
+    run = tmp_path / "run"
+    cfg = cfgmod.override(cfgmod.preset("tiny"), ["train.steps_per_stage=[20]",
+                                                  "grid.resolutions=[[12,0,8]]"])
+    train(small_scene, run, cfg)
+    cam = truth.clean_cam(small_scene)
+
+    def clean_render(structure, params, scene, cfg, c2w, intr, h, w, scale=1.0):
+        i = int(np.argmin([np.abs(c - c2w).sum() for c in scene.cameras.c2w]))
+        return {"rgb_low": scale * cam(scene.names[i])}
+
+    monkeypatch.setattr(eb, "render_view", clean_render)
+    got = eb.raw_discrepancy(run, every=2)
+    assert got["error"] == pytest.approx(0.0, abs=1e-9)
+    assert got["train"] == pytest.approx(1.0, rel=0.05)
+    assert got["test"] == pytest.approx(1.0, rel=0.08)
+    monkeypatch.setattr(eb, "render_view", lambda *a: clean_render(*a, scale=2.0))
+    assert eb.raw_discrepancy(run, every=2)["error"] > 1.0
+    assert eb.raw_discrepancy(tmp_path / "missing") == {}
