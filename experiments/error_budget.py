@@ -281,8 +281,7 @@ def raw_discrepancy(run: Path, every: int = 4) -> dict[str, float]:
                                   cams.intrinsics(i), h, w)["rgb_low"]
             pred = sensor.mosaic(np.asarray(rgb_low, np.float64), scene.cfa)
             clean = mean(scene.names[i])
-            var = (nt["K_dn_per_electron"] * np.maximum(clean, 0.0) * nt["scale"]
-                   + nt["read_var_dn2"]) / nt["scale"] ** 2
+            var = truth.raw_noise_var(nt, clean)
             frame = np.asarray(scene.raw_normalized(i), np.float64)
             out[split].append(float(np.mean(((pred - frame) ** 2 / var)[sl])))
             if split == "test":

@@ -35,14 +35,18 @@ def noise_truth(sim: dict | str | Path) -> dict:
             "scale": float(sim["white_level"] - sim["black_level"])}
 
 
+def raw_noise_var(nt: dict, clean: np.ndarray) -> np.ndarray:
+    """(H, W) noise variance of one frame's photosites in normalised raw: K x signal + read
+    variance (noise_truth `nt`, in DN) at the clean mean `clean` (H, W; negatives as 0)."""
+    return (nt["K_dn_per_electron"] * np.maximum(clean, 0.0) * nt["scale"]
+            + nt["read_var_dn2"]) / nt["scale"] ** 2
+
+
 def binned_noise_var(nt: dict, clean: np.ndarray, cfa: np.ndarray) -> np.ndarray:
-    """(H/2, W/2, 3) noise variance of one 2x2-binned frame in normalised raw: K x signal +
-    read variance (noise_truth `nt`, in DN) at the clean mean `clean` (H, W), binned like
-    the frame (raw.bin2x2), the two greens of a binned pixel averaged (half their
-    variance)."""
-    var_raw = (nt["K_dn_per_electron"] * clean * nt["scale"] + nt["read_var_dn2"]) / (
-        nt["scale"] ** 2)
-    var = raw.bin2x2(var_raw, cfa, np.float64)
+    """(H/2, W/2, 3) noise variance of one 2x2-binned frame in normalised raw:
+    raw_noise_var binned like the frame (raw.bin2x2), the two greens of a binned pixel
+    averaged (half their variance)."""
+    var = raw.bin2x2(raw_noise_var(nt, clean), cfa, np.float64)
     var[..., 1] *= 0.5
     return var
 
