@@ -494,7 +494,10 @@ def main() -> None:
              "has taken noise for detail (scenes whose run folders were measured):\n\n" + raws)
     md = ("# Error budget\n\n"
           f"`python -m experiments.error_budget --scenes {args.scenes}"
-          f"{' --no-train' if args.no_train else ''}`: test-view PSNR (dB). Ceilings: "
+          f"{' --no-train' if args.no_train else ''}`"
+          + (f" (the rows of {', '.join(n for n in record if n not in names)} as recorded "
+             "by earlier runs)" if any(n not in names for n in record) else "")
+          + ": test-view PSNR (dB). Ceilings: "
           "noise alone, the PSNR the ideal average of the training views' noise would leave on "
           "a perfect image; noise bound, the oracle's error plus that noise; colour, the clean "
           "raw with no reconstruction, binned and at every photosite (full res), through the "
