@@ -384,25 +384,27 @@ def budget(name: str, runs: Path, train=tuple(FITS), earlier: dict | None = None
     row["best_3x3_full"] = float(np.mean(views["best_3x3_full"]))
     if default is not None:
         row.update(best_maps(scene, runs / name / "default"))
-    # the clean fits re-shown by their best 3x3: from their renders, else this study's record
     old = (earlier or {}).get(name, {})
+
+    def measured(fit: str, key: str, value: float | None) -> None:
+        """row[key] = value, measured on the fit's run folder; without it, the study's
+        earlier record of key where that record has the same fit (its PSNR unchanged)."""
+        if value is None and fit in row and old.get(fit) == row[fit]:
+            value = old.get(key)
+        if value is not None:
+            row[key] = value
+
+    # the clean fits re-shown by their best 3x3: from their renders, else this study's record
     for fit in ("clean", "clean_eps"):
         maps = best_maps(scene, runs / name / FITS[fit][0])
         for k in ("best_map", "chroma_share"):
-            shown = maps.get(k)
-            if shown is None and fit in row and old.get(fit) == row[fit]:
-                shown = old.get(f"{fit}_{k}")
-            if shown is not None:
-                row[f"{fit}_{k}"] = shown
+            measured(fit, f"{fit}_{k}", maps.get(k))
     # the default and the clean fit against the noise, in the raw (raw_discrepancy)
     row["raw_ideal"] = 1.0 / len(scene.train_idx)
     for fit, keys in (("default", ("train", "test", "error")), ("clean", ("error",))):
         got = raw_discrepancy(runs / name / FITS[fit][0])
         for k in keys:
-            if k in got:
-                row[f"raw_{fit}_{k}"] = got[k]
-            elif f"raw_{fit}_{k}" in old and old.get(fit) == row.get(fit):
-                row[f"raw_{fit}_{k}"] = old[f"raw_{fit}_{k}"]
+            measured(fit, f"raw_{fit}_{k}", got.get(k))
     return row
 
 
