@@ -17,7 +17,9 @@ training decides at run time from the capture goes here instead, is saved as
   (the L_ca target's anchor, where the gains start), one gain or the gain field;
 - per stage: the opacity prior's weight and the fitted candidate count of the step;
 - the lens falloff: estimated from the frames and taken off (gridnerf.vignetting), or
-  corrected by the raw files' own opcodes on loading (gridnerf.raw_layout).
+  corrected by the raw files' own opcodes on loading (gridnerf.raw_layout);
+- the last stage's width: the config's, or grid.detail_width where the stage before it
+  leaves more detail in its frames than grid.detail_above (gridnerf.residual).
 
 The plan is built once before the first step (candidate counts are filled in as each
 stage's grid is made: `with_candidates`); a resumed run reads it back and keeps it.
@@ -97,7 +99,10 @@ class RunPlan:
     saved before the decision existed): the config's data.downscale. max_samples: each
     stage's occupied-sample slots per ray (stages.fitted_samples; 0: not decided yet), None
     (a plan saved before the decision existed): the config's render.max_samples; the last
-    stage's is the finished run's (render_config).
+    stage's is the finished run's (render_config). detail: what the last stage but one left
+    of its frames' detail in units of the noise the views' average leaves
+    (residual.read; None: not read or not measurable); last_width: the last stage's
+    width where the reading refined it (refined_config), None: the config's.
     """
 
     method: str
@@ -113,6 +118,8 @@ class RunPlan:
     mosaic_stages: int | None = None
     downscale: int | None = None
     max_samples: tuple[int, ...] | None = None
+    detail: float | None = None
+    last_width: int | None = None
 
     @property
     def one_gain(self) -> tuple[float, float, float] | None:
@@ -148,6 +155,25 @@ def render_config(cfg, plan: RunPlan):
     if k == cfg.render.max_samples:
         return cfg
     return replace(cfg, render=replace(cfg.render, max_samples=k))
+
+
+def refined_config(cfg, plan: RunPlan):
+    """cfg as the run trains it where the plan refined the last stage (plan.last_width):
+    that stage plan.last_width vertices across (its depth the config's), its TVs scaled by
+    its width over the config's last (loss.tv_ref_width, unless set: optim.tv_scale keeps
+    the priors' strength per unit of the scene) and its slots' cap by the same ratio (a
+    finer grid holds more samples per ray). cfg unchanged where the plan did not refine."""
+    if plan.last_width is None:
+        return cfg
+    res = [list(r) for r in cfg.grid.resolutions]
+    width = res[-1][0]
+    ratio = plan.last_width / width
+    res[-1][0] = int(plan.last_width)
+    ref = cfg.loss.tv_ref_width or width
+    return replace(cfg, grid=replace(cfg.grid, resolutions=tuple(tuple(r) for r in res)),
+                   loss=replace(cfg.loss, tv_ref_width=int(ref)),
+                   render=replace(cfg.render,
+                                  max_samples=int(round(cfg.render.max_samples * ratio))))
 
 
 def opacity_schedule(weight: float, stages: int, first: int) -> tuple[float, ...]:

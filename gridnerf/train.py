@@ -42,6 +42,7 @@ from gridnerf import (
     methods,
     optim,
     outputs,
+    residual,
     runfolder,
     shipped_colour,
     stages,
@@ -167,6 +168,33 @@ def _colour_solve(run: Path, cfg: Config, plan, scene, method, structure, params
     return params, record
 
 
+def _read_detail(run: Path, cfg: Config, plan, structure, params, data, near_t, far_t):
+    """The plan with the detail the last stage but one left in its frames
+    (gridnerf.residual.read, on the last stage's data where it is the raw mosaic) and, where
+    grid.detail_width is set and the reading exceeds grid.detail_above, the last stage's
+    width refined to it; saved. Read whether or not refining is on (it draws no random
+    numbers: a run that stays at the config's width trains as one that never reads)."""
+    stage = len(cfg.grid.resolutions) - 2
+    render_cfg = residual.stage_render_config(cfg.render, plan.samples(stage, cfg))
+    reading = residual.read(structure, params, data, near_t, far_t, render_cfg)
+    refine = (cfg.grid.detail_width > 0 and np.isfinite(reading)
+              and reading > cfg.grid.detail_above)
+    plan = replace(plan, detail=float(reading) if np.isfinite(reading) else None,
+                   last_width=int(cfg.grid.detail_width) if refine else None)
+    width = cfg.grid.resolutions[-1][0]
+    what = ("not measurable (the last stage fits the binned raw)" if not np.isfinite(reading)
+            else f"{reading:.2f} times the noise the views' average leaves")
+    if refine:
+        print(f"detail: the {cfg.grid.resolutions[stage][0]}-wide grid leaves {what}, over "
+              f"grid.detail_above = {cfg.grid.detail_above:g}: the last stage is "
+              f"{cfg.grid.detail_width} wide instead of {width}")
+    else:
+        print(f"detail: the {cfg.grid.resolutions[stage][0]}-wide grid leaves {what}; the "
+              f"last stage is {width} wide")
+    planmod.save(run, plan)
+    return plan
+
+
 def stage_data(data, scene, cfg: Config, method, plan, stage: int):
     """The training data of `stage`: from the first of the plan's last mosaic stages on
     (DataConfig.mosaic_from), the raw Bayer mosaic, photosite by photosite, in place of
@@ -230,6 +258,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     downscale = (data_term.planned_downscale(cfg, scene.cameras.width) if saved is None
                  else saved.downscale)
     cfg = data_term.fitted_config(cfg, downscale)
+    if saved is not None:  # a resumed run trains the last stage its plan decided
+        cfg = planmod.refined_config(cfg, saved)
     if downscale is not None and downscale != asked.data.downscale:
         print(f"training frames: binned and box-downscaled by {downscale} "
               f"({scene.cameras.width // (2 * downscale)} pixels wide): a voxel of the "
@@ -330,6 +360,11 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
             data, plan = _vignetting(run, plan, stage, structure, params, data, scene, near_t,
                                      far_t, cfg, method.fits_raw(cfg))
             data = stage_data(data, scene, cfg, method, plan, stage)
+            if stage == n_stages - 1 and plan.detail is None:
+                plan = _read_detail(run, cfg, plan, structure, params, data, near_t, far_t)
+                cfg = planmod.refined_config(cfg, plan)
+                schedule[stage] = (cfg.grid.resolutions[stage], steps)
+                res = schedule[stage][0]
             structure, params, info = stages.next_stage_grid(
                 structure, params, res, data, cfg, near_t, far_t,
                 fit=cfg.grid.fit_box and stage == 1, forward_facing=scene.forward_facing)
@@ -441,6 +476,10 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         "mosaic_stages": (n_stages - cfg.data.mosaic_from(n_stages, plan.mosaic_stages)),
         # the binned training frames' box downscale (data_term.planned_downscale)
         "downscale": cfg.data.downscale,
+        # the detail the last stage but one left, in units of the views' averaged noise
+        # (gridnerf.residual), and the last stage's width it decided
+        "detail": plan.detail,
+        "last_width": int(structure.resolution[0]),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
     if solved is not None:

@@ -1,0 +1,106 @@
+"""What a trained stage leaves unexplained in its training frames, against their noise.
+
+The reading that sets the last stage's width (grid.detail_width, grid.detail_above): where
+the grid of the last stage but one leaves more of the scene in its frames than the
+training views' average leaves of their noise, the data can tell detail from noise and
+the last stage may be finer; where it does not, a finer grid would fit noise.
+
+How, without a noise model. The two green photosites of a Bayer cell sit diagonally, one
+photosite apart, on different rows, so their shot, read and row noise are independent,
+while the scene detail a grid misses is nearly the same at both (it varies over voxels,
+2-5 photosites here). With r1, r2 their residuals (frame - render, normalised raw) and
+d1, d2 the detail they hold:
+    E[r1 r2]              = E[d1 d2]                           (the noise cancels)
+    E[(r1 - r2)^2] / 2    = sigma^2 + E[(d1 - d2)^2] / 2        (one photosite's noise)
+so their ratio is the missed detail in units of one frame's noise variance, whatever the
+noise's distribution (Poisson shot noise, heavy-tailed read noise; a median-based noise
+estimate reads these low), and conservative: detail that differs between the two greens
+counts as noise. The ratio is taken per level (quantile bins of the rendered green: the
+noise variance grows with the signal) and averaged over the cells, then multiplied by the
+training views: the unit is the noise an ideal average of the views leaves
+(sigma^2 / views), so 1 means the stage misses as much as the views can resolve.
+
+Units: normalised raw, (DN - black) / (white - black), as dataset.targets gives it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import jax.numpy as jnp
+import numpy as np
+
+from gridnerf import dataset, render
+
+LEVEL_BINS = 16  # quantile bins of the rendered green level
+EVERY = 4  # every this-many-th training frame is read
+MAX_CELLS = 1 << 15  # Bayer cells read per frame at most (a strided subset beyond)
+MIN_CELLS = 256  # cells a reading needs; fewer: not measurable (nan)
+
+
+def green_positions(cfa) -> list[tuple[int, int]]:
+    """The (row, col) in the 2x2 CFA cell of its two green photosites (colour index 1)."""
+    cfa = np.asarray(cfa)
+    return [(int(r), int(c)) for r, c in zip(*np.nonzero(cfa == 1), strict=True)]
+
+
+def cell_pixels(data: dataset.RayData, every: int = EVERY, max_cells: int = MAX_CELLS):
+    """frame, v, u of both greens of the read cells: each (2, n) int arrays (green 1 and 2),
+    every `every`-th training frame, the cells on an even stride (at most max_cells a
+    frame)."""
+    h, w = data.image_hw
+    hc, wc = h // 2, w // 2
+    stride = max(1, int(np.ceil(np.sqrt(hc * wc / max(max_cells, 1)))))
+    frames = np.arange(0, data.c2w.shape[0], every)
+    f, i, j = np.meshgrid(frames, np.arange(0, hc, stride), np.arange(0, wc, stride),
+                          indexing="ij")
+    f, i, j = f.ravel(), i.ravel(), j.ravel()
+    (r1, c1), (r2, c2) = green_positions(data.cfa)
+    fr = np.stack([f, f])
+    v = np.stack([2 * i + r1, 2 * i + r2])
+    u = np.stack([2 * j + c1, 2 * j + c2])
+    return fr, v, u
+
+
+def detail_over_noise(r1, r2, level, n_bins: int = LEVEL_BINS) -> float:
+    """The mean over cells of the missed detail over one photosite's noise variance
+    (module docstring): per quantile bin of `level`, mean(r1 r2) / (mean((r1 - r2)^2) / 2),
+    weighted by the bin's cells. r1, r2, level: (n,) arrays. nan under MIN_CELLS cells."""
+    r1, r2, level = (np.asarray(a, np.float64).ravel() for a in (r1, r2, level))
+    n = r1.size
+    if n < MIN_CELLS:
+        return float("nan")
+    order = np.argsort(level, kind="stable")
+    total, weight = 0.0, 0
+    for idx in np.array_split(order, min(n_bins, n // (MIN_CELLS // 4) or 1)):
+        noise = float(np.mean((r1[idx] - r2[idx]) ** 2)) / 2.0
+        if noise > 0:
+            total += idx.size * float(np.mean(r1[idx] * r2[idx])) / noise
+            weight += idx.size
+    return total / weight if weight else float("nan")
+
+
+def read(structure, params, data: dataset.RayData, near_t, far_t, render_cfg,
+         views: int | None = None) -> float:
+    """The detail the field leaves in the training frames in units of the noise an ideal
+    average of `views` (default: the training frames) leaves: views x detail_over_noise of
+    the two greens of every read cell. data: the raw mosaic (data.mosaic); nan where the
+    frames are not the mosaic or too few unsaturated cells are read."""
+    if not data.mosaic:
+        return float("nan")
+    fr, v, u = cell_pixels(data)
+    rays = dataset.rays_at_jit(data, jnp.asarray(fr), jnp.asarray(v), jnp.asarray(u))
+    out = render.render_image(structure, params, rays["origins"], rays["directions"],
+                              near_t, far_t, render_cfg)
+    pred = np.asarray(out["rgb_low"], np.float64)[..., 1]
+    y = np.asarray(rays["target"], np.float64)[..., 1]
+    ok = np.asarray(rays["mask"])[..., 1].min(axis=0) > 0  # both greens unsaturated
+    r = (y - pred)[:, ok]
+    views = int(data.c2w.shape[0]) if views is None else views
+    return views * detail_over_noise(r[0], r[1], pred[:, ok].mean(axis=0))
+
+
+def stage_render_config(render_cfg, samples: int):
+    """render_cfg shading `samples` occupied slots per ray (a stage's planned slots)."""
+    return render_cfg if samples == render_cfg.max_samples else replace(
+        render_cfg, max_samples=int(samples))

@@ -1,0 +1,89 @@
+"""The detail a stage leaves against the frames' noise (gridnerf.residual) and the last
+stage it sets (plan.refined_config)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from gridnerf import config as cfgmod
+from gridnerf import plan as planmod
+from gridnerf import residual
+from gridnerf.errors import ConfigError
+
+
+def _greens(rng, n, detail_var, level):
+    """Two greens' residuals: a shared detail of variance detail_var, Poisson shot noise of
+    `level` electrons (scaled to unit mean) plus heavy-tailed read noise."""
+    d = rng.normal(0.0, np.sqrt(detail_var), n)
+    def noise():
+        shot = (rng.poisson(level) - level) / level
+        read = 0.05 * rng.standard_t(4, n)
+        return shot + read
+    return d + noise(), d + noise()
+
+
+@pytest.mark.parametrize("electrons", [3.0, 30.0])
+def test_the_reading_is_the_missed_detail_over_the_noise_whatever_its_distribution(electrons):
+    """Shot noise of a few electrons (skewed) and Student-t read noise (heavy tails): the
+    reading is the shared detail's variance over one photosite's noise variance, 0 without
+    detail, and it does not depend on the noise's scale per level."""
+    rng = np.random.default_rng(0)
+    n = 200_000
+    level = np.full(n, electrons)
+    noise_var = 1.0 / electrons + 0.05**2 * 2.0  # Poisson / level^2 * level; t(4): var 2
+    for share in (0.0, 0.1, 0.5):
+        r1, r2 = _greens(rng, n, share * noise_var, level)
+        got = residual.detail_over_noise(r1, r2, rng.uniform(size=n))
+        assert got == pytest.approx(share, abs=0.02)
+    # the noise twice as strong on half of the cells: the per-level ratio still reads it
+    r1, r2 = _greens(rng, n, 0.2 * noise_var, level)
+    bright = np.arange(n) >= n // 2
+    r1[bright] *= 2.0
+    r2[bright] *= 2.0
+    assert residual.detail_over_noise(r1, r2, bright.astype(float)) == pytest.approx(
+        0.2, abs=0.02)
+
+
+def test_detail_that_differs_between_the_greens_counts_as_noise():
+    """Conservative: detail at the photosite scale (independent at the two greens) reads as
+    noise, not as detail a finer grid could hold."""
+    rng = np.random.default_rng(1)
+    n = 100_000
+    r1, r2 = rng.normal(0, 1, n) + rng.normal(0, 1, n), rng.normal(0, 1, n) + rng.normal(0, 1, n)
+    assert abs(residual.detail_over_noise(r1, r2, np.zeros(n))) < 0.02
+    assert np.isnan(residual.detail_over_noise(r1[:10], r2[:10], np.zeros(10)))
+
+
+def test_the_read_cells_are_the_two_greens_of_each_cell():
+    class Data:
+        image_hw = (8, 12)
+        c2w = np.zeros((9, 3, 4))
+        cfa = np.array([[0, 1], [1, 2]])
+
+    fr, v, u = residual.cell_pixels(Data(), every=4)
+    assert sorted(set(fr[0].tolist())) == [0, 4, 8]
+    assert fr.shape == v.shape == u.shape == (2, 3 * 4 * 6)
+    assert np.all(Data.cfa[v % 2, u % 2] == 1)
+    assert np.all((v[0] // 2 == v[1] // 2) & (u[0] // 2 == u[1] // 2))
+    assert np.all(v[0] != v[1])  # different rows: row noise is not shared
+    fr, v, u = residual.cell_pixels(Data(), every=1, max_cells=6)
+    assert v.shape[1] <= 9 * 6 * 2
+
+
+def test_the_refined_plan_trains_a_wider_last_stage_with_its_priors_per_unit_of_scene():
+    cfg = cfgmod.Config()
+    plan = planmod.RunPlan(method="brightnerf", black_level="file", data_noise=None,
+                           data_eps=1e-3, colour=planmod.ColourPlan(), opacity=(0, 0, 0),
+                           n_candidates=(0, 0, 0))
+    assert planmod.refined_config(cfg, plan) is cfg
+    wide = planmod.refined_config(cfg, planmod.from_dict(planmod.to_dict(
+        replace(plan, detail=4.0, last_width=288))))
+    assert wide.grid.resolutions[:-1] == cfg.grid.resolutions[:-1]
+    assert wide.grid.resolutions[-1] == (288, 0, cfg.grid.resolutions[-1][2])
+    assert wide.loss.tv_ref_width == cfg.grid.resolutions[-1][0]
+    assert wide.render.max_samples == round(cfg.render.max_samples * 1.5)
+    with pytest.raises(ConfigError, match="detail_width"):
+        cfgmod.override(cfg, ["grid.detail_width=100"])
