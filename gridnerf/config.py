@@ -526,7 +526,7 @@ def get(cfg: Config, dotted: str) -> Any:
 ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0,
                 ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0,
                 ("loss", "tv_ref_width"): 0, ("train", "colour_solve_iters"): 0,
-                ("grid", "detail_width"): 0}
+                ("grid", "detail_width"): 0, ("grid", "detail_above"): 1.0}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:
