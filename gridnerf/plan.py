@@ -170,7 +170,9 @@ def refined_config(cfg, plan: RunPlan):
     ratio = plan.last_width / width
     res[-1][0] = int(plan.last_width)
     ref = cfg.loss.tv_ref_width or width
-    return replace(cfg, grid=replace(cfg.grid, resolutions=tuple(tuple(r) for r in res)),
+    # detail_width 0: the width is decided (a config's detail_width must exceed its last)
+    return replace(cfg, grid=replace(cfg.grid, resolutions=tuple(tuple(r) for r in res),
+                                     detail_width=0),
                    loss=replace(cfg.loss, tv_ref_width=int(ref)),
                    render=replace(cfg.render,
                                   max_samples=int(round(cfg.render.max_samples * ratio))))

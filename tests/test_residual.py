@@ -87,3 +87,4 @@ def test_the_refined_plan_trains_a_wider_last_stage_with_its_priors_per_unit_of_
     assert wide.render.max_samples == round(cfg.render.max_samples * 1.5)
     with pytest.raises(ConfigError, match="detail_width"):
         cfgmod.override(cfg, ["grid.detail_width=100"])
+

@@ -930,3 +930,45 @@ def test_a_run_keeps_its_fitted_slots_and_renders_with_them(small_scene, tmp_pat
     loaded = eval_run.load_run(tmp_path / "run")[0]
     assert loaded.render.max_samples == plan.max_samples[-1]
     assert loaded.render.truncated_share == 0.05
+
+
+def test_a_run_refines_its_last_stage_where_the_reading_asks_and_resumes_it(
+        small_scene, tmp_path, capsys, monkeypatch):
+    """With grid.detail_width set a run reads the detail before its last stage
+    (gridnerf.residual), keeps it in the plan and the summary and, over grid.detail_above,
+    trains that stage wider; killed in that stage, it resumes it at the plan's width without
+    reading again. Under the threshold it keeps the config's width, and its checkpoint is the
+    one a run without the option trains (the reading draws no random numbers)."""
+    from gridnerf import plan as planmod
+    from gridnerf import train as trainmod
+
+    monkeypatch.setattr(trainmod, "CHECKPOINT_SECONDS", float("inf"))
+    sets = ["data.mosaic_stages=1", "train.steps_per_stage=[20,20]",
+            "train.checkpoint_every=10"]
+    wide = cfgmod.override(cfgmod.preset("tiny"), [*sets, "grid.detail_width=56",
+                                                   "grid.detail_above=0"])
+    real_make_step = optim.make_step
+    _crash_after(monkeypatch, 33)  # dies at stage 1 step 14, after its step-10 checkpoint
+    with pytest.raises(KeyboardInterrupt):
+        trainmod.train(small_scene, tmp_path / "wide", wide)
+    assert "the last stage is 56 wide instead of 40" in capsys.readouterr().out
+    plan = planmod.load(tmp_path / "wide")
+    assert plan.last_width == 56 and plan.detail is not None and np.isfinite(plan.detail)
+    monkeypatch.setattr(optim, "make_step", real_make_step)
+    summary = trainmod.train(small_scene, tmp_path / "wide", wide)
+    out = capsys.readouterr().out
+    assert "resuming" in out and "detail:" not in out
+    assert summary["last_width"] == 56 and summary["detail"] == plan.detail
+    assert load_state_of(tmp_path / "wide").resolution[0] == 56
+
+    narrow = cfgmod.override(cfgmod.preset("tiny"), [*sets, "grid.detail_width=56",
+                                                     "grid.detail_above=1e9"])
+    summary = trainmod.train(small_scene, tmp_path / "narrow", narrow)
+    assert summary["last_width"] == 40 and summary["detail"] == pytest.approx(plan.detail)
+    assert planmod.load(tmp_path / "narrow").last_width is None
+    trainmod.train(small_scene, tmp_path / "plain", cfgmod.override(cfgmod.preset("tiny"), sets))
+    a, b = (np.load(tmp_path / name / "checkpoint.npz") for name in ("narrow", "plain"))
+    assert sorted(a.files) == sorted(b.files)
+    for name in a.files:
+        if name != "header":
+            np.testing.assert_array_equal(a[name], b[name], err_msg=name)
