@@ -101,7 +101,8 @@ class RunPlan:
     (a plan saved before the decision existed): the config's render.max_samples; the last
     stage's is the finished run's (render_config). detail: what the last stage but one left
     of its frames' detail in units of the noise the views' average leaves
-    (residual.read; None: not read or not measurable); last_width: the last stage's
+    (residual.read; None: not read or not measurable) and its standard error
+    (detail_error); last_width: the last stage's
     width where the reading refined it (refined_config), None: the config's.
     """
 
@@ -119,6 +120,7 @@ class RunPlan:
     downscale: int | None = None
     max_samples: tuple[int, ...] | None = None
     detail: float | None = None
+    detail_error: float | None = None
     last_width: int | None = None
 
     @property

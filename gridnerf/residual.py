@@ -18,7 +18,10 @@ estimate reads these low), and conservative: detail that differs between the two
 counts as noise. The ratio is taken per level (quantile bins of the rendered green: the
 noise variance grows with the signal) and averaged over the cells, then multiplied by the
 training views: the unit is the noise an ideal average of the views leaves
-(sigma^2 / views), so 1 means the stage misses as much as the views can resolve.
+(sigma^2 / views), so 1 means the stage misses as much as the views can resolve. Its
+standard error comes with it (the spread of r1 r2: about views / sqrt(cells), 0.05 for
+24 views and 6 frames of 480x270); a run refines only where the reading exceeds its
+threshold by two of them (the conservative side where the evidence is thin).
 
 Units: normalised raw, (DN - black) / (white - black), as dataset.targets gives it.
 """
@@ -36,6 +39,7 @@ LEVEL_BINS = 16  # quantile bins of the rendered green level
 EVERY = 4  # every this-many-th training frame is read
 MAX_CELLS = 1 << 15  # Bayer cells read per frame at most (a strided subset beyond)
 MIN_CELLS = 256  # cells a reading needs; fewer: not measurable (nan)
+SIGMAS = 2.0  # a run refines where the reading less this many standard errors is over
 
 
 def green_positions(cfa) -> list[tuple[int, int]]:
@@ -62,32 +66,38 @@ def cell_pixels(data: dataset.RayData, every: int = EVERY, max_cells: int = MAX_
     return fr, v, u
 
 
-def detail_over_noise(r1, r2, level, n_bins: int = LEVEL_BINS) -> float:
-    """The mean over cells of the missed detail over one photosite's noise variance
-    (module docstring): per quantile bin of `level`, mean(r1 r2) / (mean((r1 - r2)^2) / 2),
-    weighted by the bin's cells. r1, r2, level: (n,) arrays. nan under MIN_CELLS cells."""
+def detail_over_noise(r1, r2, level, n_bins: int = LEVEL_BINS) -> tuple[float, float]:
+    """(the mean over cells of the missed detail over one photosite's noise variance, its
+    standard error) (module docstring): per quantile bin of `level`, mean(r1 r2) /
+    (mean((r1 - r2)^2) / 2), weighted by the bin's cells; the error from the spread of
+    r1 r2 in each bin. r1, r2, level: (n,) arrays. (nan, nan) under MIN_CELLS cells."""
     r1, r2, level = (np.asarray(a, np.float64).ravel() for a in (r1, r2, level))
     n = r1.size
     if n < MIN_CELLS:
-        return float("nan")
+        return float("nan"), float("nan")
     order = np.argsort(level, kind="stable")
-    total, weight = 0.0, 0
+    total, var, weight = 0.0, 0.0, 0
     for idx in np.array_split(order, min(n_bins, n // (MIN_CELLS // 4) or 1)):
         noise = float(np.mean((r1[idx] - r2[idx]) ** 2)) / 2.0
         if noise > 0:
-            total += idx.size * float(np.mean(r1[idx] * r2[idx])) / noise
+            shared = r1[idx] * r2[idx]
+            total += idx.size * float(np.mean(shared)) / noise
+            var += idx.size * float(np.var(shared)) / noise**2
             weight += idx.size
-    return total / weight if weight else float("nan")
+    if not weight:
+        return float("nan"), float("nan")
+    return total / weight, float(np.sqrt(var)) / weight
 
 
 def read(structure, params, data: dataset.RayData, near_t, far_t, render_cfg,
-         views: int | None = None) -> float:
-    """The detail the field leaves in the training frames in units of the noise an ideal
-    average of `views` (default: the training frames) leaves: views x detail_over_noise of
-    the two greens of every read cell. data: the raw mosaic (data.mosaic); nan where the
-    frames are not the mosaic or too few unsaturated cells are read."""
+         views: int | None = None) -> tuple[float, float]:
+    """(the detail the field leaves in the training frames in units of the noise an ideal
+    average of `views` (default: the training frames) leaves, its standard error): views x
+    detail_over_noise of the two greens of every read cell. data: the raw mosaic
+    (data.mosaic); (nan, nan) where the frames are not the mosaic or too few unsaturated
+    cells are read."""
     if not data.mosaic:
-        return float("nan")
+        return float("nan"), float("nan")
     fr, v, u = cell_pixels(data)
     rays = dataset.rays_at_jit(data, jnp.asarray(fr), jnp.asarray(v), jnp.asarray(u))
     out = render.render_image(structure, params, rays["origins"], rays["directions"],
@@ -97,7 +107,8 @@ def read(structure, params, data: dataset.RayData, near_t, far_t, render_cfg,
     ok = np.asarray(rays["mask"])[..., 1].min(axis=0) > 0  # both greens unsaturated
     r = (y - pred)[:, ok]
     views = int(data.c2w.shape[0]) if views is None else views
-    return views * detail_over_noise(r[0], r[1], pred[:, ok].mean(axis=0))
+    value, error = detail_over_noise(r[0], r[1], pred[:, ok].mean(axis=0))
+    return views * value, views * error
 
 
 def stage_render_config(render_cfg, samples: int):

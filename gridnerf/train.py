@@ -176,18 +176,20 @@ def _read_detail(run: Path, cfg: Config, plan, structure, params, data, near_t, 
     numbers: a run that stays at the config's width trains as one that never reads)."""
     stage = len(cfg.grid.resolutions) - 2
     render_cfg = residual.stage_render_config(cfg.render, plan.samples(stage, cfg))
-    reading = residual.read(structure, params, data, near_t, far_t, render_cfg)
-    refine = (cfg.grid.detail_width > 0 and np.isfinite(reading)
-              and reading > cfg.grid.detail_above)
-    plan = replace(plan, detail=float(reading) if np.isfinite(reading) else None,
+    reading, error = residual.read(structure, params, data, near_t, far_t, render_cfg)
+    measured = bool(np.isfinite(reading))
+    low = reading - residual.SIGMAS * error  # the reading's conservative end
+    refine = cfg.grid.detail_width > 0 and measured and low > cfg.grid.detail_above
+    plan = replace(plan, detail=float(reading) if measured else None,
+                   detail_error=float(error) if measured else None,
                    last_width=int(cfg.grid.detail_width) if refine else None)
     width = cfg.grid.resolutions[-1][0]
-    what = ("not measurable (the last stage fits the binned raw)" if not np.isfinite(reading)
-            else f"{reading:.2f} times the noise the views' average leaves")
+    what = ("not measurable (the last stage fits the binned raw)" if not measured
+            else f"{reading:.2f} +- {error:.2f} times the noise the views' average leaves")
     if refine:
         print(f"detail: the {cfg.grid.resolutions[stage][0]}-wide grid leaves {what}, over "
-              f"grid.detail_above = {cfg.grid.detail_above:g}: the last stage is "
-              f"{cfg.grid.detail_width} wide instead of {width}")
+              f"grid.detail_above = {cfg.grid.detail_above:g} by {residual.SIGMAS:g} "
+              f"errors: the last stage is {cfg.grid.detail_width} wide instead of {width}")
     else:
         print(f"detail: the {cfg.grid.resolutions[stage][0]}-wide grid leaves {what}; the "
               f"last stage is {width} wide")
@@ -479,6 +481,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         # the detail the last stage but one left, in units of the views' averaged noise
         # (gridnerf.residual), and the last stage's width it decided
         "detail": plan.detail,
+        "detail_error": plan.detail_error,
         "last_width": int(structure.resolution[0]),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }

@@ -36,14 +36,16 @@ def test_the_reading_is_the_missed_detail_over_the_noise_whatever_its_distributi
     noise_var = 1.0 / electrons + 0.05**2 * 2.0  # Poisson / level^2 * level; t(4): var 2
     for share in (0.0, 0.1, 0.5):
         r1, r2 = _greens(rng, n, share * noise_var, level)
-        got = residual.detail_over_noise(r1, r2, rng.uniform(size=n))
+        got, error = residual.detail_over_noise(r1, r2, rng.uniform(size=n))
         assert got == pytest.approx(share, abs=0.02)
+        assert 0.5 / np.sqrt(n) < error < 0.02  # about 1 / sqrt(cells) for pure noise
+        assert abs(got - share) < 4 * error
     # the noise twice as strong on half of the cells: the per-level ratio still reads it
     r1, r2 = _greens(rng, n, 0.2 * noise_var, level)
     bright = np.arange(n) >= n // 2
     r1[bright] *= 2.0
     r2[bright] *= 2.0
-    assert residual.detail_over_noise(r1, r2, bright.astype(float)) == pytest.approx(
+    assert residual.detail_over_noise(r1, r2, bright.astype(float))[0] == pytest.approx(
         0.2, abs=0.02)
 
 
@@ -53,8 +55,8 @@ def test_detail_that_differs_between_the_greens_counts_as_noise():
     rng = np.random.default_rng(1)
     n = 100_000
     r1, r2 = rng.normal(0, 1, n) + rng.normal(0, 1, n), rng.normal(0, 1, n) + rng.normal(0, 1, n)
-    assert abs(residual.detail_over_noise(r1, r2, np.zeros(n))) < 0.02
-    assert np.isnan(residual.detail_over_noise(r1[:10], r2[:10], np.zeros(10)))
+    assert abs(residual.detail_over_noise(r1, r2, np.zeros(n))[0]) < 0.02
+    assert np.isnan(residual.detail_over_noise(r1[:10], r2[:10], np.zeros(10))).all()
 
 
 def test_the_read_cells_are_the_two_greens_of_each_cell():

@@ -954,6 +954,7 @@ def test_a_run_refines_its_last_stage_where_the_reading_asks_and_resumes_it(
     assert "the last stage is 56 wide instead of 40" in capsys.readouterr().out
     plan = planmod.load(tmp_path / "wide")
     assert plan.last_width == 56 and plan.detail is not None and np.isfinite(plan.detail)
+    assert 0 < plan.detail_error < plan.detail
     monkeypatch.setattr(optim, "make_step", real_make_step)
     summary = trainmod.train(small_scene, tmp_path / "wide", wide)
     out = capsys.readouterr().out
