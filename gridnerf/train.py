@@ -176,7 +176,9 @@ def _read_detail(run: Path, cfg: Config, plan, structure, params, data, near_t, 
     numbers: a run that stays at the config's width trains as one that never reads)."""
     stage = len(cfg.grid.resolutions) - 2
     render_cfg = residual.stage_render_config(cfg.render, plan.samples(stage, cfg))
+    t0 = time.perf_counter()
     reading, error = residual.read(structure, params, data, near_t, far_t, render_cfg)
+    seconds = time.perf_counter() - t0
     measured = bool(np.isfinite(reading))
     low = reading - residual.SIGMAS * error  # the reading's conservative end
     refine = cfg.grid.detail_width > 0 and measured and low > cfg.grid.detail_above
@@ -185,7 +187,8 @@ def _read_detail(run: Path, cfg: Config, plan, structure, params, data, near_t, 
                    last_width=int(cfg.grid.detail_width) if refine else None)
     width = cfg.grid.resolutions[-1][0]
     what = ("not measurable (the last stage fits the binned raw)" if not measured
-            else f"{reading:.2f} +- {error:.2f} times the noise the views' average leaves")
+            else f"{reading:.2f} +- {error:.2f} times the noise the views' average leaves "
+            f"(read in {seconds:.1f} s)")
     if refine:
         print(f"detail: the {cfg.grid.resolutions[stage][0]}-wide grid leaves {what}, over "
               f"grid.detail_above = {cfg.grid.detail_above:g} by {residual.SIGMAS:g} "
