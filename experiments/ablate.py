@@ -142,7 +142,7 @@ COLOUR_SOLVE_VARIANTS = [
 ]
 # --study detail: the last stage 288 wide only where the 96-wide stage before it leaves
 # more detail in its frames than the views' average leaves of their noise
-# (gridnerf.residual, grid.detail_width; the threshold grid.detail_above = 1 set from the
+# (gridnerf.residual, grid.detail_width; the threshold residual.ABOVE = 1 set from the
 # reading's unit, before the scenes were read); elsewhere the run is the default's
 DETAIL_VARIANTS = [
     ("w192", "last stage 192 wide (the default's)", "default", "default", []),

@@ -162,10 +162,8 @@ class GridConfig(_Section):
     fit_box: bool = True  # after the first stage, shrink the box to the visible content
     background: Literal["black", "mean"] = "mean"  # behind the grid: the capture's mean or black
     # the last stage's width (vertices across) where the stage before it leaves more detail
-    # in its frames than detail_above (gridnerf.residual); 0: always the resolutions' own
+    # in its frames than the views' average leaves noise (gridnerf.residual); 0: never
     detail_width: int = 0
-    # the refining threshold: the detail left, in units of the noise the views' average leaves
-    detail_above: float = 1.0
 
     def _check(self) -> None:
         self._require("resolutions", len(self.resolutions) >= 1
@@ -176,7 +174,6 @@ class GridConfig(_Section):
         self._require("detail_width", self.detail_width == 0
                       or self.detail_width > self.resolutions[-1][0],
                       "0 (off) or wider than the last stage of grid.resolutions")
-        self._range("detail_above", 0.0)
         self._require("sh_degree", 0 <= self.sh_degree <= MAX_SH_DEGREE,
                       f"a whole number from 0 to {MAX_SH_DEGREE}")
         self._range("prune_threshold", 0.0, 1.0)
@@ -526,7 +523,7 @@ def get(cfg: Config, dotted: str) -> Any:
 ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0,
                 ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0,
                 ("loss", "tv_ref_width"): 0, ("train", "colour_solve_iters"): 0,
-                ("grid", "detail_width"): 0, ("grid", "detail_above"): 1.0}
+                ("grid", "detail_width"): 0}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

@@ -19,7 +19,7 @@ training decides at run time from the capture goes here instead, is saved as
 - the lens falloff: estimated from the frames and taken off (gridnerf.vignetting), or
   corrected by the raw files' own opcodes on loading (gridnerf.raw_layout);
 - the last stage's width: the config's, or grid.detail_width where the stage before it
-  leaves more detail in its frames than grid.detail_above (gridnerf.residual).
+  leaves more detail in its frames than the views average the noise to (gridnerf.residual).
 
 The plan is built once before the first step (candidate counts are filled in as each
 stage's grid is made: `with_candidates`); a resumed run reads it back and keeps it.

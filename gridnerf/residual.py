@@ -1,6 +1,6 @@
 """What a trained stage leaves unexplained in its training frames, against their noise.
 
-The reading that sets the last stage's width (grid.detail_width, grid.detail_above): where
+The reading that sets the last stage's width (grid.detail_width, ABOVE): where
 the grid of the last stage but one leaves more of the scene in its frames than the
 training views' average leaves of their noise, the data can tell detail from noise and
 the last stage may be finer; where it does not, a finer grid would fit noise.
@@ -39,7 +39,10 @@ LEVEL_BINS = 16  # quantile bins of the rendered green level
 EVERY = 4  # every this-many-th training frame is read
 MAX_CELLS = 1 << 15  # Bayer cells read per frame at most (a strided subset beyond)
 MIN_CELLS = 256  # cells a reading needs; fewer: not measurable (nan)
-SIGMAS = 2.0  # a run refines where the reading less this many standard errors is over
+# a run refines its last stage (grid.detail_width) where the reading less SIGMAS standard
+# errors exceeds ABOVE: the grid misses more than the views' average leaves of the noise
+ABOVE = 1.0
+SIGMAS = 2.0
 
 
 def green_positions(cfa) -> list[tuple[int, int]]:

@@ -171,7 +171,7 @@ def _colour_solve(run: Path, cfg: Config, plan, scene, method, structure, params
 def _read_detail(run: Path, cfg: Config, plan, structure, params, data, near_t, far_t):
     """The plan with the detail the last stage but one left in its frames
     (gridnerf.residual.read, on the last stage's data where it is the raw mosaic) and, where
-    grid.detail_width is set and the reading exceeds grid.detail_above, the last stage's
+    grid.detail_width is set and the reading exceeds residual.ABOVE, the last stage's
     width refined to it; saved. It draws no random numbers: a run that stays at the
     config's width trains as one that never reads (which a run without the option does:
     the reading renders each fourth frame's greens, 5-10 s at 480x270)."""
@@ -182,7 +182,7 @@ def _read_detail(run: Path, cfg: Config, plan, structure, params, data, near_t, 
     seconds = time.perf_counter() - t0
     measured = bool(np.isfinite(reading))
     low = reading - residual.SIGMAS * error  # the reading's conservative end
-    refine = cfg.grid.detail_width > 0 and measured and low > cfg.grid.detail_above
+    refine = cfg.grid.detail_width > 0 and measured and low > residual.ABOVE
     plan = replace(plan, detail=float(reading) if measured else None,
                    detail_error=float(error) if measured else None,
                    last_width=int(cfg.grid.detail_width) if refine else None)
@@ -192,7 +192,7 @@ def _read_detail(run: Path, cfg: Config, plan, structure, params, data, near_t, 
             f"(read in {seconds:.1f} s)")
     if refine:
         print(f"detail: the {cfg.grid.resolutions[stage][0]}-wide grid leaves {what}, over "
-              f"grid.detail_above = {cfg.grid.detail_above:g} by {residual.SIGMAS:g} "
+              f"{residual.ABOVE:g} by {residual.SIGMAS:g} "
               f"errors: the last stage is {cfg.grid.detail_width} wide instead of {width}")
     else:
         print(f"detail: the {cfg.grid.resolutions[stage][0]}-wide grid leaves {what}; the "

@@ -245,11 +245,12 @@ def test_every_study_variant_is_a_valid_config_and_shared_folders_agree():
     assert seen["binned_gamma0.3"].data.exposure_ratio == 0.3
     # the factor studies' runs fit the binned raw throughout; the default, the data-term
     # study's mosaic run, the chroma study's two runs, the density-rate study's run and the
-    # last-width study's and the colour-solve study's are the only ones with a mosaic stage
+    # last-width, colour-solve and detail studies' are the only ones with a mosaic stage
     mosaic = sorted(f for f, c in seen.items()
                     if c.data.target == "raw" and c.data.mosaic_from(3) < 3)
-    assert mosaic == ["chroma", "cs20", "default", "lrd0.6", "mosaic", "mosaic_last",
-                      "w288tv"], mosaic
+    assert mosaic == ["chroma", "cs20", "default", "detail288", "lrd0.6", "mosaic",
+                      "mosaic_last", "w288tv"], mosaic
+    assert seen["detail288"].grid.detail_width == 288
     assert seen["cs20"].train.colour_solve_iters == 20
     assert seen["w288tv"].loss.tv_ref_width == 192
     assert seen["w288tv"].grid.resolutions[-1] == (288, 0, 64)
@@ -257,7 +258,7 @@ def test_every_study_variant_is_a_valid_config_and_shared_folders_agree():
     # footing, which is the default's footing in all else (cfgmod.FOOTING); mosaic_last is
     # that run without the prior
     chroma = sorted(f for f, c in seen.items() if c.loss.tv_chroma > 0)
-    assert chroma == ["chroma", "cs20", "default", "lrd0.6", "w288tv"]
+    assert chroma == ["chroma", "cs20", "default", "detail288", "lrd0.6", "w288tv"]
     assert seen["chroma"] == cfgmod.override(
         seen["default"], [*cfgmod.FOOTING, "loss.tv_chroma=0.01"])
     assert seen["mosaic_last"] == cfgmod.override(seen["chroma"], ["loss.tv_chroma=0"])
@@ -268,14 +269,16 @@ def test_every_study_variant_is_a_valid_config_and_shared_folders_agree():
     assert seen["w288tv"] == cfgmod.override(seen["default"], [
         "grid.resolutions=[[48,0,24],[96,0,48],[288,0,64]]", "render.max_samples=96",
         "loss.tv_ref_width=192"])
+    # the detail study's run: today's default with the last stage refined where it reads
+    assert seen["detail288"] == cfgmod.override(seen["default"], ["grid.detail_width=288"])
     # every preset but the default and every variant is on the measured footing
     for f, c in seen.items():
-        if f not in ("default", "chroma", "tv0.1", "lrd0.6", "w288tv", "cs20"):
+        if f not in ("default", "chroma", "tv0.1", "lrd0.6", "w288tv", "cs20", "detail288"):
             assert c.train.steps_per_stage[:3] == (600, 600, 1200), f
             assert c.loss.tv_fraction == 0.25 and c.loss.tv_chroma == 0, f
     assert set(ablate.STUDIES) == {"parts", "smoothness", "gain_model", "tv_fraction",
                                    "data_term", "chroma", "density_rate", "last_width",
-                                   "colour_solve"}
+                                   "colour_solve", "detail"}
     assert seen["default"].data.mosaic_from(3) == 2 and seen["mosaic"].data.mosaic_from(3) == 0
     assert seen["binned"].data.mosaic_from(3) == 3
 

@@ -389,7 +389,7 @@ def test_config_overrides_and_round_trip(tmp_path):
     )
     assert cfg.train.steps_per_stage == (5, 6, 7)
     assert cfg.loss.use_gains is False and cfg.grid.sh_degree == 1
-    assert len([f for s in cfgmod.to_dict(cfg).values() for f in s]) <= 50  # the method's
+    assert len([f for s in cfgmod.to_dict(cfg).values() for f in s]) <= 51  # the method's
     cfgmod.save(cfg, tmp_path / "c.json")
     assert cfgmod.load(tmp_path / "c.json") == cfg
     with pytest.raises(ValueError, match="bad override"):
@@ -935,7 +935,7 @@ def test_a_run_keeps_its_fitted_slots_and_renders_with_them(small_scene, tmp_pat
 def test_a_run_refines_its_last_stage_where_the_reading_asks_and_resumes_it(
         small_scene, tmp_path, capsys, monkeypatch):
     """With grid.detail_width set a run reads the detail before its last stage
-    (gridnerf.residual), keeps it in the plan and the summary and, over grid.detail_above,
+    (gridnerf.residual), keeps it in the plan and the summary and, over residual.ABOVE,
     trains that stage wider; killed in that stage, it resumes it at the plan's width without
     reading again. Under the threshold it keeps the config's width, and its checkpoint is the
     one a run without the option trains (the reading draws no random numbers)."""
@@ -945,8 +945,10 @@ def test_a_run_refines_its_last_stage_where_the_reading_asks_and_resumes_it(
     monkeypatch.setattr(trainmod, "CHECKPOINT_SECONDS", float("inf"))
     sets = ["data.mosaic_stages=1", "train.steps_per_stage=[20,20]",
             "train.checkpoint_every=10"]
-    wide = cfgmod.override(cfgmod.preset("tiny"), [*sets, "grid.detail_width=56",
-                                                   "grid.detail_above=0"])
+    from gridnerf import residual
+
+    wide = cfgmod.override(cfgmod.preset("tiny"), [*sets, "grid.detail_width=56"])
+    monkeypatch.setattr(residual, "ABOVE", -1e9)
     real_make_step = optim.make_step
     _crash_after(monkeypatch, 33)  # dies at stage 1 step 14, after its step-10 checkpoint
     with pytest.raises(KeyboardInterrupt):
@@ -962,9 +964,8 @@ def test_a_run_refines_its_last_stage_where_the_reading_asks_and_resumes_it(
     assert summary["last_width"] == 56 and summary["detail"] == plan.detail
     assert load_state_of(tmp_path / "wide").resolution[0] == 56
 
-    narrow = cfgmod.override(cfgmod.preset("tiny"), [*sets, "grid.detail_width=56",
-                                                     "grid.detail_above=1e9"])
-    summary = trainmod.train(small_scene, tmp_path / "narrow", narrow)
+    monkeypatch.setattr(residual, "ABOVE", 1e9)
+    summary = trainmod.train(small_scene, tmp_path / "narrow", wide)
     assert summary["last_width"] == 40 and summary["detail"] == pytest.approx(plan.detail)
     assert planmod.load(tmp_path / "narrow").last_width is None
     trainmod.train(small_scene, tmp_path / "plain", cfgmod.override(cfgmod.preset("tiny"), sets))
