@@ -172,9 +172,9 @@ def _read_detail(run: Path, cfg: Config, plan, structure, params, data, near_t, 
     """The plan with the detail the last stage but one left in its frames
     (gridnerf.residual.read, on the last stage's data where it is the raw mosaic) and, where
     grid.detail_width is set and the reading exceeds residual.ABOVE, the last stage's
-    width refined to it; saved. It draws no random numbers: a run that stays at the
-    config's width trains as one that never reads (which a run without the option does:
-    the reading renders each fourth frame's greens, 5-10 s at 480x270)."""
+    width refined to it; saved. It draws no random numbers, so a run it leaves at the
+    config's width trains as one without the option, which does not read (the reading
+    renders each fourth frame's greens: 5-10 s at 480x270)."""
     stage = len(cfg.grid.resolutions) - 2
     render_cfg = residual.stage_render_config(cfg.render, plan.samples(stage, cfg))
     t0 = time.perf_counter()
