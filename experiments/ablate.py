@@ -143,7 +143,7 @@ COLOUR_SOLVE_VARIANTS = [
 # --study detail: the last stage 288 wide only where the 96-wide stage before it leaves
 # more detail in its frames than the views' average leaves of their noise
 # (gridnerf.residual, grid.detail_width; the threshold residual.ABOVE = 1 set from the
-# reading's unit, before the scenes were read); elsewhere the run is the default's
+# reading's unit when only bucket had been read); elsewhere the run is the default's
 DETAIL_VARIANTS = [
     ("w192", "last stage 192 wide (the default's)", "default", "default", []),
     ("detail", "last stage 288 wide where the 96-wide grid leaves detail over the averaged "

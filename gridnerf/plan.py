@@ -102,8 +102,8 @@ class RunPlan:
     stage's is the finished run's (render_config). detail: what the last stage but one left
     of its frames' detail in units of the noise the views' average leaves
     (residual.read; None: not read or not measurable) and its standard error
-    (detail_error); last_width: the last stage's
-    width where the reading refined it (refined_config), None: the config's.
+    (detail_error); last_width: the last stage's width where the reading refined it
+    (refined_config), None: the config's.
     """
 
     method: str
@@ -150,10 +150,10 @@ class RunPlan:
         return int(k) if k else int(cfg.render.max_samples)
 
 
-def render_config(cfg, plan: RunPlan):
-    """cfg with the finished run's render.max_samples (its last stage's slots): the
-    renders of a run shade the samples its last stage trained."""
-    k = plan.samples(len(plan.n_candidates) - 1, cfg)
+def render_config(cfg, plan: RunPlan, stage: int = -1):
+    """cfg with the render.max_samples of `stage` (default: the last, the finished run's
+    slots): the renders of a run shade the samples its stage trained."""
+    k = plan.samples(stage % len(plan.n_candidates), cfg)
     if k == cfg.render.max_samples:
         return cfg
     return replace(cfg, render=replace(cfg.render, max_samples=k))

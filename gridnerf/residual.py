@@ -28,8 +28,6 @@ Units: normalised raw, (DN - black) / (white - black), as dataset.targets gives 
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import jax.numpy as jnp
 import numpy as np
 
@@ -92,10 +90,10 @@ def detail_over_noise(r1, r2, level, n_bins: int = LEVEL_BINS) -> tuple[float, f
     return total / weight, float(np.sqrt(var)) / weight
 
 
-def read(structure, params, data: dataset.RayData, near_t, far_t, render_cfg,
-         views: int | None = None) -> tuple[float, float]:
+def read(structure, params, data: dataset.RayData, near_t, far_t,
+         render_cfg) -> tuple[float, float]:
     """(the detail the field leaves in the training frames in units of the noise an ideal
-    average of `views` (default: the training frames) leaves, its standard error): views x
+    average of the training views leaves, its standard error): views x
     detail_over_noise of the two greens of every read cell. data: the raw mosaic
     (data.mosaic); (nan, nan) where the frames are not the mosaic or too few unsaturated
     cells are read."""
@@ -109,12 +107,7 @@ def read(structure, params, data: dataset.RayData, near_t, far_t, render_cfg,
     y = np.asarray(rays["target"], np.float64)[..., 1]
     ok = np.asarray(rays["mask"])[..., 1].min(axis=0) > 0  # both greens unsaturated
     r = (y - pred)[:, ok]
-    views = int(data.c2w.shape[0]) if views is None else views
+    views = int(data.c2w.shape[0])
     value, error = detail_over_noise(r[0], r[1], pred[:, ok].mean(axis=0))
     return views * value, views * error
 
-
-def stage_render_config(render_cfg, samples: int):
-    """render_cfg shading `samples` occupied slots per ray (a stage's planned slots)."""
-    return render_cfg if samples == render_cfg.max_samples else replace(
-        render_cfg, max_samples=int(samples))

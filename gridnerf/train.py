@@ -176,7 +176,7 @@ def _read_detail(run: Path, cfg: Config, plan, structure, params, data, near_t, 
     config's width trains as one without the option, which does not read (the reading
     renders each fourth frame's greens: 5-10 s at 480x270)."""
     stage = len(cfg.grid.resolutions) - 2
-    render_cfg = residual.stage_render_config(cfg.render, plan.samples(stage, cfg))
+    render_cfg = planmod.render_config(cfg, plan, stage).render
     t0 = time.perf_counter()
     reading, error = residual.read(structure, params, data, near_t, far_t, render_cfg)
     seconds = time.perf_counter() - t0
