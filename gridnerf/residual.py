@@ -41,6 +41,31 @@ MIN_CELLS = 256  # cells a reading needs; fewer: not measurable (nan)
 # errors exceeds ABOVE: the grid misses more than the views' average leaves of the noise
 ABOVE = 1.0
 SIGMAS = 2.0
+# ... and no finer than FOOTPRINT = (photosites, vertices): 5 photosites of the frame across
+# per 3 vertices across, the footprint at which the rule was measured (480x270 captures, a
+# 288-wide last stage). A finer vertex comes near one photosite, below the mosaic's
+# sampling of each colour (every second photosite); at 320x180 the default's 192-wide stage
+# is already at it (docs/results.md, "The last stage refined where the frames show detail")
+FOOTPRINT = (5, 3)
+
+
+def finest_width(photosites_across: int) -> int:
+    """The widest last stage (vertices across) a frame `photosites_across` photosites wide
+    holds at FOOTPRINT: 288 at 480, 192 at 320."""
+    photosites, vertices = FOOTPRINT
+    return int(photosites_across) * vertices // photosites
+
+
+def refined_width(reading: float, error: float, detail_width: int, width: int,
+                  photosites_across: int) -> int | None:
+    """The last stage's width the reading asks for, or None to keep `width` (the config's):
+    detail_width (0: the option is off), no wider than finest_width, where the reading less
+    SIGMAS errors exceeds ABOVE and that width exceeds `width`. A reading that is not
+    finite (not measurable) keeps the width."""
+    if not (detail_width > 0 and np.isfinite(reading) and np.isfinite(error)):
+        return None
+    to = min(int(detail_width), finest_width(photosites_across))
+    return to if reading - SIGMAS * error > ABOVE and to > width else None
 
 
 def green_positions(cfa) -> list[tuple[int, int]]:

@@ -172,7 +172,8 @@ def _read_detail(run: Path, cfg: Config, plan, structure, params, data, near_t, 
     """The plan with the detail the last stage but one left in its frames
     (gridnerf.residual.read, on the last stage's data where it is the raw mosaic) and, where
     grid.detail_width is set and the reading exceeds residual.ABOVE, the last stage's
-    width refined to it; saved. It draws no random numbers, so a run it leaves at the
+    width refined to it, no finer than the frames' photosites hold
+    (residual.refined_width); saved. It draws no random numbers, so a run it leaves at the
     config's width trains as one without the option, which does not read (the reading
     renders each fourth frame's greens: 5-10 s at 480x270)."""
     stage = len(cfg.grid.resolutions) - 2
@@ -181,19 +182,23 @@ def _read_detail(run: Path, cfg: Config, plan, structure, params, data, near_t, 
     reading, error = residual.read(structure, params, data, near_t, far_t, render_cfg)
     seconds = time.perf_counter() - t0
     measured = bool(np.isfinite(reading))
-    low = reading - residual.SIGMAS * error  # the reading's conservative end
-    refine = cfg.grid.detail_width > 0 and measured and low > residual.ABOVE
-    plan = replace(plan, detail=float(reading) if measured else None,
-                   detail_error=float(error) if measured else None,
-                   last_width=int(cfg.grid.detail_width) if refine else None)
     width = cfg.grid.resolutions[-1][0]
+    across = int(data.image_hw[1])
+    refined = residual.refined_width(reading, error, cfg.grid.detail_width, width, across)
+    plan = replace(plan, detail=float(reading) if measured else None,
+                   detail_error=float(error) if measured else None, last_width=refined)
     what = ("not measurable (the last stage fits the binned raw)" if not measured
             else f"{reading:.2f} +- {error:.2f} times the noise the views' average leaves "
             f"(read in {seconds:.1f} s)")
-    if refine:
+    over = measured and reading - residual.SIGMAS * error > residual.ABOVE
+    if refined:
         print(f"detail: the {cfg.grid.resolutions[stage][0]}-wide grid leaves {what}, over "
               f"{residual.ABOVE:g} by {residual.SIGMAS:g} "
-              f"errors: the last stage is {cfg.grid.detail_width} wide instead of {width}")
+              f"errors: the last stage is {refined} wide instead of {width}")
+    elif over and cfg.grid.detail_width > 0:
+        print(f"detail: the {cfg.grid.resolutions[stage][0]}-wide grid leaves {what}, but "
+              f"{across} photosites across hold no last stage finer than "
+              f"{residual.finest_width(across)} wide: the last stage is {width} wide")
     else:
         print(f"detail: the {cfg.grid.resolutions[stage][0]}-wide grid leaves {what}; the "
               f"last stage is {width} wide")

@@ -90,3 +90,18 @@ def test_the_refined_plan_trains_a_wider_last_stage_with_its_priors_per_unit_of_
     with pytest.raises(ConfigError, match="detail_width"):
         cfgmod.override(cfg, ["grid.detail_width=100"])
 
+
+
+def test_the_refined_width_needs_the_reading_over_its_error_and_the_photosites_to_hold_it():
+    """refined_width: None with the option off, a reading not measured or within SIGMAS
+    errors of ABOVE; otherwise detail_width, but never finer than FOOTPRINT photosites per
+    vertex, and None where that is no wider than the config's last stage."""
+    assert residual.finest_width(480) == 288 and residual.finest_width(320) == 192
+    over = residual.ABOVE + 3 * residual.SIGMAS * 0.05
+    assert residual.refined_width(over, 0.05, 288, 192, 480) == 288
+    assert residual.refined_width(over, 0.05, 288, 192, 1920) == 288
+    assert residual.refined_width(over, 0.05, 288, 192, 400) == 240  # the frame's cap
+    assert residual.refined_width(over, 0.05, 288, 192, 320) is None  # 192 already at it
+    assert residual.refined_width(over, 0.05, 0, 192, 480) is None  # the option off
+    assert residual.refined_width(residual.ABOVE + 0.05, 0.05, 288, 192, 480) is None
+    assert residual.refined_width(float("nan"), float("nan"), 288, 192, 480) is None
