@@ -162,8 +162,9 @@ class GridConfig(_Section):
     fit_box: bool = True  # after the first stage, shrink the box to the visible content
     background: Literal["black", "mean"] = "mean"  # behind the grid: the capture's mean or black
     # the last stage's width (vertices across) where the stage before it leaves more detail
-    # in its frames than the views' average leaves noise (gridnerf.residual); 0: never
-    detail_width: int = 0
+    # in its frames than the views' average leaves noise and the frames' photosites hold
+    # it (gridnerf.residual); 0 or no wider than the last stage: never
+    detail_width: int = 288
 
     def _check(self) -> None:
         self._require("resolutions", len(self.resolutions) >= 1
@@ -171,9 +172,8 @@ class GridConfig(_Section):
                               for r in self.resolutions),
                       "one [x,y,z] per stage, each vertex count >= 2 (y may be 0: from the "
                       "image aspect), e.g. [[48,0,24],[64,0,32]]")
-        self._require("detail_width", self.detail_width == 0
-                      or self.detail_width > self.resolutions[-1][0],
-                      "0 (off) or wider than the last stage of grid.resolutions")
+        self._require("detail_width", self.detail_width >= 0,
+                      "0 (off) or a width, in vertices across, for the last stage")
         self._require("sh_degree", 0 <= self.sh_degree <= MAX_SH_DEGREE,
                       f"a whole number from 0 to {MAX_SH_DEGREE}")
         self._range("prune_threshold", 0.0, 1.0)
@@ -330,13 +330,14 @@ _SECTIONS = {"data": DataConfig, "grid": GridConfig, "render": RenderConfig,
 
 
 # The footing the presets other than the default and the studies were measured on
-# (docs/results.md, "A tenth of the rows buys the steps"): the default without the chroma
-# prior, its grid priors on a quarter of the rows, 1200 last-stage steps, max_samples slots
-# per ray in every stage (none fitted to the rays), 64 ray patches of 8x8 a step. Each later
+# (docs/results.md, "A tenth of the rows buys the steps"): the default without the detail
+# rule and the chroma prior, its grid priors on a quarter of the rows, 1200 last-stage
+# steps, max_samples slots per ray in every stage (none fitted to the rays), 64 ray
+# patches of 8x8 a step. Each later
 # change of the default joins it only where it was measured, so every kept result stays the
 # run its config names; `--set` trains a preset on today's default footing instead.
-FOOTING: tuple[str, ...] = ("loss.tv_chroma=0", "loss.tv_fraction=0.25",
-                            "train.steps_per_stage=[600,600,1200]",
+FOOTING: tuple[str, ...] = ("grid.detail_width=0", "loss.tv_chroma=0",
+                            "loss.tv_fraction=0.25", "train.steps_per_stage=[600,600,1200]",
                             "render.truncated_share=0", "train.patch_size=8",
                             "train.batch_patches=64")
 

@@ -172,7 +172,7 @@ def refined_config(cfg, plan: RunPlan):
     ratio = plan.last_width / width
     res[-1][0] = int(plan.last_width)
     ref = cfg.loss.tv_ref_width or width
-    # detail_width 0: the width is decided (a config's detail_width must exceed its last)
+    # detail_width 0: the width is decided
     return replace(cfg, grid=replace(cfg.grid, resolutions=tuple(tuple(r) for r in res),
                                      detail_width=0),
                    loss=replace(cfg.loss, tv_ref_width=int(ref)),

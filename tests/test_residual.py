@@ -76,7 +76,7 @@ def test_the_read_cells_are_the_two_greens_of_each_cell():
 
 
 def test_the_refined_plan_trains_a_wider_last_stage_with_its_priors_per_unit_of_scene():
-    cfg = cfgmod.Config()
+    cfg = cfgmod.override(cfgmod.Config(), ["grid.detail_width=0"])
     plan = planmod.RunPlan(method="brightnerf", black_level="file", data_noise=None,
                            data_eps=1e-3, colour=planmod.ColourPlan(), opacity=(0, 0, 0),
                            n_candidates=(0, 0, 0))
@@ -88,7 +88,9 @@ def test_the_refined_plan_trains_a_wider_last_stage_with_its_priors_per_unit_of_
     assert wide.loss.tv_ref_width == cfg.grid.resolutions[-1][0]
     assert wide.render.max_samples == round(cfg.render.max_samples * 1.5)
     with pytest.raises(ConfigError, match="detail_width"):
-        cfgmod.override(cfg, ["grid.detail_width=100"])
+        cfgmod.override(cfg, ["grid.detail_width=-1"])
+    # a width no wider than the last stage never refines it (refined_width)
+    assert cfgmod.override(cfg, ["grid.detail_width=100"]).grid.detail_width == 100
 
 
 
