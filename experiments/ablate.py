@@ -151,7 +151,7 @@ COLOUR_SOLVE_VARIANTS = [
 DETAIL_VARIANTS = [
     ("w192", "last stage 192 wide (grid.detail_width = 0)", "w192", "default", NO_DETAIL),
     ("detail", "last stage 288 wide where the 96-wide grid leaves detail over the averaged "
-     "noise (the default's)", "default", "default", []),
+     "noise, as the photosites allow (the default's)", "default", "default", []),
 ]
 STUDIES = {"parts": VARIANTS, "smoothness": SMOOTHNESS_VARIANTS,
            "gain_model": GAIN_MODEL_VARIANTS, "tv_fraction": TV_FRACTION_VARIANTS,
