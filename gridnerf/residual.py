@@ -56,16 +56,21 @@ def finest_width(photosites_across: int) -> int:
     return int(photosites_across) * vertices // photosites
 
 
+def exceeds(reading: float, error: float) -> bool:
+    """Whether the reading less SIGMAS of its errors exceeds ABOVE (False where it is not
+    finite: not measurable)."""
+    return bool(np.isfinite(reading) and np.isfinite(error)
+                and reading - SIGMAS * error > ABOVE)
+
+
 def refined_width(reading: float, error: float, detail_width: int, width: int,
                   photosites_across: int) -> int | None:
     """The last stage's width the reading asks for, or None to keep `width` (the config's):
     detail_width (0: the option is off), no wider than finest_width, where the reading less
     SIGMAS errors exceeds ABOVE and that width exceeds `width`. A reading that is not
     finite (not measurable) keeps the width."""
-    if not (detail_width > 0 and np.isfinite(reading) and np.isfinite(error)):
-        return None
     to = min(int(detail_width), finest_width(photosites_across))
-    return to if reading - SIGMAS * error > ABOVE and to > width else None
+    return to if detail_width > 0 and exceeds(reading, error) and to > width else None
 
 
 def green_positions(cfa) -> list[tuple[int, int]]:

@@ -190,12 +190,13 @@ def _read_detail(run: Path, cfg: Config, plan, structure, params, data, near_t, 
     what = ("not measurable (the last stage fits the binned raw)" if not measured
             else f"{reading:.2f} +- {error:.2f} times the noise the views' average leaves "
             f"(read in {seconds:.1f} s)")
-    over = measured and reading - residual.SIGMAS * error > residual.ABOVE
+    capped = (residual.exceeds(reading, error)
+              and residual.finest_width(across) <= width < cfg.grid.detail_width)
     if refined:
         print(f"detail: the {cfg.grid.resolutions[stage][0]}-wide grid leaves {what}, over "
               f"{residual.ABOVE:g} by {residual.SIGMAS:g} "
               f"errors: the last stage is {refined} wide instead of {width}")
-    elif over and cfg.grid.detail_width > 0:
+    elif capped:
         print(f"detail: the {cfg.grid.resolutions[stage][0]}-wide grid leaves {what}, but "
               f"{across} photosites across hold no last stage finer than "
               f"{residual.finest_width(across)} wide: the last stage is {width} wide")

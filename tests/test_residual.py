@@ -107,3 +107,5 @@ def test_the_refined_width_needs_the_reading_over_its_error_and_the_photosites_t
     assert residual.refined_width(over, 0.05, 0, 192, 480) is None  # the option off
     assert residual.refined_width(residual.ABOVE + 0.05, 0.05, 288, 192, 480) is None
     assert residual.refined_width(float("nan"), float("nan"), 288, 192, 480) is None
+    assert residual.exceeds(over, 0.05) and not residual.exceeds(residual.ABOVE + 0.05, 0.05)
+    assert not residual.exceeds(float("nan"), float("nan"))
