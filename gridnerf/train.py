@@ -190,8 +190,9 @@ def _read_detail(run: Path, cfg: Config, plan, structure, params, data, near_t, 
     what = ("not measurable (the last stage fits the binned raw)" if not measured
             else f"{reading:.2f} +- {error:.2f} times the noise the views' average leaves "
             f"(read in {seconds:.1f} s)")
-    capped = (residual.exceeds(reading, error)
-              and residual.finest_width(across) <= width < cfg.grid.detail_width)
+    # over the threshold and asked wider, yet kept: the frames' photosites are the cap
+    capped = (refined is None and residual.exceeds(reading, error)
+              and width < cfg.grid.detail_width)
     if refined:
         print(f"detail: the {cfg.grid.resolutions[stage][0]}-wide grid leaves {what}, over "
               f"{residual.ABOVE:g} by {residual.SIGMAS:g} "
