@@ -22,6 +22,9 @@ Every figure is measured on the package's own code, in its own process, and cach
   via eval_run.render_view, after a compiling first call, median of a few);
 - peak resident memory (the child's ru_maxrss from os.wait4) of the whole training at the
   small (480x270) and the large (1920x1080) image size, one process each;
+- the whole training of a second built-in scene at the small size, one that the detail
+  rule refines (grid.detail_width: a 288-wide last stage; FULL["refined"]), where the
+  bench's own scene keeps the 192-wide one: the default's time on such a scene;
 - scaling: step throughput and the step process's peak memory at three grid resolutions
   (the final grid resampled by grid.resample to 0.5x, 1x and 1.5x per axis) and at the two
   image sizes (the large one from its own 1920x1080 training run).
@@ -68,6 +71,10 @@ FULL = {
     "preset": "default", "sets": [], "small": (480, 270), "large": (1920, 1080), "frames": 24,
     "grid_scales": (0.5, 1.0, 1.5), "warmup": 3, "steps": 10, "render_repeats": 3,
     "snapshot_every": 100, "psnr_window_db": 0.5, "jobs": 1,
+    # a second built-in scene, trained whole at the small size, that the detail rule refines
+    # (its 96-wide stage reads 6.0 +- 0.1 over 1 at 480x270: a 288-wide last stage), where
+    # `scene` (bucket, 0.84) keeps the 192-wide one: the default's cost on such a scene
+    "refined": "deer",
 }
 # quick: one stage (one compile, no carving), two items at a time, XLA's CPU optimisation
 # off (halves compile time; its timings mean nothing, it checks that every figure comes out)
@@ -76,7 +83,7 @@ QUICK = {
     "preset": "tiny", "sets": ["grid.resolutions=[[16,16,8]]", "train.steps_per_stage=[8]"],
     "small": (96, 54), "large": (128, 72), "frames": 6, "grid_scales": (0.5, 1.0, 1.5),
     "warmup": 1, "steps": 2, "render_repeats": 1, "snapshot_every": 4, "psnr_window_db": 0.5,
-    "jobs": 2,
+    "jobs": 2, "refined": None,  # None: the quick scene again (the item's plumbing only)
 }
 # Targets on a 2-core CPU: (label, summary field, comparison, goal, unit)
 TARGETS = [
@@ -86,6 +93,8 @@ TARGETS = [
      "<=", 180, "s"),
     # the whole `gridnerf train` process (loading, bounds, colour maps, training)
     ("480x270, 24 frames: whole training", "train_small_wall_s", "<=", 180, "s"),
+    ("480x270, 24 frames, a scene the detail rule refines: whole training",
+     "train_refined_wall_s", "<=", 180, "s"),
     ("1920x1080, 24 frames: whole training", "train_large_wall_s", "<=", 900, "s"),
     ("1920x1080, 24 frames: peak memory of training", "train_large_peak_rss_gb", "<=", 8.0,
      "GB"),
@@ -405,24 +414,26 @@ class Bench:
 
     # -- scenes and training runs ------------------------------------------------------
 
-    def scene_dir(self, size) -> Path:
+    def scene_dir(self, size, name: str | None = None) -> Path:
+        """The folder of built-in scene `name` (default: the bench's scene) at `size`."""
         if self.folder is not None:
             return self.folder
         w, h = size
+        name = name or self.scene
         base = self.out / "scenes" if self.quick else REPO / "data" / "sim"
-        name = self.scene if (w, h) == (480, 270) and not self.quick else f"{self.scene}_{w}x{h}"
-        return base / name
+        return base / (name if (w, h) == (480, 270) and not self.quick else f"{name}_{w}x{h}")
 
-    def simulate(self, tag: str, size) -> Path:
-        folder = self.scene_dir(size)
+    def simulate(self, tag: str, size, name: str | None = None) -> Path:
+        name = name or self.scene
+        folder = self.scene_dir(size, name)
         if self.folder is not None:
             return folder
-        spec = {"scene": self.scene, "size": list(size), "frames": self.cfg["frames"],
+        spec = {"scene": name, "size": list(size), "frames": self.cfg["frames"],
                 "folder": str(folder)}
 
         def measure():
             existed = (folder / "sim.json").is_file()
-            cmd = [sys.executable, "-m", "gridnerf.cli", "simulate", self.scene, "--out",
+            cmd = [sys.executable, "-m", "gridnerf.cli", "simulate", name, "--out",
                    str(folder), "--width", str(size[0]), "--height", str(size[1]),
                    "--frames", str(self.cfg["frames"])]
             r = run_measured(cmd, self.log(f"simulate_{tag}"))
@@ -436,13 +447,16 @@ class Bench:
             r = self.item(f"simulate_{tag}", spec, measure, force=True)
         return Path(r["folder"])
 
-    def train(self, tag: str, size, snapshots: bool, need_run: bool) -> dict:
-        """A whole `gridnerf train` of the preset on the scene at `size`, in its own process
-        (wall time, peak RSS); with `snapshots`, every checkpoint is hard-linked to
-        <run>/snapshots/NNN/checkpoint.npz as it appears. need_run: the run folder must
-        exist (a cached result whose folder is gone is measured again)."""
-        scene = self.simulate(tag, size)
-        run = self.out / "runs" / f"{self.scene}_{size[0]}x{size[1]}"
+    def train(self, tag: str, size, snapshots: bool, need_run: bool,
+              name: str | None = None) -> dict:
+        """A whole `gridnerf train` of the preset on built-in scene `name` (default: the
+        bench's) at `size`, in its own process (wall time, peak RSS); with `snapshots`,
+        every checkpoint is hard-linked to <run>/snapshots/NNN/checkpoint.npz as it appears.
+        need_run: the run folder must exist (a cached result whose folder is gone is
+        measured again). Runs other than "small" and "large" get the tag in their folder."""
+        scene = self.simulate(tag, size, name)
+        run = self.out / "runs" / (f"{name or self.scene}_{size[0]}x{size[1]}"
+                                   + ("" if tag in ("small", "large") else f"_{tag}"))
         sets = list(self.cfg["sets"])
         if snapshots:
             sets += [f"train.checkpoint_every={self.cfg['snapshot_every']}"]
@@ -528,6 +542,8 @@ class Bench:
             "psnr_curve": lambda: self.item("psnr_curve", psnr_spec, lambda: run_worker(
                 "psnr", psnr_spec, self.log("psnr_curve"))),
             "large": large_items,
+            "refined": lambda: self.train("refined", small, snapshots=False, need_run=False,
+                                          name=c["refined"]),
         }
         if c["jobs"] > 1:  # the longest chain first
             tasks = {"large": tasks.pop("large"), **tasks}
@@ -537,7 +553,7 @@ class Bench:
         steps = {s: done[f"step_grid_{s:g}x"] for s in c["grid_scales"]}
         large_run, step_large = done["large"]
         return summarize(c, small_run, large_run, steps, done["step_dense"], done["render"],
-                         done["psnr_curve"], step_large)
+                         done["psnr_curve"], step_large, done["refined"])
 
     def _pending_on_small(self) -> bool:
         return True if self.fresh else self._any_missing("small")
@@ -574,7 +590,8 @@ class Bench:
 # results
 
 
-def summarize(c, small_run, large_run, steps, dense, renders, psnr, step_large) -> dict:
+def summarize(c, small_run, large_run, steps, dense, renders, psnr, step_large,
+              refined_run) -> dict:
     base = steps[1.0]
     scores = psnr["scores"]
     for s, snap in zip(scores, small_run["snapshots"], strict=True):
@@ -606,6 +623,9 @@ def summarize(c, small_run, large_run, steps, dense, renders, psnr, step_large) 
         "train_large_train_s": large_run["train_seconds"],
         "train_large_peak_rss_mb": large_run["peak_rss_mb"],
         "train_large_peak_rss_gb": large_run["peak_rss_mb"] * 1024**2 / 1e9,
+        "train_refined_wall_s": refined_run["wall_s"],
+        "train_refined_train_s": refined_run["train_seconds"],
+        "train_refined_peak_rss_mb": refined_run["peak_rss_mb"],
         "render_small_s": renders[f"{w_s}x{h_s}"]["median_s"],
         "render_large_s": renders[f"{w_l}x{h_l}"]["median_s"],
         "render_compile_s": renders[f"{w_s}x{h_s}"]["first_s"],
@@ -627,8 +647,14 @@ def summarize(c, small_run, large_run, steps, dense, renders, psnr, step_large) 
         targets.append({"target": label, "field": field, "goal": f"{op} {goal:,} {unit}",
                         "measured": v, "unit": unit, "met": bool(met),
                         "factor": v / goal if op == ">=" else goal / v})
+    trainings = [{"scene": Path(run["scene"]).name, "image": list(run["image"]),
+                  "final_resolution": run["final_resolution"], "wall_s": run["wall_s"],
+                  "train_s": run["train_seconds"], "peak_rss_mb": run["peak_rss_mb"],
+                  "rays_per_s": step["rays_per_s"] if step else None}
+                 for run, step in ((small_run, base), (large_run, step_large),
+                                   (refined_run, None))]
     return {"summary": summary, "scaling_grid": scaling_grid, "scaling_image": scaling_image,
-            "psnr_curve": scores, "targets": targets}
+            "trainings": trainings, "psnr_curve": scores, "targets": targets}
 
 
 def _n(v, nd=0) -> str:
@@ -683,12 +709,13 @@ def markdown(record: dict) -> str:
         "carving, checkpoints)",
         "",
         markdown_table(
-            ["image", "wall s", "training loop s", "peak RSS MB", "step rays/s"],
-            [[f"{r['image'][0]}x{r['image'][1]}", fmt(r["train_wall_s"], 0),
-              fmt(t, 0), _n(r["train_peak_rss_mb"]), _n(r["rays_per_s"])]
-             for r, t in zip(record["scaling_image"],
-                             (s["train_small_train_s"], s["train_large_train_s"]),
-                             strict=True)]),
+            ["scene", "image", "final grid", "wall s", "training loop s", "peak RSS MB",
+             "step rays/s"],
+            [[r["scene"], f"{r['image'][0]}x{r['image'][1]}",
+              "x".join(map(str, r["final_resolution"])), fmt(r["wall_s"], 0),
+              fmt(r["train_s"], 0), _n(r["peak_rss_mb"]),
+              "-" if r["rays_per_s"] is None else _n(r["rays_per_s"])]
+             for r in record["trainings"]]),
         "",
         f"## Render (one test view, median of {c['render_repeats']} after a compiling call)",
         "",

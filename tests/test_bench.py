@@ -22,6 +22,7 @@ SUMMARY_FIELDS = {
     "train_small_wall_s", "train_small_train_s", "train_small_peak_rss_mb",
     "train_large_wall_s", "train_large_train_s", "train_large_peak_rss_mb",
     "train_large_peak_rss_gb", "render_small_s", "render_large_s", "render_compile_s",
+    "train_refined_wall_s", "train_refined_train_s", "train_refined_peak_rss_mb",
 }
 
 
@@ -53,10 +54,13 @@ def test_quick_bench_writes_every_figure(tmp_path):
             assert _positive(row[key]), row
     assert [len(r["resolution"]) for r in record["scaling_grid"]] == [3, 3, 3]
     assert len({r["rows"] for r in record["scaling_grid"]}) == 3
-    assert len(record["targets"]) == 6
-    # the whole `gridnerf train` process at both image sizes, each against its own goal
+    assert len(record["targets"]) == 7
+    # the whole `gridnerf train` process at both image sizes, and of the scene the detail
+    # rule would refine, each against its own goal
     assert {t["field"] for t in record["targets"]} >= {"train_small_wall_s",
-                                                       "train_large_wall_s"}
+                                                       "train_large_wall_s",
+                                                       "train_refined_wall_s"}
+    assert [t["image"] for t in record["trainings"]] == [[96, 54], [128, 72], [96, 54]]
     assert all(isinstance(t["met"], bool) and _positive(t["measured"])
                for t in record["targets"])
     assert len(record["psnr_curve"]) >= 2
