@@ -39,7 +39,6 @@ import numpy as np
 from experiments.common import (
     FACTOR_BASE,
     FOOTING,
-    NO_DETAIL,
     REPORT_GROUPS,
     RESULTS_DOC,
     fmt,
@@ -116,11 +115,10 @@ CHROMA_VARIANTS = [
 # --study density_rate: the raw density's Adam rate (train.lr_density) at twice the
 # default's. Chosen on the four tuning scenes (bucket, scoreboard, dev_arc_shop,
 # dev_slide_bench; docs/results.md "The density's learning rate"); every other group is
-# trained after that choice, on the default's footing before the detail rule (NO_DETAIL)
+# trained after that choice, on today's default footing
 DENSITY_RATE_VARIANTS = [
-    ("rate_0.3", "density rate 0.3 (the default's)", "w192", "default", NO_DETAIL),
-    ("rate_0.6", "density rate 0.6", "lrd0.6", "default",
-     [*NO_DETAIL, "train.lr_density=0.6"]),
+    ("rate_0.3", "density rate 0.3 (the default's)", "default", "default", []),
+    ("rate_0.6", "density rate 0.6", "lrd0.6", "default", ["train.lr_density=0.6"]),
 ]
 # --study last_width: the last stage 288 vertices across instead of 192 (the same 64 in
 # depth; the slots' cap raised so the stage may fit more), its TVs scaled by the width
@@ -129,29 +127,30 @@ DENSITY_RATE_VARIANTS = [
 # without the scaling was measured first (`<scene>/w288` in RESULTS; docs/results.md,
 # "A finer last stage")
 LAST_WIDTH_VARIANTS = [
-    ("w192", "last stage 192 wide (the default's before the detail rule)", "w192", "default",
-     NO_DETAIL),
+    ("w192", "last stage 192 wide (the default's)", "default", "default", []),
     ("w288_tv", "last stage 288 wide, its TVs x 1.5 (loss.tv_ref_width = 192)", "w288tv",
-     "default", [*NO_DETAIL, "grid.resolutions=[[48,0,24],[96,0,48],[288,0,64]]",
+     "default", ["grid.resolutions=[[48,0,24],[96,0,48],[288,0,64]]",
                  "render.max_samples=96", "loss.tv_ref_width=192"]),
 ]
 # --study colour_solve: after the last stage, the vertex colours fitted to every training
 # ray at once with the geometry fixed (train.colour_solve_iters, gridnerf.colour_solve)
 # against Adam's colour. Does Adam leave noise a converged fit would average away?
 COLOUR_SOLVE_VARIANTS = [
-    ("adam", "Adam's colour (the default's)", "w192", "default", NO_DETAIL),
+    ("adam", "Adam's colour (the default's)", "default", "default", []),
     ("solve20", "colour solved, 20 L-BFGS iterations", "cs20", "default",
-     [*NO_DETAIL, "train.colour_solve_iters=20"]),
+     ["train.colour_solve_iters=20"]),
 ]
-# --study detail: the default's last stage, 288 wide only where the 96-wide stage before it
+# --study detail: the last stage 288 wide only where the 96-wide stage before it
 # leaves more detail in its frames than the views' average leaves of their noise and the
 # frames hold 5 photosites across per 3 vertices (gridnerf.residual, grid.detail_width; the
 # threshold residual.ABOVE = 1 set from the reading's unit when only bucket had been read),
-# against the same run with the rule off
+# against the default, which has the rule off
 DETAIL_VARIANTS = [
-    ("w192", "last stage 192 wide (grid.detail_width = 0)", "w192", "default", NO_DETAIL),
+    ("w192", "last stage 192 wide (the default's: grid.detail_width = 0)", "default",
+     "default", []),
     ("detail", "last stage 288 wide where the 96-wide grid leaves detail over the averaged "
-     "noise, as the photosites allow (the default's)", "default", "default", []),
+     "noise, as the photosites allow (grid.detail_width = 288)", "detail288", "default",
+     ["grid.detail_width=288"]),
 ]
 STUDIES = {"parts": VARIANTS, "smoothness": SMOOTHNESS_VARIANTS,
            "gain_model": GAIN_MODEL_VARIANTS, "tv_fraction": TV_FRACTION_VARIANTS,

@@ -36,10 +36,6 @@ FOOTING = list(cfgmod.FOOTING)
 # data_term) measures the mosaic stage against it, and the chroma study (ablate --study
 # chroma) the prior.
 FACTOR_BASE = ["data.mosaic_stages=0", *FOOTING]
-# The default before the detail rule (grid.detail_width = 0): the footing of the studies
-# measured against it (the density's rate, the last stage's width, the colour solve, the
-# detail rule itself), in the folder "w192"
-NO_DETAIL = ["grid.detail_width=0"]
 
 # Quick mode (`make report QUICK=1`): every study on 160x90, 12-frame versions of its
 # scenes (data/quick/<scene>) with each preset shrunk by quick_sets, in its own run root

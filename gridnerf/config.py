@@ -163,8 +163,8 @@ class GridConfig(_Section):
     background: Literal["black", "mean"] = "mean"  # behind the grid: the capture's mean or black
     # the last stage's width (vertices across) where the stage before it leaves more detail
     # in its frames than the views' average leaves noise and the frames' photosites hold
-    # it (gridnerf.residual); 0 or no wider than the last stage: never
-    detail_width: int = 288
+    # it (gridnerf.residual; 288: the measured rule); 0 or no wider than the last: never
+    detail_width: int = 0
 
     def _check(self) -> None:
         self._require("resolutions", len(self.resolutions) >= 1

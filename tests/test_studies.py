@@ -248,9 +248,9 @@ def test_every_study_variant_is_a_valid_config_and_shared_folders_agree():
     # last-width, colour-solve and detail studies' are the only ones with a mosaic stage
     mosaic = sorted(f for f, c in seen.items()
                     if c.data.target == "raw" and c.data.mosaic_from(3) < 3)
-    assert mosaic == ["chroma", "cs20", "default", "lrd0.6", "mosaic", "mosaic_last", "w192",
-                      "w288tv"], mosaic
-    assert seen["default"].grid.detail_width == 288 and seen["w192"].grid.detail_width == 0
+    assert mosaic == ["chroma", "cs20", "default", "detail288", "lrd0.6", "mosaic",
+                      "mosaic_last", "w288tv"], mosaic
+    assert seen["detail288"].grid.detail_width == 288
     assert seen["cs20"].train.colour_solve_iters == 20
     assert seen["w288tv"].loss.tv_ref_width == 192
     assert seen["w288tv"].grid.resolutions[-1] == (288, 0, 64)
@@ -258,21 +258,22 @@ def test_every_study_variant_is_a_valid_config_and_shared_folders_agree():
     # footing, which is the default's footing in all else (cfgmod.FOOTING); mosaic_last is
     # that run without the prior
     chroma = sorted(f for f, c in seen.items() if c.loss.tv_chroma > 0)
-    assert chroma == ["chroma", "cs20", "default", "lrd0.6", "w192", "w288tv"]
+    assert chroma == ["chroma", "cs20", "default", "detail288", "lrd0.6", "w288tv"]
     assert seen["chroma"] == cfgmod.override(
-        seen["w192"], [*cfgmod.FOOTING, "loss.tv_chroma=0.01"])
+        seen["default"], [*cfgmod.FOOTING, "loss.tv_chroma=0.01"])
     assert seen["mosaic_last"] == cfgmod.override(seen["chroma"], ["loss.tv_chroma=0"])
-    # the studies measured against the default before the detail rule: its run ("w192"),
-    # the density's rate doubled, a 288-wide last stage
-    assert seen["w192"] == cfgmod.override(seen["default"], ["grid.detail_width=0"])
-    assert seen["lrd0.6"] == cfgmod.override(seen["w192"], ["train.lr_density=0.6"])
-    assert seen["lrd0.6"] != seen["w192"]
-    assert seen["w288tv"] == cfgmod.override(seen["w192"], [
+    # the density-rate study's run: today's default with the density's rate doubled
+    assert seen["lrd0.6"] == cfgmod.override(seen["default"], ["train.lr_density=0.6"])
+    assert seen["lrd0.6"] != seen["default"]
+    # the last-width study's runs: today's default with a 288-wide last stage
+    assert seen["w288tv"] == cfgmod.override(seen["default"], [
         "grid.resolutions=[[48,0,24],[96,0,48],[288,0,64]]", "render.max_samples=96",
         "loss.tv_ref_width=192"])
+    # the detail study's run: today's default with the last stage refined where it reads
+    assert seen["detail288"] == cfgmod.override(seen["default"], ["grid.detail_width=288"])
     # every preset but the default and every variant is on the measured footing
     for f, c in seen.items():
-        if f not in ("default", "chroma", "tv0.1", "lrd0.6", "w288tv", "cs20", "w192"):
+        if f not in ("default", "chroma", "tv0.1", "lrd0.6", "w288tv", "cs20", "detail288"):
             assert c.train.steps_per_stage[:3] == (600, 600, 1200), f
             assert c.loss.tv_fraction == 0.25 and c.loss.tv_chroma == 0, f
     assert set(ablate.STUDIES) == {"parts", "smoothness", "gain_model", "tv_fraction",
