@@ -330,14 +330,13 @@ _SECTIONS = {"data": DataConfig, "grid": GridConfig, "render": RenderConfig,
 
 
 # The footing the presets other than the default and the studies were measured on
-# (docs/results.md, "A tenth of the rows buys the steps"): the default without the detail
-# rule and the chroma prior, its grid priors on a quarter of the rows, 1200 last-stage
-# steps, max_samples slots per ray in every stage (none fitted to the rays), 64 ray
-# patches of 8x8 a step. Each later change of the default joins it only where it was
-# measured, so every kept result stays the run its config names; `--set` trains a preset
-# on today's default footing instead.
-FOOTING: tuple[str, ...] = ("grid.detail_width=0", "loss.tv_chroma=0",
-                            "loss.tv_fraction=0.25", "train.steps_per_stage=[600,600,1200]",
+# (docs/results.md, "A tenth of the rows buys the steps"): the default without the chroma
+# prior, its grid priors on a quarter of the rows, 1200 last-stage steps, max_samples slots
+# per ray in every stage (none fitted to the rays), 64 ray patches of 8x8 a step. Each later
+# change of the default joins it only where it was measured, so every kept result stays the
+# run its config names; `--set` trains a preset on today's default footing instead.
+FOOTING: tuple[str, ...] = ("loss.tv_chroma=0", "loss.tv_fraction=0.25",
+                            "train.steps_per_stage=[600,600,1200]",
                             "render.truncated_share=0", "train.patch_size=8",
                             "train.batch_patches=64")
 

@@ -76,7 +76,7 @@ def test_the_read_cells_are_the_two_greens_of_each_cell():
 
 
 def test_the_refined_plan_trains_a_wider_last_stage_with_its_priors_per_unit_of_scene():
-    cfg = cfgmod.override(cfgmod.Config(), ["grid.detail_width=0"])
+    cfg = cfgmod.Config()
     plan = planmod.RunPlan(method="brightnerf", black_level="file", data_noise=None,
                            data_eps=1e-3, colour=planmod.ColourPlan(), opacity=(0, 0, 0),
                            n_candidates=(0, 0, 0))
