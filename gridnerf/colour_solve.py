@@ -180,7 +180,7 @@ def solve(structure: GridStructure, params, data: dataset.RayData, near_t, far_t
     lc = cfg.loss
     objective, data_part, aux = make_objective(
         structure, params, samples, data_eps, lc.tv_rgb * tv_scale,
-        lc.tv_chroma * tv_scale ** lc.tv_chroma_power if lc.tv_chroma > 0 else 0.0)
+        lc.tv_chroma * tv_scale if lc.tv_chroma > 0 else 0.0)
     f, data_f = jax.jit(objective), jax.jit(data_part)
     value_and_grad = jax.jit(optax.value_and_grad_from_state(objective))
     opt = optax.lbfgs()

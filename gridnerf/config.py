@@ -217,8 +217,6 @@ class LossConfig(_Section):
     # width (vertices across x) the TV weights are set for: a wider stage scales them by its
     # width over this (optim.tv_scale; 0: never scaled)
     tv_ref_width: int = 0
-    # the chroma TV in a wider stage grows as that factor to this power (1: as the other TVs)
-    tv_chroma_power: float = 1.0
     # what restores the colour: "field" (per-voxel von Kries gains), "global" (one gain for
     # the capture), "auto" (one gain under one light, the field where lights mix), "none"
     gain_model: Literal["field", "auto", "global", "none"] = "field"
@@ -239,7 +237,6 @@ class LossConfig(_Section):
                      "opacity"):
             self._range(name, 0.0)
         self._range("tv_fraction", 0.0, 1.0, lo_open=True)
-        self._range("tv_chroma_power", 0.0)
         self._require("tv_ref_width", self.tv_ref_width >= 0,
                       "a whole number >= 0 (0: the TV weights are never scaled)")
         self._range("data_eps", 0.0, lo_open=True)
@@ -526,7 +523,7 @@ def get(cfg: Config, dotted: str) -> Any:
 ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0,
                 ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0,
                 ("loss", "tv_ref_width"): 0, ("train", "colour_solve_iters"): 0,
-                ("grid", "detail_width"): 0, ("loss", "tv_chroma_power"): 1.0}
+                ("grid", "detail_width"): 0}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

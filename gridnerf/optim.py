@@ -106,8 +106,7 @@ def loss_fn(params, structure, rays: dict, key, cfg: Config, step: StepPlan, nea
         del priors["tv_chroma"]
     terms.update(priors)
     weights = {**weights, "opacity": step.opacity, "tv_density": lc.tv_density * step.tv_scale,
-               "tv_rgb": lc.tv_rgb * step.tv_scale,
-               "tv_chroma": lc.tv_chroma * step.tv_scale ** lc.tv_chroma_power,
+               "tv_rgb": lc.tv_rgb * step.tv_scale, "tv_chroma": lc.tv_chroma * step.tv_scale,
                "sparsity": lc.sparsity}
     total = sum(weights[k] * v for k, v in terms.items())
     return total, terms

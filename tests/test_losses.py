@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -484,10 +482,3 @@ def test_tv_scale_strengthens_the_tvs_of_stages_finer_than_the_reference_only():
     assert extra > 0
     assert float(total2) - float(total1) == pytest.approx(extra, rel=1e-4, abs=1e-9)
     assert all(float(terms2[k]) == pytest.approx(float(terms[k]), rel=1e-6) for k in terms)
-    # loss.tv_chroma_power: the chroma TV alone takes the factor to that power
-    squared = replace(c, loss=replace(c.loss, tv_chroma_power=2.0))
-    total3, _ = optim.loss_fn(params, structure, rays, jax.random.PRNGKey(0), squared,
-                              _step(train_gains=False, tv_scale=1.5), -1.0, 1.0)
-    more = (1.5**2 - 1.5) * c.loss.tv_chroma * float(terms["tv_chroma"])
-    assert more > 0
-    assert float(total3) - float(total2) == pytest.approx(more, rel=1e-3, abs=1e-9)
