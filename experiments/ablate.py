@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from experiments.common import (
+    DETAIL_ON,
     FACTOR_BASE,
     FOOTING,
     REPORT_GROUPS,
@@ -150,7 +151,7 @@ DETAIL_VARIANTS = [
      "default", []),
     ("detail", "last stage 288 wide where the 96-wide grid leaves detail over the averaged "
      "noise, as the photosites allow (grid.detail_width = 288)", "detail288", "default",
-     ["grid.detail_width=288"]),
+     list(DETAIL_ON)),
 ]
 STUDIES = {"parts": VARIANTS, "smoothness": SMOOTHNESS_VARIANTS,
            "gain_model": GAIN_MODEL_VARIANTS, "tv_fraction": TV_FRACTION_VARIANTS,

@@ -59,7 +59,15 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from experiments.common import SPEED_DOC, fingerprint, fmt, markdown_table, update_doc, write_report
+from experiments.common import (
+    DETAIL_ON,
+    SPEED_DOC,
+    fingerprint,
+    fmt,
+    markdown_table,
+    update_doc,
+    write_report,
+)
 from gridnerf import atomic
 from gridnerf import config as cfgmod
 
@@ -86,8 +94,6 @@ QUICK = {
     "warmup": 1, "steps": 2, "render_repeats": 1, "snapshot_every": 4, "psnr_window_db": 0.5,
     "jobs": 2, "refined": None,  # None: the quick scene again (the item's plumbing only)
 }
-# the detail rule, off by default, as the refined item trains it
-DETAIL_ON = ("grid.detail_width=288",)
 # Targets on a 2-core CPU: (label, summary field, comparison, goal, unit)
 TARGETS = [
     ("training throughput, default preset, final grid", "train_rays_per_s", ">=", 150_000,

@@ -36,6 +36,8 @@ FOOTING = list(cfgmod.FOOTING)
 # data_term) measures the mosaic stage against it, and the chroma study (ablate --study
 # chroma) the prior.
 FACTOR_BASE = ["data.mosaic_stages=0", *FOOTING]
+# the detail rule (grid.detail_width, off by default) at the width it was measured with
+DETAIL_ON = ("grid.detail_width=288",)
 
 # Quick mode (`make report QUICK=1`): every study on 160x90, 12-frame versions of its
 # scenes (data/quick/<scene>) with each preset shrunk by quick_sets, in its own run root
