@@ -141,3 +141,97 @@ def read(structure, params, data: dataset.RayData, near_t, far_t,
     value, error = detail_over_noise(r[0], r[1], pred[:, ok].mean(axis=0))
     return views * value, views * error
 
+
+
+# Multi-view reading (read_views): pairs of consecutive training frames, every EVERY-th
+# pair; a point of frame a counts in frame b where b's own rendered point lies within
+# DEPTH_TOL of its depth there (else b sees something else in front of it).
+DEPTH_TOL = 0.03
+
+
+def _frame(structure, params, data: dataset.RayData, f: int, near_t, far_t, render_cfg):
+    """(residual (h, w, 3), valid (h, w, 3), world points (h, w, 3), point valid (h, w)) of
+    training frame f on the binned lattice: the frame less the render; a mosaic's
+    photosites binned 2x2 (raw.bin2x2), their points averaged."""
+    from gridnerf import consistency, raw
+
+    h, w = data.image_hw
+    v, u = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    rays = dataset.rays_at_jit(data, jnp.full((h, w), f), jnp.asarray(v), jnp.asarray(u))
+    out = render.render_image(structure, params, rays["origins"], rays["directions"],
+                              near_t, far_t, render_cfg)
+    pts, ok = consistency.world_points(out["depth"], out["acc"], np.asarray(rays["origins"]),
+                                       np.asarray(rays["directions"]), data.ndc,
+                                       np.asarray(data.ndc_intrinsics))
+    m = np.asarray(rays["mask"], np.float64)
+    r = (np.asarray(rays["target"], np.float64) - np.asarray(out["rgb_low"], np.float64)) * m
+    if not data.mosaic:
+        return r, m > 0, pts, ok
+    cfa = np.asarray(data.cfa)
+    res = raw.bin2x2(r.sum(-1), cfa, np.float64)
+    valid = raw.bin2x2_mask(m.sum(-1) > 0, cfa)
+    hb, wb = res.shape[:2]
+    pts = pts[: 2 * hb, : 2 * wb].reshape(hb, 2, wb, 2, 3).mean(axis=(1, 3))
+    ok = ok[: 2 * hb, : 2 * wb].reshape(hb, 2, wb, 2).all(axis=(1, 3))
+    return res, valid, pts, ok
+
+
+def shared_over_rest(ra, rb) -> tuple[float, float]:
+    """(mean(ra rb) / (mean(ra^2) - mean(ra rb)), its standard error): the residual two
+    views share over what they do not; each (n,) with its mean removed."""
+    ra, rb = (np.asarray(a, np.float64) - np.mean(a) for a in (ra, rb))
+    shared, total = float(np.mean(ra * rb)), float(np.mean(ra * ra))
+    rest = total - shared
+    if not ra.size or not rest > 0:
+        return float("nan"), float("nan")
+    return shared / rest, float(np.std(ra * rb)) / np.sqrt(ra.size) / rest
+
+
+def read_views(structure, params, data: dataset.RayData, near_t, far_t, render_cfg,
+               every: int = EVERY) -> tuple[float, float]:
+    """(the detail the field leaves in its training frames that two views agree on, in
+    units of the noise an ideal average of the training views leaves; its standard error).
+
+    Each pair of consecutive training frames (a, b), every `every`-th a: a's residual
+    (frame - render, binned lattice) is carried to b along the points the field renders
+    for a (bilinear in b's residual) where b sees the same point. Detail the field misses
+    lies on the surface and moves with it, so a and b share it; their noise is
+    independent. shared_over_rest over every channel and pair, times the views: 1 means
+    the views agree on as much missed detail as their average leaves of the noise. Detail
+    the field's depth cannot carry from one view to the next (finer than its
+    reprojection) counts as noise: conservative, and detail a finer grid of the same
+    geometry could not fit either. (nan, nan) under MIN_CELLS shared pixels."""
+    from scipy.ndimage import map_coordinates
+
+    from gridnerf import consistency
+    from gridnerf.cameras import project_points
+
+    n = int(data.c2w.shape[0])
+    c2w, intr = np.asarray(data.c2w, np.float64), np.asarray(data.intrinsics, np.float64)
+    scale = 0.5 if data.mosaic else 1.0  # the binned lattice's intrinsics
+    ra_all, rb_all = [], []
+    for a in range(0, n - 1, every):
+        fa = _frame(structure, params, data, a, near_t, far_t, render_cfg)
+        fb = _frame(structure, params, data, a + 1, near_t, far_t, render_cfg)
+        hb, wb = fb[0].shape[:2]
+        uv = project_points(c2w[a + 1], intr[a + 1] * scale, fa[2])
+        ok = fa[3] & np.all(np.isfinite(uv), axis=-1)
+        u, v = uv[..., 0] - 0.5, uv[..., 1] - 0.5
+        ok &= (u >= 0) & (u <= wb - 1) & (v >= 0) & (v <= hb - 1)
+        ui = np.clip(np.round(np.where(ok, u, 0)).astype(int), 0, wb - 1)
+        vi = np.clip(np.round(np.where(ok, v, 0)).astype(int), 0, hb - 1)
+        d_a = consistency.camera_depth(c2w[a + 1], fa[2])
+        d_b = consistency.camera_depth(c2w[a + 1], fb[2][vi, ui])
+        ok &= fb[3][vi, ui] & (np.abs(d_a - d_b) <= DEPTH_TOL * np.abs(d_b))
+        for c in range(3):
+            sel = ok & fa[1][..., c] & fb[1][vi, ui, c]
+            if sel.sum() < MIN_CELLS:
+                continue
+            rb = map_coordinates(fb[0][..., c], [v[sel], u[sel]], order=1)
+            ra = fa[0][..., c][sel]
+            ra_all.append(ra - ra.mean())
+            rb_all.append(rb - rb.mean())
+    if not ra_all:
+        return float("nan"), float("nan")
+    value, error = shared_over_rest(np.concatenate(ra_all), np.concatenate(rb_all))
+    return n * value, n * error

@@ -109,3 +109,16 @@ def test_the_refined_width_needs_the_reading_over_its_error_and_the_photosites_t
     assert residual.refined_width(float("nan"), float("nan"), 288, 192, 480) is None
     assert residual.exceeds(over, 0.05) and not residual.exceeds(residual.ABOVE + 0.05, 0.05)
     assert not residual.exceeds(float("nan"), float("nan"))
+
+
+def test_the_views_share_the_detail_not_the_noise():
+    """shared_over_rest: two views' residuals with a shared detail of variance s and
+    independent unit noise read s (0 without detail), within a few of its errors."""
+    rng = np.random.default_rng(2)
+    n = 200_000
+    for s in (0.0, 0.05, 0.5):
+        d = rng.normal(0.0, np.sqrt(s), n)
+        got, error = residual.shared_over_rest(d + rng.normal(size=n), d + rng.normal(size=n))
+        assert abs(got - s) < max(4 * error, 0.01)
+        assert 0 < error < 0.01
+    assert np.isnan(residual.shared_over_rest(np.ones(4), np.ones(4))).all()  # no rest
