@@ -7,7 +7,8 @@ renders, and reads the residual the two share over what they do not, times the v
 missed detail that a grid of the same geometry could still fit, in units of the noise an
 ideal average of the views leaves. Beside it, where reports/results.json keeps both, the
 test-view PSNR of the run and of the same scene trained with the detail rule
-(`<scene>/detail288`: a 288-wide last stage where the rule refines) and their difference.
+(`<scene>/detail288`: a 288-wide last stage where the rule refines; n/a where the rule
+left the scene at the run's width) and their difference.
 Nothing is trained: a scene without its run folder is skipped, and said so.
 
     python -m experiments.detail_views --scenes bucket,deer,... [--run default]
@@ -39,9 +40,13 @@ def reading(run: Path) -> dict:
             "width": int(structure.resolution[0])}
 
 
-def psnr(results: dict, key: str) -> float | None:
+def psnr(results: dict, key: str, finer_than: int = 0) -> float | None:
+    """The kept test-view PSNR of `key`; None where it is not kept or its last stage is no
+    wider than finer_than (the detail rule left it as it was)."""
     entry = results.get(key)
-    return entry["summary"]["gridnerf"]["psnr"] if entry else None
+    if not entry or entry.get("facts", {}).get("resolution", [finer_than + 1])[0] <= finer_than:
+        return None
+    return entry["summary"]["gridnerf"]["psnr"]
 
 
 def main() -> None:
@@ -56,7 +61,8 @@ def main() -> None:
             print(f"skipping {name}: no finished run in {run}")
             continue
         r = reading(run)
-        base, refined = psnr(results, f"{name}/default"), psnr(results, f"{name}/detail288")
+        base = psnr(results, f"{name}/default")
+        refined = psnr(results, f"{name}/detail288", finer_than=r["width"])
         r |= {"psnr": base, "psnr_detail288": refined,
               "gain": None if base is None or refined is None else refined - base}
         record[name] = r
