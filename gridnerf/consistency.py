@@ -45,29 +45,40 @@ def camera_depth(c2w, points) -> np.ndarray:
     return -((np.asarray(points, np.float64) - c2w[:, 3]) @ c2w[:, :3])[..., 2]
 
 
+def landing(points_a, valid_a, points_b, valid_b, c2w_b, intrinsics_b,
+            rel_tol: float = 0.03) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where view A's surface points land in view B: (uv (H, W, 2) continuous pixel
+    coordinates in B (project_points), u, v (H, W) the pixel of B each lands in (0 where
+    it does not count), ok (H, W) bool). A pixel of A counts when it is valid, lands inside
+    B, on a valid pixel of B whose own point lies within rel_tol of the depth of A's point
+    in B (else B sees something in front of it: occluded). points_*, valid_*: world_points
+    of each view; c2w_b (3, 4), intrinsics_b (fx, fy, cx, cy) of view B."""
+    h, w = np.shape(valid_b)[:2]
+    uv = project_points(c2w_b, intrinsics_b, points_a)
+    ok = np.asarray(valid_a, bool) & np.all(np.isfinite(uv), axis=-1)
+    u = np.floor(np.where(ok, uv[..., 0], -1)).astype(np.int64)
+    v = np.floor(np.where(ok, uv[..., 1], -1)).astype(np.int64)
+    ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    u, v = np.where(ok, u, 0), np.where(ok, v, 0)
+    ok &= np.asarray(valid_b, bool)[v, u]
+    d_a = camera_depth(c2w_b, points_a)
+    d_b = camera_depth(c2w_b, np.asarray(points_b)[v, u])
+    ok &= np.abs(d_a - d_b) <= rel_tol * np.abs(d_b)
+    return uv, u, v, ok
+
+
 def warp_disagreement(image_a, points_a, valid_a, image_b, points_b, valid_b, c2w_b,
                       intrinsics_b, rel_tol: float = 0.03) -> dict:
     """Mean absolute colour difference between view A and view B at the same surface points.
 
     image_a, image_b: (H, W, C) images of the two views in one colour space (e.g. rgb_srgb);
     points_a, points_b: (H, W, 3) world points and valid_a, valid_b (H, W) of each view
-    (world_points); c2w_b (3, 4), intrinsics_b (fx, fy, cx, cy) of view B. A pixel of A
-    counts when it lands inside B, on a valid pixel of B whose own point lies within
-    rel_tol of the depth of A's point in B (else it is occluded there). Nearest pixel.
-    Returns {"mae": mean |A - B| over counted pixels and channels, "coverage": counted
-    share of A's pixels}; mae is NaN when no pixel counts.
+    (world_points); c2w_b (3, 4), intrinsics_b (fx, fy, cx, cy) of view B. The pixels of A
+    that count (landing, within rel_tol of B's depth) are compared with B's pixel they land
+    in (nearest pixel). Returns {"mae": mean |A - B| over counted pixels and channels,
+    "coverage": counted share of A's pixels}; mae is NaN when no pixel counts.
     """
-    h, w = image_b.shape[:2]
-    uv = project_points(c2w_b, intrinsics_b, points_a)
-    ok = valid_a & np.all(np.isfinite(uv), axis=-1)
-    u = np.floor(np.where(ok, uv[..., 0], -1)).astype(np.int64)
-    v = np.floor(np.where(ok, uv[..., 1], -1)).astype(np.int64)
-    ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    u, v = np.where(ok, u, 0), np.where(ok, v, 0)
-    ok &= valid_b[v, u]
-    d_a = camera_depth(c2w_b, points_a)
-    d_b = camera_depth(c2w_b, points_b[v, u])
-    ok &= np.abs(d_a - d_b) <= rel_tol * np.abs(d_b)
+    _, u, v, ok = landing(points_a, valid_a, points_b, valid_b, c2w_b, intrinsics_b, rel_tol)
     if not ok.any():
         return {"mae": float("nan"), "coverage": 0.0}
     a = np.asarray(image_a, np.float64)[ok]

@@ -204,7 +204,6 @@ def read_views(structure, params, data: dataset.RayData, near_t, far_t, render_c
     from scipy.ndimage import map_coordinates
 
     from gridnerf import consistency
-    from gridnerf.cameras import project_points
 
     n = int(data.c2w.shape[0])
     c2w, intr = np.asarray(data.c2w, np.float64), np.asarray(data.intrinsics, np.float64)
@@ -214,15 +213,10 @@ def read_views(structure, params, data: dataset.RayData, near_t, far_t, render_c
         fa = _frame(structure, params, data, a, near_t, far_t, render_cfg)
         fb = _frame(structure, params, data, a + 1, near_t, far_t, render_cfg)
         hb, wb = fb[0].shape[:2]
-        uv = project_points(c2w[a + 1], intr[a + 1] * scale, fa[2])
-        ok = fa[3] & np.all(np.isfinite(uv), axis=-1)
-        u, v = uv[..., 0] - 0.5, uv[..., 1] - 0.5
+        uv, ui, vi, ok = consistency.landing(fa[2], fa[3], fb[2], fb[3], c2w[a + 1],
+                                             intr[a + 1] * scale, DEPTH_TOL)
+        u, v = uv[..., 0] - 0.5, uv[..., 1] - 0.5  # pixel centres at integers: bilinear
         ok &= (u >= 0) & (u <= wb - 1) & (v >= 0) & (v <= hb - 1)
-        ui = np.clip(np.round(np.where(ok, u, 0)).astype(int), 0, wb - 1)
-        vi = np.clip(np.round(np.where(ok, v, 0)).astype(int), 0, hb - 1)
-        d_a = consistency.camera_depth(c2w[a + 1], fa[2])
-        d_b = consistency.camera_depth(c2w[a + 1], fb[2][vi, ui])
-        ok &= fb[3][vi, ui] & (np.abs(d_a - d_b) <= DEPTH_TOL * np.abs(d_b))
         for c in range(3):
             sel = ok & fa[1][..., c] & fb[1][vi, ui, c]
             if sel.sum() < MIN_CELLS:

@@ -22,8 +22,8 @@ from experiments import ablate, common, consistency, photons, report, speed, swe
 
 # the modules of the package: the studies make report, ablate, recon and bench run
 STUDIES = ("ablate", "bench", "colour_checks", "colour_groups", "consistency",
-           "error_budget", "own_raw", "photons", "quirk_effects", "raw_fit", "recon", "report",
-           "reship", "speed", "sweep")
+           "detail_views", "error_budget", "own_raw", "photons", "quirk_effects", "raw_fit",
+           "recon", "report", "reship", "speed", "sweep")
 
 
 def _m(psnr: float) -> dict:
