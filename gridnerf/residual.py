@@ -30,8 +30,9 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
+from scipy.ndimage import map_coordinates
 
-from gridnerf import dataset, render
+from gridnerf import consistency, dataset, raw, render
 
 LEVEL_BINS = 16  # quantile bins of the rendered green level
 EVERY = 4  # every this-many-th training frame is read
@@ -142,7 +143,6 @@ def read(structure, params, data: dataset.RayData, near_t, far_t,
     return views * value, views * error
 
 
-
 # Multi-view reading (read_views): pairs of consecutive training frames, every EVERY-th
 # pair; a point of frame a counts in frame b where b's own rendered point lies within
 # DEPTH_TOL of its depth there (else b sees something else in front of it).
@@ -153,8 +153,6 @@ def _frame(structure, params, data: dataset.RayData, f: int, near_t, far_t, rend
     """(residual (h, w, 3), valid (h, w, 3), world points (h, w, 3), point valid (h, w)) of
     training frame f on the binned lattice: the frame less the render; a mosaic's
     photosites binned 2x2 (raw.bin2x2), their points averaged."""
-    from gridnerf import consistency, raw
-
     h, w = data.image_hw
     v, u = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
     rays = dataset.rays_at_jit(data, jnp.full((h, w), f), jnp.asarray(v), jnp.asarray(u))
@@ -201,10 +199,6 @@ def read_views(structure, params, data: dataset.RayData, near_t, far_t, render_c
     the field's depth cannot carry from one view to the next (finer than its
     reprojection) counts as noise: conservative, and detail a finer grid of the same
     geometry could not fit either. (nan, nan) under MIN_CELLS shared pixels."""
-    from scipy.ndimage import map_coordinates
-
-    from gridnerf import consistency
-
     n = int(data.c2w.shape[0])
     c2w, intr = np.asarray(data.c2w, np.float64), np.asarray(data.intrinsics, np.float64)
     scale = 0.5 if data.mosaic else 1.0  # the binned lattice's intrinsics
