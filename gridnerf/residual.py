@@ -143,7 +143,7 @@ def read(structure, params, data: dataset.RayData, near_t, far_t,
     return views * value, views * error
 
 
-# Multi-view reading (read_views): pairs of consecutive training frames, every EVERY-th
+# Multi-view reading (read_views): pairs of training frames `gap` apart, every EVERY-th
 # pair; a point of frame a counts in frame b where b's own rendered point lies within
 # DEPTH_TOL of its depth there (else b sees something else in front of it).
 DEPTH_TOL = 0.03
@@ -186,11 +186,11 @@ def shared_over_rest(ra, rb) -> tuple[float, float]:
 
 
 def read_views(structure, params, data: dataset.RayData, near_t, far_t, render_cfg,
-               every: int = EVERY) -> tuple[float, float]:
+               every: int = EVERY, gap: int = 1) -> tuple[float, float]:
     """(the detail the field leaves in its training frames that two views agree on, in
     units of the noise an ideal average of the training views leaves; its standard error).
 
-    Each pair of consecutive training frames (a, b), every `every`-th a: a's residual
+    Each pair of training frames (a, b = a + gap), every `every`-th a: a's residual
     (frame - render, binned lattice) is carried to b along the points the field renders
     for a (bilinear in b's residual) where b sees the same point. Detail the field misses
     lies on the surface and moves with it, so a and b share it; their noise is
@@ -198,17 +198,23 @@ def read_views(structure, params, data: dataset.RayData, near_t, far_t, render_c
     the views agree on as much missed detail as their average leaves of the noise. Detail
     the field's depth cannot carry from one view to the next (finer than its
     reprojection) counts as noise: conservative, and detail a finer grid of the same
-    geometry could not fit either. (nan, nan) under MIN_CELLS shared pixels."""
+    geometry could not fit either. (nan, nan) under MIN_CELLS shared pixels.
+
+    gap > 1 pairs views further apart. What the field cannot fit because it changes with
+    the view (a glossy highlight: the path-traced captures have them, the simulator's
+    surfaces are matte) is shared by neighbouring views and less by distant ones, while
+    detail on a surface stays shared, less what the depth's reprojection error blurs
+    (docs/results.md, "The views further apart")."""
     n = int(data.c2w.shape[0])
     c2w, intr = np.asarray(data.c2w, np.float64), np.asarray(data.intrinsics, np.float64)
     scale = 0.5 if data.mosaic else 1.0  # the binned lattice's intrinsics
     ra_all, rb_all = [], []
-    for a in range(0, n - 1, every):
+    for a in range(0, n - gap, every):
         fa = _frame(structure, params, data, a, near_t, far_t, render_cfg)
-        fb = _frame(structure, params, data, a + 1, near_t, far_t, render_cfg)
+        fb = _frame(structure, params, data, a + gap, near_t, far_t, render_cfg)
         hb, wb = fb[0].shape[:2]
-        uv, ui, vi, ok = consistency.landing(fa[2], fa[3], fb[2], fb[3], c2w[a + 1],
-                                             intr[a + 1] * scale, DEPTH_TOL)
+        uv, ui, vi, ok = consistency.landing(fa[2], fa[3], fb[2], fb[3], c2w[a + gap],
+                                             intr[a + gap] * scale, DEPTH_TOL)
         u, v = uv[..., 0] - 0.5, uv[..., 1] - 0.5  # pixel centres at integers: bilinear
         ok &= (u >= 0) & (u <= wb - 1) & (v >= 0) & (v <= hb - 1)
         for c in range(3):

@@ -979,7 +979,8 @@ def test_a_run_refines_its_last_stage_where_the_reading_asks_and_resumes_it(
 def test_the_views_agree_on_no_detail_where_the_frames_are_the_render_and_noise(tiny_run):
     """residual.read_views on the tiny run: finite on its own frames; with each frame
     replaced by the field's own render plus independent noise the views share nothing, so
-    the reading is 0 within a few of its errors (the noise a tenth of the signal)."""
+    the reading is 0 within a few of its errors (the noise a tenth of the signal), for
+    consecutive views and for views two apart; with no pair at that gap it is nan."""
     import jax.numpy as jnp
 
     from gridnerf import dataset, eval_run, methods, render, residual
@@ -1006,3 +1007,9 @@ def test_the_views_agree_on_no_detail_where_the_frames_are_the_render_and_noise(
     value, error = residual.read_views(structure, params, data, near_t, far_t, cfg.render,
                                        every=2)
     assert abs(value) < 4 * error
+    # views two apart share no noise either; a gap past the last frame pairs nothing
+    value, error = residual.read_views(structure, params, data, near_t, far_t, cfg.render,
+                                       every=2, gap=2)
+    assert np.isfinite(value) and abs(value) < 4 * error
+    assert np.isnan(residual.read_views(structure, params, data, near_t, far_t, cfg.render,
+                                        gap=n)[0])
