@@ -61,7 +61,12 @@ def main() -> None:
     ap.add_argument("--gaps", default="1",
                     help="comma-separated frame gaps to read at (1: consecutive frames)")
     args = ap.parse_args()
-    gaps = sorted({int(g) for g in args.gaps.split(",") if g} | {1})
+    try:
+        gaps = sorted({int(g) for g in args.gaps.split(",") if g} | {1})
+    except ValueError:
+        ap.error(f"--gaps {args.gaps}: give whole numbers >= 1, e.g. 1,2,3")
+    if gaps[0] < 1:
+        ap.error(f"--gaps {args.gaps}: give whole numbers >= 1, e.g. 1,2,3")
     results = common.load_results()
     record, rows = {}, []
     for name in common.scene_names(args.scenes):

@@ -205,6 +205,8 @@ def read_views(structure, params, data: dataset.RayData, near_t, far_t, render_c
     surfaces are matte) is shared by neighbouring views and less by distant ones, while
     detail on a surface stays shared, less what the depth's reprojection error blurs
     (docs/results.md, "The views further apart")."""
+    if gap < 1:
+        raise ValueError(f"gap must be at least 1 (a frame paired with a later one), not {gap}")
     n = int(data.c2w.shape[0])
     c2w, intr = np.asarray(data.c2w, np.float64), np.asarray(data.intrinsics, np.float64)
     scale = 0.5 if data.mosaic else 1.0  # the binned lattice's intrinsics

@@ -1013,3 +1013,5 @@ def test_the_views_agree_on_no_detail_where_the_frames_are_the_render_and_noise(
     assert np.isfinite(value) and abs(value) < 4 * error
     assert np.isnan(residual.read_views(structure, params, data, near_t, far_t, cfg.render,
                                         gap=n)[0])
+    with pytest.raises(ValueError, match="gap"):
+        residual.read_views(structure, params, data, near_t, far_t, cfg.render, gap=0)
