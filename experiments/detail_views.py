@@ -38,8 +38,8 @@ def reading(run: Path, gaps=(1,)) -> dict:
     data = methods.get(cfg.loss.method).training_data(scene, cfg)
     near_t, far_t = dataset.grid_box(scene)[2:]
     t0 = time.perf_counter()
-    by_gap = {g: residual.read_views(structure, params, data, near_t, far_t, cfg.render, gap=g)
-              for g in sorted(set(gaps) | {1})}
+    by_gap = residual.read_views_at(structure, params, data, near_t, far_t, cfg.render,
+                                    gaps=sorted(set(gaps) | {1}))
     value, error = by_gap[1]
     return {"reading": value, "error": error, "seconds": time.perf_counter() - t0,
             "width": int(structure.resolution[0]),
@@ -64,7 +64,7 @@ def main() -> None:
     try:
         gaps = sorted({int(g) for g in args.gaps.split(",") if g} | {1})
     except ValueError:
-        ap.error(f"--gaps {args.gaps}: give whole numbers >= 1, e.g. 1,2,3")
+        gaps = [0]
     if gaps[0] < 1:
         ap.error(f"--gaps {args.gaps}: give whole numbers >= 1, e.g. 1,2,3")
     results = common.load_results()

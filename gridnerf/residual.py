@@ -205,29 +205,48 @@ def read_views(structure, params, data: dataset.RayData, near_t, far_t, render_c
     surfaces are matte) is shared by neighbouring views and less by distant ones, while
     detail on a surface stays shared, less what the depth's reprojection error blurs
     (docs/results.md, "The views further apart")."""
-    if gap < 1:
-        raise ValueError(f"gap must be at least 1 (a frame paired with a later one), not {gap}")
+    return read_views_at(structure, params, data, near_t, far_t, render_cfg, every,
+                         (gap,))[gap]
+
+
+def read_views_at(structure, params, data: dataset.RayData, near_t, far_t, render_cfg,
+                  every: int = EVERY, gaps=(1,)) -> dict[int, tuple[float, float]]:
+    """read_views at each of `gaps` (every one >= 1): {gap: (reading, standard error)},
+    each frame rendered once whatever the number of gaps."""
+    if min(gaps) < 1:
+        raise ValueError(f"gap must be at least 1 (a frame paired with a later one), not "
+                         f"{min(gaps)}")
     n = int(data.c2w.shape[0])
     c2w, intr = np.asarray(data.c2w, np.float64), np.asarray(data.intrinsics, np.float64)
     scale = 0.5 if data.mosaic else 1.0  # the binned lattice's intrinsics
-    ra_all, rb_all = [], []
-    for a in range(0, n - gap, every):
-        fa = _frame(structure, params, data, a, near_t, far_t, render_cfg)
-        fb = _frame(structure, params, data, a + gap, near_t, far_t, render_cfg)
-        hb, wb = fb[0].shape[:2]
-        uv, ui, vi, ok = consistency.landing(fa[2], fa[3], fb[2], fb[3], c2w[a + gap],
-                                             intr[a + gap] * scale, DEPTH_TOL)
-        u, v = uv[..., 0] - 0.5, uv[..., 1] - 0.5  # pixel centres at integers: bilinear
-        ok &= (u >= 0) & (u <= wb - 1) & (v >= 0) & (v <= hb - 1)
-        for c in range(3):
-            sel = ok & fa[1][..., c] & fb[1][vi, ui, c]
-            if sel.sum() < MIN_CELLS:
-                continue
-            rb = map_coordinates(fb[0][..., c], [v[sel], u[sel]], order=1)
-            ra = fa[0][..., c][sel]
-            ra_all.append(ra - ra.mean())
-            rb_all.append(rb - rb.mean())
-    if not ra_all:
-        return float("nan"), float("nan")
-    value, error = shared_over_rest(np.concatenate(ra_all), np.concatenate(rb_all))
-    return n * value, n * error
+    rendered = {}
+
+    def frame(f):
+        if f not in rendered:
+            rendered[f] = _frame(structure, params, data, f, near_t, far_t, render_cfg)
+        return rendered[f]
+
+    out = {}
+    for gap in gaps:
+        ra_all, rb_all = [], []
+        for a in range(0, n - gap, every):
+            fa, fb = frame(a), frame(a + gap)
+            hb, wb = fb[0].shape[:2]
+            uv, ui, vi, ok = consistency.landing(fa[2], fa[3], fb[2], fb[3], c2w[a + gap],
+                                                 intr[a + gap] * scale, DEPTH_TOL)
+            u, v = uv[..., 0] - 0.5, uv[..., 1] - 0.5  # pixel centres at integers: bilinear
+            ok &= (u >= 0) & (u <= wb - 1) & (v >= 0) & (v <= hb - 1)
+            for c in range(3):
+                sel = ok & fa[1][..., c] & fb[1][vi, ui, c]
+                if sel.sum() < MIN_CELLS:
+                    continue
+                rb = map_coordinates(fb[0][..., c], [v[sel], u[sel]], order=1)
+                ra = fa[0][..., c][sel]
+                ra_all.append(ra - ra.mean())
+                rb_all.append(rb - rb.mean())
+        if not ra_all:
+            out[gap] = (float("nan"), float("nan"))
+            continue
+        value, error = shared_over_rest(np.concatenate(ra_all), np.concatenate(rb_all))
+        out[gap] = (n * value, n * error)
+    return out
