@@ -61,12 +61,10 @@ def main() -> None:
     ap.add_argument("--gaps", default="1",
                     help="comma-separated frame gaps to read at (1: consecutive frames)")
     args = ap.parse_args()
-    try:
-        gaps = sorted({int(g) for g in args.gaps.split(",") if g} | {1})
-    except ValueError:
-        gaps = [0]
-    if gaps[0] < 1:
+    parts = [g.strip() for g in args.gaps.split(",") if g.strip()]
+    if not all(g.isdigit() and int(g) >= 1 for g in parts):
         ap.error(f"--gaps {args.gaps}: give whole numbers >= 1, e.g. 1,2,3")
+    gaps = sorted({int(g) for g in parts} | {1})
     results = common.load_results()
     record, rows = {}, []
     for name in common.scene_names(args.scenes):
