@@ -165,8 +165,12 @@ class GridConfig(_Section):
     # in its frames than the views' average leaves noise and the frames' photosites hold
     # it (gridnerf.residual; 288: the measured rule); 0 or no wider than the last: never
     detail_width: int = 0
+    # capture pixels a vertex of the last stage may span across at most: where the capture
+    # is wider, a stage twice as wide is appended (plan.appended_width; 0: never)
+    voxel_pixels: float = 5.0
 
     def _check(self) -> None:
+        self._range("voxel_pixels", 0.0)
         self._require("resolutions", len(self.resolutions) >= 1
                       and all(min(r[0], r[2]) >= 2 and (r[1] >= 2 or r[1] == 0)
                               for r in self.resolutions),
@@ -271,6 +275,8 @@ class TrainConfig(_Section):
     # L-BFGS iterations of the colour solve after the last stage (gridnerf.colour_solve: the
     # vertex colours fitted to every training ray with the geometry fixed); 0: none
     colour_solve_iters: int = 0
+    # steps of the last configured stage and of the stage grid.voxel_pixels appends after it
+    appended_steps: tuple[int, int] = (1200, 2400)
     seed: int = 0  # PRNG seed of the init and the batches
     log_every: int = 50  # steps between metrics.jsonl lines
     checkpoint_every: int = 300  # steps between checkpoints (also every CHECKPOINT_SECONDS)
@@ -279,6 +285,9 @@ class TrainConfig(_Section):
         self._require("steps_per_stage", len(self.steps_per_stage) >= 1
                       and all(s >= 1 for s in self.steps_per_stage),
                       "one step count >= 1 per grid.resolutions stage, e.g. [600,600,1200]")
+        self._require("appended_steps", len(self.appended_steps) == 2
+                      and all(s >= 1 for s in self.appended_steps),
+                      "two step counts >= 1, e.g. [1200,2400]")
         self._require("batch_patches", self.batch_patches >= 1, "a whole number >= 1")
         self._require("patch_size", self.patch_size >= 1, "a whole number >= 1")
         for name in ("lr_density", "lr_rgb", "lr_gain"):

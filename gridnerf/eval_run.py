@@ -55,7 +55,8 @@ from gridnerf.runfolder import CHECKPOINT, load_state, open_scene
 
 def load_run(run: Path):
     """(cfg, plan, scene, structure, params, summary) of a finished run; cfg is its
-    config.json with its plan's training downscale (data_term.fitted_config), the config
+    config.json with its plan's appended stage (plan.capture_config) and training
+    downscale (data_term.fitted_config), the config
     its training data was built with, and its last stage's occupied-sample slots
     (plan.render_config), the samples its renders shade."""
     run = Path(run)
@@ -64,8 +65,9 @@ def load_run(run: Path):
             run, "no finished training run here", f"run `gridnerf train <scene> --out {run}`"
         )
     plan = planmod.load(run)
-    cfg = planmod.render_config(
-        data_term.fitted_config(cfgmod.load(run / "config.json"), plan.downscale), plan)
+    cfg = planmod.render_config(data_term.fitted_config(
+        planmod.capture_config(cfgmod.load(run / "config.json"), plan.appended_width),
+        plan.downscale), plan)
     summary = json.loads((run / "summary.json").read_text())
     scene = open_scene(Path(summary["scene"]), run, estimate=False,
                        dark=plan.black_level == "lens_cap")

@@ -19,7 +19,9 @@ training decides at run time from the capture goes here instead, is saved as
 - the lens falloff: estimated from the frames and taken off (gridnerf.vignetting), or
   corrected by the raw files' own opcodes on loading (gridnerf.raw_layout);
 - the last stage's width: the config's, or grid.detail_width where the stage before it
-  leaves more detail in its frames than the views average the noise to (gridnerf.residual).
+  leaves more detail in its frames than the views average the noise to (gridnerf.residual);
+- a stage appended after the config's last, twice as wide, where a vertex of the last
+  would span more capture pixels than grid.voxel_pixels (appended_width).
 
 The plan is built once before the first step (candidate counts are filled in as each
 stage's grid is made: `with_candidates`); a resumed run reads it back and keeps it.
@@ -103,7 +105,8 @@ class RunPlan:
     of its frames' detail in units of the noise the views' average leaves
     (residual.read; None: not read or not measurable) and its standard error
     (detail_error); last_width: the last stage's width where the reading refined it
-    (refined_config), None: the config's.
+    (refined_config), None: the config's. appended_width: the width of the stage appended
+    after the config's last (capture_config), None: none.
     """
 
     method: str
@@ -122,6 +125,7 @@ class RunPlan:
     detail: float | None = None
     detail_error: float | None = None
     last_width: int | None = None
+    appended_width: int | None = None
 
     @property
     def one_gain(self) -> tuple[float, float, float] | None:
@@ -178,6 +182,52 @@ def refined_config(cfg, plan: RunPlan):
                    loss=replace(cfg.loss, tv_ref_width=int(ref)),
                    render=replace(cfg.render,
                                   max_samples=int(round(cfg.render.max_samples * ratio))))
+
+
+def appended_width(cfg, capture_width: int) -> int | None:
+    """The width (vertices across) of the stage appended after the config's last, twice
+    its width, where a vertex of the last spans more than grid.voxel_pixels capture pixels
+    across (the grid taken to fill the view's width, as the resolutions are given); None
+    where it does not, or grid.voxel_pixels is 0.
+
+    Why: the last stage's width is given in vertices, whatever the capture. At 480x270 a
+    vertex of the default's 192-wide stage spans 2.5 capture pixels; at 1920x1080, 10, more
+    than the texture of a scene allows even from clean frames. The held-out held_arc_table
+    at 1920x1080 trained on its clean references: 22.47 dB with the 192-wide last stage,
+    23.82 with a 384-wide stage appended; trained on its dark raw, +0.37 dB, held_deep_hall
+    +0.49, bucket 0.00 (+0.31 colour-aligned), and a path-traced capture at 1280x720 +0.50
+    (docs/results.md, "At the capture's own resolution"). At 5 pixels no 480x270 or
+    320x180 capture is touched."""
+    limit = cfg.grid.voxel_pixels
+    width = cfg.grid.resolutions[-1][0]
+    if limit <= 0 or capture_width <= limit * width:
+        return None
+    return 2 * int(width)
+
+
+def capture_config(cfg, width: int | None):
+    """cfg with the stage appended_width decided (width vertices across; None: cfg): its
+    depth 1.5x the last's, the last configured stage and the new one trained
+    train.appended_steps, the TVs scaled against the configured last width
+    (loss.tv_ref_width, unless set; optim.tv_scale) and the slots' cap by the width's
+    ratio (a finer grid holds more samples per ray), as refined_config does; every stage
+    on the binned frames (data.mosaic_stages 0): a capture this large has 16 times a
+    480x270 one's photosites, which the steps' rays see a quarter of on the mosaic (at
+    1920x1080 the mosaic's last stage cost bucket 0.43 dB against binning throughout)."""
+    if width is None:
+        return cfg
+    res = [tuple(r) for r in cfg.grid.resolutions]
+    last = res[-1]
+    res.append((int(width), 0, int(round(last[2] * 1.5))))
+    before, after = cfg.train.appended_steps
+    steps = (*cfg.train.steps_per_stage[:-1], int(before), int(after))
+    ref = cfg.loss.tv_ref_width or last[0]
+    return replace(cfg, grid=replace(cfg.grid, resolutions=tuple(res)),
+                   data=replace(cfg.data, mosaic_stages=0),
+                   train=replace(cfg.train, steps_per_stage=steps),
+                   loss=replace(cfg.loss, tv_ref_width=int(ref)),
+                   render=replace(cfg.render, max_samples=int(
+                       round(cfg.render.max_samples * width / last[0]))))
 
 
 def opacity_schedule(weight: float, stages: int, first: int) -> tuple[float, ...]:

@@ -268,6 +268,14 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     # the training frames' downscale (the saved plan's, or from the final grid's footprint):
     # from here on `cfg` builds the data with it; config.json keeps the user's `asked`
     asked = cfg
+    appended = (planmod.appended_width(cfg, scene.cameras.width) if saved is None
+                else saved.appended_width)
+    cfg = planmod.capture_config(cfg, appended)
+    if appended is not None and saved is None:
+        print(f"last stage: {cfg.grid.resolutions[-2][0]} vertices across span "
+              f"{scene.cameras.width / cfg.grid.resolutions[-2][0]:.3g} capture pixels, over "
+              f"grid.voxel_pixels = {cfg.grid.voxel_pixels:g}: a stage {appended} wide is "
+              "appended")
     downscale = (data_term.planned_downscale(cfg, scene.cameras.width) if saved is None
                  else saved.downscale)
     cfg = data_term.fitted_config(cfg, downscale)
@@ -348,7 +356,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
             opacity=planmod.opacity_schedule(cfg.loss.opacity, n_stages,
                                              cfg.loss.opacity_stages),
             n_candidates=(0,) * n_stages, file_falloff=scene.lens_correction,
-            photosite_snr=snr, mosaic_stages=mosaic_stages, downscale=downscale)
+            photosite_snr=snr, mosaic_stages=mosaic_stages, downscale=downscale,
+            appended_width=appended)
         if scene.lens_correction and method.fits_raw(cfg):
             print(f"lens falloff: corrected on loading by the raw files' "
                   f"{scene.lens_correction}; the frame-based estimate is skipped")

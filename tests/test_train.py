@@ -11,6 +11,7 @@ import pytest
 
 from gridnerf import checkpoint, data_term, optim, stages
 from gridnerf import config as cfgmod
+from gridnerf import plan as planmod
 from gridnerf.errors import ConfigError, NumericsError
 
 
@@ -287,7 +288,7 @@ def test_a_capture_wider_than_the_grid_trains_on_larger_pixels(small_scene, tmp_
     monkeypatch.setattr(trainmod, "CHECKPOINT_SECONDS", float("inf"))
     cfg = cfgmod.override(cfgmod.preset("tiny"), [
         "grid.resolutions=[[8,8,8],[16,16,8]]", "train.steps_per_stage=[20,20]",
-        "train.checkpoint_every=10"])
+        "train.checkpoint_every=10", "grid.voxel_pixels=0"])
     run = tmp_path / "run"
     real_make_step = optim.make_step
     _crash_after(monkeypatch, 33)
@@ -305,6 +306,60 @@ def test_a_capture_wider_than_the_grid_trains_on_larger_pixels(small_scene, tmp_
     assert fitted.data.downscale == 2 and fitted == data_term.fitted_config(cfg, 2)
     last = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])
     assert (last["stage"], last["step"]) == (1, 40)  # the last stage's 20 steps, twice
+
+
+def test_appended_stage_follows_the_capture_width():
+    """grid.voxel_pixels appends a stage twice as wide where a vertex of the last would span
+    more capture pixels: 1920 under the default grid and 5 pixels (10 a vertex), not 960
+    (5) nor 480; never where it is 0. The appended config: depth 1.5x, train.appended_steps
+    on the last two stages, TVs against the configured width, slots by the ratio, binned."""
+    def cfg(*sets):
+        return cfgmod.override(cfgmod.Config(), ["grid.voxel_pixels=5", *sets])
+
+    assert planmod.appended_width(cfg(), 1920) == 384
+    assert planmod.appended_width(cfg(), 960) is None
+    assert planmod.appended_width(cfg(), 480) is None
+    assert planmod.appended_width(cfg("grid.voxel_pixels=0"), 3840) is None
+    assert planmod.capture_config(cfg(), None) == cfg()
+    c = planmod.capture_config(cfg("render.max_samples=64"), 384)
+    assert c.grid.resolutions[-2:] == ((192, 0, 64), (384, 0, 96))
+    assert c.train.steps_per_stage == (600, 600, *cfgmod.Config().train.appended_steps)
+    assert c.loss.tv_ref_width == 192 and c.render.max_samples == 128
+    assert c.data.mosaic_stages == 0
+    assert optim.tv_scale(c, 3) == 2.0 and optim.tv_scale(c, 2) == 1.0
+    # the training frames then keep their binned size: a training pixel within half a vertex
+    assert data_term.planned_downscale(c, 1920) == 1
+
+
+def test_a_wide_capture_trains_an_appended_stage_and_resumes(small_scene, tmp_path, capsys,
+                                                               monkeypatch):
+    """Ten capture pixels a vertex of the last stage over a limit of 2: the run appends a
+    stage twice as wide, its plan says so, config.json keeps the user's stages, load_run
+    gives the appended ones; killed and resumed with the limit off, it keeps its plan's."""
+    from gridnerf import eval_run
+    from gridnerf import train as trainmod
+
+    monkeypatch.setattr(trainmod, "CHECKPOINT_SECONDS", float("inf"))
+    cfg = cfgmod.override(cfgmod.preset("tiny"), [
+        "grid.resolutions=[[8,8,8],[16,16,8]]", "train.steps_per_stage=[10,10]",
+        "train.appended_steps=[10,20]", "train.checkpoint_every=10", "grid.voxel_pixels=2"])
+    run = tmp_path / "run"
+    real_make_step = optim.make_step
+    _crash_after(monkeypatch, 25)
+    with pytest.raises(KeyboardInterrupt):
+        trainmod.train(small_scene, run, cfg)
+    assert "a stage 32 wide is appended" in capsys.readouterr().out
+    assert planmod.load(run).appended_width == 32
+    assert cfgmod.load(run / "config.json").grid.resolutions == ((8, 8, 8), (16, 16, 8))
+    monkeypatch.setattr(optim, "make_step", real_make_step)
+    off = cfgmod.override(cfg, ["grid.voxel_pixels=0"])
+    summary = trainmod.train(small_scene, run, off, overwrite_config=True)
+    assert "resuming" in capsys.readouterr().out
+    assert summary["resolution"][0] == 32 and planmod.load(run).appended_width == 32
+    fitted = eval_run.load_run(run)[0]
+    assert fitted.grid.resolutions[-1] == (32, 0, 12)
+    last = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])
+    assert (last["stage"], last["step"]) == (2, 20)
 
 
 def test_checkpoint_refuses_non_finite(tmp_path):
