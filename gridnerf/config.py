@@ -532,7 +532,10 @@ def get(cfg: Config, dotted: str) -> Any:
 ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0,
                 ("loss", "tv_chroma"): 0.0, ("render", "truncated_share"): 0.0,
                 ("loss", "tv_ref_width"): 0, ("train", "colour_solve_iters"): 0,
-                ("grid", "detail_width"): 0}
+                ("grid", "detail_width"): 0,
+                # 5 trains as the code did before on every capture up to 960 pixels across,
+                # which every kept result is; a run's appended stage is read from its plan
+                ("grid", "voxel_pixels"): 5.0, ("train", "appended_steps"): (1200, 2400)}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

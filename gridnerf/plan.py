@@ -211,9 +211,9 @@ def capture_config(cfg, width: int | None):
     train.appended_steps, the TVs scaled against the configured last width
     (loss.tv_ref_width, unless set; optim.tv_scale) and the slots' cap by the width's
     ratio (a finer grid holds more samples per ray), as refined_config does; every stage
-    on the binned frames (data.mosaic_stages 0): a capture this large has 16 times a
-    480x270 one's photosites, which the steps' rays see a quarter of on the mosaic (at
-    1920x1080 the mosaic's last stage cost bucket 0.43 dB against binning throughout)."""
+    on the binned frames (data.mosaic_stages 0): at 1920x1080 the appended stage's rays
+    would see about a quarter of the mosaic's photosites, and there the mosaic's last
+    stage had cost bucket 0.43 dB against binning throughout."""
     if width is None:
         return cfg
     res = [tuple(r) for r in cfg.grid.resolutions]
