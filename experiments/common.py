@@ -62,14 +62,15 @@ def quick_sets(cfg: cfgmod.Config) -> list[str]:
     """Overrides that shrink a preset for quick mode and keep its shape: every stage's
     resolution / 4 (at least 8; y stays from the aspect), steps / 20 (at least 10), 8
     patches a batch, up to 24 samples a ray, carving at 1 % (a few coarse steps leave fog,
-    which the default threshold would cut into the content)."""
+    which the default threshold would cut into the content), no appended stage (the
+    shrunk grid's vertices span many of the frames' pixels)."""
     res = [[max(8, r[0] // 4), 0 if r[1] == 0 else max(8, r[1] // 4), max(8, r[2] // 4)]
            for r in cfg.grid.resolutions]
     steps = [max(10, s // 20) for s in cfg.train.steps_per_stage]
     return [f"grid.resolutions={json.dumps(res).replace(' ', '')}",
             f"train.steps_per_stage={json.dumps(steps).replace(' ', '')}",
             "train.batch_patches=8", "render.max_samples=24", "grid.prune_threshold=0.01",
-            "train.log_every=10"]
+            "train.log_every=10", "grid.voxel_pixels=0"]
 
 
 def preset_config(preset: str, quick: bool = False) -> cfgmod.Config:

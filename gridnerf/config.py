@@ -363,7 +363,9 @@ def _preset_tiny() -> Config:
         data=replace(c.data, mosaic_stages=0),  # binned throughout: the fastest
         # 40 coarse steps leave fog, not surfaces: carving at the default 0.05 would cut
         # the content (stage-1 loss x8), so carve only what no ray weighs by 1%
-        grid=replace(c.grid, resolutions=((24, 24, 16), (40, 40, 24)), prune_threshold=0.01),
+        # and no appended stage: tests train tiny grids on frames many pixels a vertex wide
+        grid=replace(c.grid, resolutions=((24, 24, 16), (40, 40, 24)), prune_threshold=0.01,
+                     voxel_pixels=0.0),
         render=replace(c.render, max_samples=24),
         train=replace(
             c.train, steps_per_stage=(40, 40), batch_patches=8, log_every=10, checkpoint_every=40
