@@ -275,8 +275,6 @@ class TrainConfig(_Section):
     # L-BFGS iterations of the colour solve after the last stage (gridnerf.colour_solve: the
     # vertex colours fitted to every training ray with the geometry fixed); 0: none
     colour_solve_iters: int = 0
-    # steps of the last configured stage and of the stage grid.voxel_pixels appends after it
-    appended_steps: tuple[int, int] = (1200, 2400)
     seed: int = 0  # PRNG seed of the init and the batches
     log_every: int = 50  # steps between metrics.jsonl lines
     checkpoint_every: int = 300  # steps between checkpoints (also every CHECKPOINT_SECONDS)
@@ -285,9 +283,6 @@ class TrainConfig(_Section):
         self._require("steps_per_stage", len(self.steps_per_stage) >= 1
                       and all(s >= 1 for s in self.steps_per_stage),
                       "one step count >= 1 per grid.resolutions stage, e.g. [600,600,1200]")
-        self._require("appended_steps", len(self.appended_steps) == 2
-                      and all(s >= 1 for s in self.appended_steps),
-                      "two step counts >= 1, e.g. [1200,2400]")
         self._require("batch_patches", self.batch_patches >= 1, "a whole number >= 1")
         self._require("patch_size", self.patch_size >= 1, "a whole number >= 1")
         for name in ("lr_density", "lr_rgb", "lr_gain"):
@@ -537,7 +532,7 @@ ADDED_FIELDS = {("data", "mosaic_stages"): 0, ("train", "warmup_steps"): 0,
                 ("grid", "detail_width"): 0,
                 # 5 trains as the code did before on every capture up to 960 pixels across,
                 # which every kept result is; a run's appended stage is read from its plan
-                ("grid", "voxel_pixels"): 5.0, ("train", "appended_steps"): (1200, 2400)}
+                ("grid", "voxel_pixels"): 5.0}
 
 
 def from_dict(d: dict, source: Path | None = None) -> Config:

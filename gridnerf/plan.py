@@ -39,6 +39,9 @@ from gridnerf import atomic
 from gridnerf.errors import CheckpointError
 
 PLAN = "plan.json"
+# steps of the last configured stage and of the stage grid.voxel_pixels appends after it
+# (fixed in code; the pair measured at 1920x1080, docs/results.md)
+APPENDED_STEPS = (1200, 2400)
 
 
 @dataclass(frozen=True)
@@ -208,7 +211,7 @@ def appended_width(cfg, capture_width: int) -> int | None:
 def capture_config(cfg, width: int | None):
     """cfg with the stage appended_width decided (width vertices across; None: cfg): its
     depth 1.5x the last's, the last configured stage and the new one trained
-    train.appended_steps, the TVs scaled against the configured last width
+    APPENDED_STEPS, the TVs scaled against the configured last width
     (loss.tv_ref_width, unless set; optim.tv_scale) and the slots' cap by the width's
     ratio (a finer grid holds more samples per ray), as refined_config does; every stage
     on the binned frames (data.mosaic_stages 0): at 1920x1080 the appended stage's rays
@@ -219,7 +222,7 @@ def capture_config(cfg, width: int | None):
     res = [tuple(r) for r in cfg.grid.resolutions]
     last = res[-1]
     res.append((int(width), 0, int(round(last[2] * 1.5))))
-    before, after = cfg.train.appended_steps
+    before, after = APPENDED_STEPS
     steps = (*cfg.train.steps_per_stage[:-1], int(before), int(after))
     ref = cfg.loss.tv_ref_width or last[0]
     return replace(cfg, grid=replace(cfg.grid, resolutions=tuple(res)),

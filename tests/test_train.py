@@ -311,7 +311,7 @@ def test_a_capture_wider_than_the_grid_trains_on_larger_pixels(small_scene, tmp_
 def test_appended_stage_follows_the_capture_width():
     """grid.voxel_pixels appends a stage twice as wide where a vertex of the last would span
     more capture pixels: 1920 under the default grid and 5 pixels (10 a vertex), not 960
-    (5) nor 480; never where it is 0. The appended config: depth 1.5x, train.appended_steps
+    (5) nor 480; never where it is 0. The appended config: depth 1.5x, plan.APPENDED_STEPS
     on the last two stages, TVs against the configured width, slots by the ratio, binned."""
     def cfg(*sets):
         return cfgmod.override(cfgmod.Config(), ["grid.voxel_pixels=5", *sets])
@@ -323,7 +323,7 @@ def test_appended_stage_follows_the_capture_width():
     assert planmod.capture_config(cfg(), None) == cfg()
     c = planmod.capture_config(cfg("render.max_samples=64"), 384)
     assert c.grid.resolutions[-2:] == ((192, 0, 64), (384, 0, 96))
-    assert c.train.steps_per_stage == (600, 600, *cfgmod.Config().train.appended_steps)
+    assert c.train.steps_per_stage == (600, 600, *planmod.APPENDED_STEPS)
     assert c.loss.tv_ref_width == 192 and c.render.max_samples == 128
     assert c.data.mosaic_stages == 0
     assert optim.tv_scale(c, 3) == 2.0 and optim.tv_scale(c, 2) == 1.0
@@ -342,7 +342,8 @@ def test_a_wide_capture_trains_an_appended_stage_and_resumes(small_scene, tmp_pa
     monkeypatch.setattr(trainmod, "CHECKPOINT_SECONDS", float("inf"))
     cfg = cfgmod.override(cfgmod.preset("tiny"), [
         "grid.resolutions=[[8,8,8],[16,16,8]]", "train.steps_per_stage=[10,10]",
-        "train.appended_steps=[10,20]", "train.checkpoint_every=10", "grid.voxel_pixels=2"])
+        "train.checkpoint_every=10", "grid.voxel_pixels=2"])
+    monkeypatch.setattr(planmod, "APPENDED_STEPS", (10, 20))
     run = tmp_path / "run"
     real_make_step = optim.make_step
     _crash_after(monkeypatch, 25)
@@ -444,7 +445,7 @@ def test_config_overrides_and_round_trip(tmp_path):
     )
     assert cfg.train.steps_per_stage == (5, 6, 7)
     assert cfg.loss.use_gains is False and cfg.grid.sh_degree == 1
-    assert len([f for s in cfgmod.to_dict(cfg).values() for f in s]) <= 51  # the method's
+    assert len([f for s in cfgmod.to_dict(cfg).values() for f in s]) <= 52  # the method's
     cfgmod.save(cfg, tmp_path / "c.json")
     assert cfgmod.load(tmp_path / "c.json") == cfg
     with pytest.raises(ValueError, match="bad override"):
