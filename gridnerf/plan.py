@@ -176,13 +176,19 @@ def refined_config(cfg, plan: RunPlan):
         return cfg
     res = [list(r) for r in cfg.grid.resolutions]
     width = res[-1][0]
-    ratio = plan.last_width / width
     res[-1][0] = int(plan.last_width)
-    ref = cfg.loss.tv_ref_width or width
+    cfg = _finer(cfg, width, plan.last_width / width)
     # detail_width 0: the width is decided
     return replace(cfg, grid=replace(cfg.grid, resolutions=tuple(tuple(r) for r in res),
-                                     detail_width=0),
-                   loss=replace(cfg.loss, tv_ref_width=int(ref)),
+                                     detail_width=0))
+
+
+def _finer(cfg, width: int, ratio: float):
+    """cfg with a last stage `ratio` times the configured last `width`: the TVs scaled
+    against that width (loss.tv_ref_width, unless set; optim.tv_scale) and the slots' cap
+    by the ratio (a finer grid holds more samples per ray)."""
+    ref = cfg.loss.tv_ref_width or width
+    return replace(cfg, loss=replace(cfg.loss, tv_ref_width=int(ref)),
                    render=replace(cfg.render,
                                   max_samples=int(round(cfg.render.max_samples * ratio))))
 
@@ -224,13 +230,10 @@ def capture_config(cfg, width: int | None):
     res.append((int(width), 0, int(round(last[2] * 1.5))))
     before, after = APPENDED_STEPS
     steps = (*cfg.train.steps_per_stage[:-1], int(before), int(after))
-    ref = cfg.loss.tv_ref_width or last[0]
+    cfg = _finer(cfg, last[0], width / last[0])
     return replace(cfg, grid=replace(cfg.grid, resolutions=tuple(res)),
                    data=replace(cfg.data, mosaic_stages=0),
-                   train=replace(cfg.train, steps_per_stage=steps),
-                   loss=replace(cfg.loss, tv_ref_width=int(ref)),
-                   render=replace(cfg.render, max_samples=int(
-                       round(cfg.render.max_samples * width / last[0]))))
+                   train=replace(cfg.train, steps_per_stage=steps))
 
 
 def opacity_schedule(weight: float, stages: int, first: int) -> tuple[float, ...]:
