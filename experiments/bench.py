@@ -31,7 +31,7 @@ Every figure is measured on the package's own code, in its own process, and cach
 
 Every record carries the machine (cores, CPU model, jax version, platform, load average)
 and the command that produced it. Results are cached per item in <out>/cache/<item>-<key>.json,
-keyed by the item and its configuration (a training's by the fingerprint of the config it
+keyed by the item and its configuration (a training's by a hash of every field of the config it
 trains, so a changed preset or default measures again); a re-run reuses them (`--fresh`
 measures again).
 Timings taken while other processes use the CPU are not comparable: check load_average.
@@ -62,7 +62,6 @@ from pathlib import Path
 from experiments.common import (
     DETAIL_ON,
     SPEED_DOC,
-    fingerprint,
     fmt,
     markdown_table,
     update_doc,
@@ -367,12 +366,16 @@ WORKERS = {"step": worker_step, "render": worker_render, "psnr": worker_psnr}
 
 def train_spec(scene: Path, preset: str, sets: list[str], run: Path) -> dict:
     """The cache key's configuration of a training item: the scene, the preset and its
-    --set overrides, and the fingerprint of the config they make (common.fingerprint), so
-    a changed preset or default trains (and measures) again instead of reading a
-    measurement of what it no longer trains."""
+    --set overrides, and every field of the config they make, so a changed preset or
+    default trains (and measures) again instead of reading a measurement of what it no
+    longer trains. Not common.fingerprint: that leaves out a field of cfgmod.ADDED_FIELDS
+    at the value that trains a kept result as before, and a new field may still change
+    what a capture the kept results do not cover trains (grid.voxel_pixels at
+    1920x1080)."""
     trained = cfgmod.override(cfgmod.preset(preset), sets)
+    blob = json.dumps(cfgmod.to_dict(trained), sort_keys=True, default=str)
     return {"scene": str(scene), "preset": preset, "sets": list(sets),
-            "config": fingerprint(trained), "run": str(run)}
+            "config": hashlib.sha256(blob.encode()).hexdigest()[:16], "run": str(run)}
 
 
 class Bench:
