@@ -69,6 +69,7 @@ from experiments.common import (
 )
 from gridnerf import atomic
 from gridnerf import config as cfgmod
+from gridnerf import plan as planmod
 
 HERE = Path(__file__).resolve()
 REPO = HERE.parent.parent
@@ -371,9 +372,12 @@ def train_spec(scene: Path, preset: str, sets: list[str], run: Path) -> dict:
     longer trains. Not common.fingerprint: that leaves out a field of cfgmod.ADDED_FIELDS
     at the value that trains a kept result as before, and a new field may still change
     what a capture the kept results do not cover trains (grid.voxel_pixels at
-    1920x1080)."""
+    1920x1080). The steps of an appended stage are fixed in code (plan.APPENDED_STEPS),
+    so they join the key too."""
     trained = cfgmod.override(cfgmod.preset(preset), sets)
-    blob = json.dumps(cfgmod.to_dict(trained), sort_keys=True, default=str)
+    blob = json.dumps({"config": cfgmod.to_dict(trained),
+                       "appended_steps": list(planmod.APPENDED_STEPS)},
+                      sort_keys=True, default=str)
     return {"scene": str(scene), "preset": preset, "sets": list(sets),
             "config": hashlib.sha256(blob.encode()).hexdigest()[:16], "run": str(run)}
 

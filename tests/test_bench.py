@@ -129,18 +129,21 @@ def test_multi_host_settings_from_the_environment():
         devices.distributed_settings(None, 2, 0, environ={})
 
 
-def test_a_training_item_measures_again_when_any_field_changes():
+def test_a_training_item_measures_again_when_any_field_changes(monkeypatch):
     """The cache key holds every config field: grid.voxel_pixels at its ADDED_FIELDS value
     leaves the results fingerprint as it was, and still changes what a 1920x1080 capture
     trains, so the bench must not read the measurement of the old one."""
     from experiments.bench import train_spec
     from experiments.common import fingerprint
     from gridnerf import config as cfgmod
+    from gridnerf import plan as planmod
 
     scene, run = Path("data/sim/bucket_1920x1080"), Path("bench/runs/large")
     on = train_spec(scene, "default", [], run)
     off = train_spec(scene, "default", ["grid.voxel_pixels=0"], run)
     assert on["config"] != off["config"]
     assert train_spec(scene, "default", [], run) == on
+    monkeypatch.setattr(planmod, "APPENDED_STEPS", (1200, 1))
+    assert train_spec(scene, "default", [], run)["config"] != on["config"]
     default = cfgmod.preset("default")
     assert fingerprint(default) == fingerprint(cfgmod.override(default, ["grid.voxel_pixels=5"]))
