@@ -66,7 +66,8 @@ def load_run(run: Path):
         )
     plan = planmod.load(run)
     cfg = planmod.render_config(data_term.fitted_config(
-        planmod.capture_config(cfgmod.load(run / "config.json"), plan.appended_width),
+        planmod.capture_config(cfgmod.load(run / "config.json"), plan.appended_width,
+                               planmod.trained_appended_steps(plan)),
         plan.downscale), plan)
     summary = json.loads((run / "summary.json").read_text())
     scene = open_scene(Path(summary["scene"]), run, estimate=False,

@@ -43,6 +43,8 @@ PLAN = "plan.json"
 # (fixed in code, measured at 1920x1080: 3600 appended steps against 2400 gained 0.09 to
 # 0.16 dB on four captures for about 140 s of a 2-core machine; docs/results.md)
 APPENDED_STEPS = (1200, 3600)
+# what a plan saved before it recorded them trained: (1200, 2400)
+APPENDED_STEPS_BEFORE = (1200, 2400)
 
 
 @dataclass(frozen=True)
@@ -110,7 +112,10 @@ class RunPlan:
     (residual.read; None: not read or not measurable) and its standard error
     (detail_error); last_width: the last stage's width where the reading refined it
     (refined_config), None: the config's. appended_width: the width of the stage appended
-    after the config's last (capture_config), None: none.
+    after the config's last (capture_config), None: none; appended_steps: the steps of the
+    last configured stage and of the appended one (APPENDED_STEPS when the plan was made;
+    None: none appended, or a plan saved before they were recorded, see
+    trained_appended_steps).
     """
 
     method: str
@@ -130,6 +135,7 @@ class RunPlan:
     detail_error: float | None = None
     last_width: int | None = None
     appended_width: int | None = None
+    appended_steps: tuple[int, int] | None = None
 
     @property
     def one_gain(self) -> tuple[float, float, float] | None:
@@ -215,10 +221,17 @@ def appended_width(cfg, capture_width: int) -> int | None:
     return 2 * int(width)
 
 
-def capture_config(cfg, width: int | None):
+def trained_appended_steps(plan: RunPlan) -> tuple[int, int]:
+    """The steps the run of `plan` trains its last configured and its appended stage: its
+    own record, or APPENDED_STEPS_BEFORE where a plan with a stage appended predates it,
+    so that a resume keeps the schedule the run began with."""
+    return plan.appended_steps or APPENDED_STEPS_BEFORE
+
+
+def capture_config(cfg, width: int | None, steps: tuple[int, int] = APPENDED_STEPS):
     """cfg with the stage appended_width decided (width vertices across; None: cfg): its
-    depth 1.5x the last's, the last configured stage and the new one trained
-    APPENDED_STEPS, the TVs scaled against the configured last width
+    depth 1.5x the last's, the last configured stage and the new one trained `steps`
+    (APPENDED_STEPS for a new run), the TVs scaled against the configured last width
     (loss.tv_ref_width, unless set; optim.tv_scale) and the slots' cap by the width's
     ratio (a finer grid holds more samples per ray), as refined_config does; every stage
     on the binned frames (data.mosaic_stages 0): at 1920x1080 the appended stage's rays
@@ -229,7 +242,7 @@ def capture_config(cfg, width: int | None):
     res = [tuple(r) for r in cfg.grid.resolutions]
     last = res[-1]
     res.append((int(width), 0, int(round(last[2] * 1.5))))
-    before, after = APPENDED_STEPS
+    before, after = steps
     steps = (*cfg.train.steps_per_stage[:-1], int(before), int(after))
     cfg = _finer(cfg, last[0], width / last[0])
     return replace(cfg, grid=replace(cfg.grid, resolutions=tuple(res)),
@@ -262,6 +275,8 @@ def from_dict(d: dict) -> RunPlan:
         d["max_samples"] = tuple(int(v) for v in d["max_samples"])
     if d.get("vignetting") is not None:
         d["vignetting"] = tuple(float(v) for v in d["vignetting"])
+    if d.get("appended_steps") is not None:
+        d["appended_steps"] = tuple(int(v) for v in d["appended_steps"])
     plan = RunPlan(**d)
     if not math.isfinite(plan.data_eps) or plan.data_eps <= 0:
         raise ValueError(f"data_eps {plan.data_eps}")

@@ -270,7 +270,9 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     asked = cfg
     appended = (planmod.appended_width(cfg, scene.cameras.width) if saved is None
                 else saved.appended_width)
-    cfg = planmod.capture_config(cfg, appended)
+    appended_steps = (planmod.APPENDED_STEPS if saved is None
+                      else planmod.trained_appended_steps(saved))
+    cfg = planmod.capture_config(cfg, appended, appended_steps)
     if appended is not None and saved is None:
         print(f"last stage: {cfg.grid.resolutions[-2][0]} vertices across span "
               f"{scene.cameras.width / cfg.grid.resolutions[-2][0]:.3g} capture pixels, over "
@@ -357,7 +359,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
                                              cfg.loss.opacity_stages),
             n_candidates=(0,) * n_stages, file_falloff=scene.lens_correction,
             photosite_snr=snr, mosaic_stages=mosaic_stages, downscale=downscale,
-            appended_width=appended)
+            appended_width=appended,
+            appended_steps=None if appended is None else tuple(appended_steps))
         if scene.lens_correction and method.fits_raw(cfg):
             print(f"lens falloff: corrected on loading by the raw files' "
                   f"{scene.lens_correction}; the frame-based estimate is skipped")

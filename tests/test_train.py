@@ -335,7 +335,8 @@ def test_a_wide_capture_trains_an_appended_stage_and_resumes(small_scene, tmp_pa
                                                                monkeypatch):
     """Ten capture pixels a vertex of the last stage over a limit of 2: the run appends a
     stage twice as wide, its plan says so, config.json keeps the user's stages, load_run
-    gives the appended ones; killed and resumed with the limit off, it keeps its plan's."""
+    gives the appended ones; killed and resumed with the limit off and other appended
+    steps in the code, it keeps its plan's stage and steps."""
     from gridnerf import eval_run
     from gridnerf import train as trainmod
 
@@ -353,6 +354,9 @@ def test_a_wide_capture_trains_an_appended_stage_and_resumes(small_scene, tmp_pa
     assert planmod.load(run).appended_width == 32
     assert cfgmod.load(run / "config.json").grid.resolutions == ((8, 8, 8), (16, 16, 8))
     monkeypatch.setattr(optim, "make_step", real_make_step)
+    assert planmod.load(run).appended_steps == (10, 20)
+    # the code's steps changed since: the resume keeps the schedule the run began with
+    monkeypatch.setattr(planmod, "APPENDED_STEPS", (10, 30))
     off = cfgmod.override(cfg, ["grid.voxel_pixels=0"])
     summary = trainmod.train(small_scene, run, off, overwrite_config=True)
     assert "resuming" in capsys.readouterr().out
