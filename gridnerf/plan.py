@@ -228,10 +228,10 @@ def trained_appended_steps(plan: RunPlan) -> tuple[int, int]:
     return plan.appended_steps or APPENDED_STEPS_BEFORE
 
 
-def capture_config(cfg, width: int | None, steps: tuple[int, int] = APPENDED_STEPS):
+def capture_config(cfg, width: int | None, steps: tuple[int, int] | None = None):
     """cfg with the stage appended_width decided (width vertices across; None: cfg): its
     depth 1.5x the last's, the last configured stage and the new one trained `steps`
-    (APPENDED_STEPS for a new run), the TVs scaled against the configured last width
+    (None: APPENDED_STEPS, a new run's), the TVs scaled against the configured last width
     (loss.tv_ref_width, unless set; optim.tv_scale) and the slots' cap by the width's
     ratio (a finer grid holds more samples per ray), as refined_config does; every stage
     on the binned frames (data.mosaic_stages 0): at 1920x1080 the appended stage's rays
@@ -242,12 +242,12 @@ def capture_config(cfg, width: int | None, steps: tuple[int, int] = APPENDED_STE
     res = [tuple(r) for r in cfg.grid.resolutions]
     last = res[-1]
     res.append((int(width), 0, int(round(last[2] * 1.5))))
-    before, after = steps
-    steps = (*cfg.train.steps_per_stage[:-1], int(before), int(after))
+    before, after = steps or APPENDED_STEPS
+    per_stage = (*cfg.train.steps_per_stage[:-1], int(before), int(after))
     cfg = _finer(cfg, last[0], width / last[0])
     return replace(cfg, grid=replace(cfg.grid, resolutions=tuple(res)),
                    data=replace(cfg.data, mosaic_stages=0),
-                   train=replace(cfg.train, steps_per_stage=steps))
+                   train=replace(cfg.train, steps_per_stage=per_stage))
 
 
 def opacity_schedule(weight: float, stages: int, first: int) -> tuple[float, ...]:
