@@ -67,7 +67,7 @@ def load_run(run: Path):
     plan = planmod.load(run)
     cfg = planmod.render_config(data_term.fitted_config(
         planmod.capture_config(cfgmod.load(run / "config.json"), plan.appended_width,
-                               planmod.trained_appended_steps(plan)),
+                               planmod.trained_appended_steps(plan), plan.appended_tv_ref),
         plan.downscale), plan)
     summary = json.loads((run / "summary.json").read_text())
     scene = open_scene(Path(summary["scene"]), run, estimate=False,

@@ -45,6 +45,9 @@ PLAN = "plan.json"
 APPENDED_STEPS = (1200, 3600)
 # what a plan saved before it recorded them trained: (1200, 2400)
 APPENDED_STEPS_BEFORE = (1200, 2400)
+# capture pixels across a vertex of the last stage where the grid priors' weights were set:
+# 480x270 captures and the 192-wide last stage (appended_tv_ref)
+TV_FOOTPRINT = 2.5
 
 
 @dataclass(frozen=True)
@@ -115,7 +118,9 @@ class RunPlan:
     after the config's last (capture_config), None: none; appended_steps: the steps of the
     last configured stage and of the appended one (APPENDED_STEPS when the plan was made;
     None: none appended, or a plan saved before they were recorded, see
-    trained_appended_steps).
+    trained_appended_steps); appended_tv_ref: the loss.tv_ref_width the appended stage's
+    TVs were scaled against (appended_tv_ref; None: none appended, or a plan saved before
+    it was recorded: the config's, else its last configured width).
     """
 
     method: str
@@ -136,6 +141,7 @@ class RunPlan:
     last_width: int | None = None
     appended_width: int | None = None
     appended_steps: tuple[int, int] | None = None
+    appended_tv_ref: int | None = None
 
     @property
     def one_gain(self) -> tuple[float, float, float] | None:
@@ -228,12 +234,36 @@ def trained_appended_steps(plan: RunPlan) -> tuple[int, int]:
     return plan.appended_steps or APPENDED_STEPS_BEFORE
 
 
-def capture_config(cfg, width: int | None, steps: tuple[int, int] | None = None):
+def appended_tv_ref(cfg, width: int, capture_width: int) -> int:
+    """loss.tv_ref_width for a stage `width` vertices across appended after cfg's last on a
+    capture `capture_width` pixels wide: the config's where set; else the width against
+    which optim.tv_scale gives the appended stage's TVs its width over the last's (the
+    prior's strength per unit of the scene, as refined_config keeps it) times TV_FOOTPRINT
+    over the capture pixels a vertex of it spans (a scale under 1 leaves the weights as
+    configured: optim.tv_scale).
+
+    Why the footprint: a vertex's colour is the mean of the photons of the pixels around
+    it, about footprint^2 per view, so the noise of that mean falls as the footprint grows,
+    and a TV weight that holds the noise back where it was set (2.5 pixels a vertex) holds
+    back detail where a vertex spans more. At 1920x1080 the appended 384-wide stage spans
+    5 pixels a vertex: its TVs are the configured weights (scale 1) rather than twice them
+    (its width over 192). Chosen on the tuning captures bucket and dev_arc_shop at
+    1920x1080 (+0.06 and +0.16 dB, colour-aligned +0.51 and +0.21), then shown on the
+    held-out ones (docs/results.md, "At the capture's own resolution")."""
+    if cfg.loss.tv_ref_width:
+        return int(cfg.loss.tv_ref_width)
+    last = int(cfg.grid.resolutions[-1][0])
+    return max(1, int(round(last * capture_width / (TV_FOOTPRINT * int(width)))))
+
+
+def capture_config(cfg, width: int | None, steps: tuple[int, int] | None = None,
+                   tv_ref: int | None = None):
     """cfg with the stage appended_width decided (width vertices across; None: cfg): its
     depth 1.5x the last's, the last configured stage and the new one trained `steps`
-    (None: APPENDED_STEPS, a new run's), the TVs scaled against the configured last width
-    (loss.tv_ref_width, unless set; optim.tv_scale) and the slots' cap by the width's
-    ratio (a finer grid holds more samples per ray), as refined_config does; every stage
+    (None: APPENDED_STEPS, a new run's), the TVs scaled against `tv_ref`
+    (appended_tv_ref; None: loss.tv_ref_width, unless set the configured last width, what
+    a plan saved before the footprint rule trained; optim.tv_scale) and the slots' cap by
+    the width's ratio (a finer grid holds more samples per ray), as refined_config does; every stage
     on the binned frames (data.mosaic_stages 0): at 1920x1080 the appended stage's rays
     would see about a quarter of the mosaic's photosites, and there the mosaic's last
     stage had cost bucket 0.43 dB against binning throughout."""
@@ -245,6 +275,8 @@ def capture_config(cfg, width: int | None, steps: tuple[int, int] | None = None)
     before, after = steps or APPENDED_STEPS
     per_stage = (*cfg.train.steps_per_stage[:-1], int(before), int(after))
     cfg = _finer(cfg, last[0], width / last[0])
+    if tv_ref is not None:
+        cfg = replace(cfg, loss=replace(cfg.loss, tv_ref_width=int(tv_ref)))
     return replace(cfg, grid=replace(cfg.grid, resolutions=tuple(res)),
                    data=replace(cfg.data, mosaic_stages=0),
                    train=replace(cfg.train, steps_per_stage=per_stage))

@@ -272,12 +272,16 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
                 else saved.appended_width)
     appended_steps = (planmod.APPENDED_STEPS if saved is None
                       else planmod.trained_appended_steps(saved))
-    cfg = planmod.capture_config(cfg, appended, appended_steps)
+    appended_tv = (None if appended is None
+                   else planmod.appended_tv_ref(cfg, appended, scene.cameras.width)
+                   if saved is None else saved.appended_tv_ref)
+    cfg = planmod.capture_config(cfg, appended, appended_steps, appended_tv)
     if appended is not None and saved is None:
         print(f"last stage: {cfg.grid.resolutions[-2][0]} vertices across span "
               f"{scene.cameras.width / cfg.grid.resolutions[-2][0]:.3g} capture pixels, over "
               f"grid.voxel_pixels = {cfg.grid.voxel_pixels:g}: a stage {appended} wide is "
-              "appended")
+              f"appended, its TVs x{optim.tv_scale(cfg, len(cfg.grid.resolutions) - 1):.3g} "
+              f"({scene.cameras.width / appended:.3g} pixels a vertex; plan.appended_tv_ref)")
     downscale = (data_term.planned_downscale(cfg, scene.cameras.width) if saved is None
                  else saved.downscale)
     cfg = data_term.fitted_config(cfg, downscale)
@@ -360,7 +364,8 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
             n_candidates=(0,) * n_stages, file_falloff=scene.lens_correction,
             photosite_snr=snr, mosaic_stages=mosaic_stages, downscale=downscale,
             appended_width=appended,
-            appended_steps=None if appended is None else tuple(appended_steps))
+            appended_steps=None if appended is None else tuple(appended_steps),
+            appended_tv_ref=appended_tv)
         if scene.lens_correction and method.fits_raw(cfg):
             print(f"lens falloff: corrected on loading by the raw files' "
                   f"{scene.lens_correction}; the frame-based estimate is skipped")

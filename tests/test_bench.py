@@ -144,6 +144,9 @@ def test_a_training_item_measures_again_when_any_field_changes(monkeypatch):
     assert on["config"] != off["config"]
     assert train_spec(scene, "default", [], run) == on
     monkeypatch.setattr(planmod, "APPENDED_STEPS", (1200, 1))
-    assert train_spec(scene, "default", [], run)["config"] != on["config"]
+    steps = train_spec(scene, "default", [], run)["config"]
+    assert steps != on["config"]
+    monkeypatch.setattr(planmod, "TV_FOOTPRINT", 1.0)
+    assert train_spec(scene, "default", [], run)["config"] not in (on["config"], steps)
     default = cfgmod.preset("default")
     assert fingerprint(default) == fingerprint(cfgmod.override(default, ["grid.voxel_pixels=5"]))

@@ -327,6 +327,15 @@ def test_appended_stage_follows_the_capture_width():
     assert c.loss.tv_ref_width == 192 and c.render.max_samples == 128
     assert c.data.mosaic_stages == 0
     assert optim.tv_scale(c, 3) == 2.0 and optim.tv_scale(c, 2) == 1.0
+    # the TVs by the footprint too: 5 pixels a vertex at 1920 against TV_FOOTPRINT's 2.5 halve
+    # the width's doubling; 3.3 at 1280 leave x1.5; past 2.5 x 2 pixels the weights stay
+    assert planmod.appended_tv_ref(cfg(), 384, 1920) == 384
+    assert planmod.appended_tv_ref(cfg(), 384, 1280) == 256
+    assert planmod.appended_tv_ref(cfg("loss.tv_ref_width=96"), 384, 1920) == 96
+    for capture, scale in ((1920, 1.0), (1280, 1.5), (3840, 1.0)):
+        tv = planmod.appended_tv_ref(cfg(), 384, capture)
+        fitted = planmod.capture_config(cfg(), 384, tv_ref=tv)
+        assert optim.tv_scale(fitted, 3) == scale and optim.tv_scale(fitted, 2) == 1.0
     # the training frames then keep their binned size: a training pixel within half a vertex
     assert data_term.planned_downscale(c, 1920) == 1
 
@@ -355,14 +364,17 @@ def test_a_wide_capture_trains_an_appended_stage_and_resumes(small_scene, tmp_pa
     assert cfgmod.load(run / "config.json").grid.resolutions == ((8, 8, 8), (16, 16, 8))
     monkeypatch.setattr(optim, "make_step", real_make_step)
     assert planmod.load(run).appended_steps == (10, 20)
-    # the code's steps changed since: the resume keeps the schedule the run began with
+    tv_ref = planmod.load(run).appended_tv_ref
+    assert tv_ref == planmod.appended_tv_ref(cfg, 32, 160) == 32  # the fixture is 160 wide
+    # the code's steps and footprint changed since: the resume keeps what the run began with
     monkeypatch.setattr(planmod, "APPENDED_STEPS", (10, 30))
+    monkeypatch.setattr(planmod, "TV_FOOTPRINT", 1.0)
     off = cfgmod.override(cfg, ["grid.voxel_pixels=0"])
     summary = trainmod.train(small_scene, run, off, overwrite_config=True)
     assert "resuming" in capsys.readouterr().out
     assert summary["resolution"][0] == 32 and planmod.load(run).appended_width == 32
     fitted = eval_run.load_run(run)[0]
-    assert fitted.grid.resolutions[-1] == (32, 0, 12)
+    assert fitted.grid.resolutions[-1] == (32, 0, 12) and fitted.loss.tv_ref_width == tv_ref
     last = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])
     assert (last["stage"], last["step"]) == (2, 20)
 
