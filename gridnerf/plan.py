@@ -249,7 +249,9 @@ def appended_tv_ref(cfg, width: int, capture_width: int) -> int:
     5 pixels a vertex: its TVs are the configured weights (scale 1) rather than twice them
     (its width over 192). Chosen on the tuning captures bucket and dev_arc_shop at
     1920x1080 (+0.06 and +0.16 dB, colour-aligned +0.51 and +0.21), then shown on the
-    held-out ones (docs/results.md, "At the capture's own resolution")."""
+    held-out held_arc_table and held_deep_hall (+0.24, +0.35) and on a path-traced capture
+    at 1280x720 (x1.5 against x2: +0.16; docs/results.md, "At the capture's own
+    resolution")."""
     if cfg.loss.tv_ref_width:
         return int(cfg.loss.tv_ref_width)
     last = int(cfg.grid.resolutions[-1][0])

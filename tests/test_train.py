@@ -328,7 +328,8 @@ def test_appended_stage_follows_the_capture_width():
     assert c.data.mosaic_stages == 0
     assert optim.tv_scale(c, 3) == 2.0 and optim.tv_scale(c, 2) == 1.0
     # the TVs by the footprint too: 5 pixels a vertex at 1920 against TV_FOOTPRINT's 2.5 halve
-    # the width's doubling; 3.3 at 1280 leave x1.5; past 2.5 x 2 pixels the weights stay
+    # the width's doubling; 3.3 at 1280 leave x1.5; at 3840 (10 pixels) the rule's x0.5
+    # leaves the configured weights (optim.tv_scale never weakens them)
     assert planmod.appended_tv_ref(cfg(), 384, 1920) == 384
     assert planmod.appended_tv_ref(cfg(), 384, 1280) == 256
     assert planmod.appended_tv_ref(cfg("loss.tv_ref_width=96"), 384, 1920) == 96
