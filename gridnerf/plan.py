@@ -196,11 +196,11 @@ def refined_config(cfg, plan: RunPlan):
                                      detail_width=0))
 
 
-def _finer(cfg, width: int, ratio: float):
+def _finer(cfg, width: int, ratio: float, tv_ref: int | None = None):
     """cfg with a last stage `ratio` times the configured last `width`: the TVs scaled
-    against that width (loss.tv_ref_width, unless set; optim.tv_scale) and the slots' cap
-    by the ratio (a finer grid holds more samples per ray)."""
-    ref = cfg.loss.tv_ref_width or width
+    against tv_ref (None: loss.tv_ref_width, unless set that width; optim.tv_scale) and the
+    slots' cap by the ratio (a finer grid holds more samples per ray)."""
+    ref = tv_ref or cfg.loss.tv_ref_width or width
     return replace(cfg, loss=replace(cfg.loss, tv_ref_width=int(ref)),
                    render=replace(cfg.render,
                                   max_samples=int(round(cfg.render.max_samples * ratio))))
@@ -276,9 +276,7 @@ def capture_config(cfg, width: int | None, steps: tuple[int, int] | None = None,
     res.append((int(width), 0, int(round(last[2] * 1.5))))
     before, after = steps or APPENDED_STEPS
     per_stage = (*cfg.train.steps_per_stage[:-1], int(before), int(after))
-    cfg = _finer(cfg, last[0], width / last[0])
-    if tv_ref is not None:
-        cfg = replace(cfg, loss=replace(cfg.loss, tv_ref_width=int(tv_ref)))
+    cfg = _finer(cfg, last[0], width / last[0], tv_ref)
     return replace(cfg, grid=replace(cfg.grid, resolutions=tuple(res)),
                    data=replace(cfg.data, mosaic_stages=0),
                    train=replace(cfg.train, steps_per_stage=per_stage))

@@ -268,13 +268,14 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
     # the training frames' downscale (the saved plan's, or from the final grid's footprint):
     # from here on `cfg` builds the data with it; config.json keeps the user's `asked`
     asked = cfg
-    appended = (planmod.appended_width(cfg, scene.cameras.width) if saved is None
-                else saved.appended_width)
-    appended_steps = (planmod.APPENDED_STEPS if saved is None
-                      else planmod.trained_appended_steps(saved))
-    appended_tv = (None if appended is None
-                   else planmod.appended_tv_ref(cfg, appended, scene.cameras.width)
-                   if saved is None else saved.appended_tv_ref)
+    if saved is None:
+        appended = planmod.appended_width(cfg, scene.cameras.width)
+        appended_steps = planmod.APPENDED_STEPS
+        appended_tv = (None if appended is None
+                       else planmod.appended_tv_ref(cfg, appended, scene.cameras.width))
+    else:  # a resume keeps the stage, steps and TVs its run began with
+        appended, appended_tv = saved.appended_width, saved.appended_tv_ref
+        appended_steps = planmod.trained_appended_steps(saved)
     cfg = planmod.capture_config(cfg, appended, appended_steps, appended_tv)
     if appended is not None and saved is None:
         print(f"last stage: {cfg.grid.resolutions[-2][0]} vertices across span "
