@@ -47,6 +47,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import hashlib
+import inspect
 import json
 import math
 import os
@@ -373,12 +374,15 @@ def train_spec(scene: Path, preset: str, sets: list[str], run: Path) -> dict:
     at the value that trains a kept result as before, and a new field may still change
     what a capture the kept results do not cover trains (grid.voxel_pixels at
     1920x1080). The steps of an appended stage are fixed in code (plan.APPENDED_STEPS),
-    so they join the key too, as does the footprint its TVs are scaled by
-    (plan.TV_FOOTPRINT)."""
+    so they join the key too, as do the footprint its TVs are scaled by
+    (plan.TV_FOOTPRINT) and the code of the rules that scale them (plan.appended_tv_ref,
+    plan.configured_tv)."""
     trained = cfgmod.override(cfgmod.preset(preset), sets)
     blob = json.dumps({"config": cfgmod.to_dict(trained),
                        "appended_steps": list(planmod.APPENDED_STEPS),
-                       "tv_footprint": planmod.TV_FOOTPRINT},
+                       "tv_footprint": planmod.TV_FOOTPRINT,
+                       "tv_rules": [inspect.getsource(f) for f in (planmod.appended_tv_ref,
+                                                                   planmod.configured_tv)]},
                       sort_keys=True, default=str)
     return {"scene": str(scene), "preset": preset, "sets": list(sets),
             "config": hashlib.sha256(blob.encode()).hexdigest()[:16], "run": str(run)}

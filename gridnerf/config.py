@@ -220,7 +220,8 @@ class LossConfig(_Section):
     tv_fraction: float = 0.1  # share of the grid's rows the grid priors sample per step
     # width (vertices across x) the TV weights are set for: a wider stage scales them by its
     # width over this (optim.tv_scale; 0: unset: a refined stage's are scaled against the
-    # configured last width, an appended stage's by its footprint, plan.appended_tv_ref)
+    # configured last width, an appended stage's by its footprint, plan.appended_tv_ref, and
+    # the configured stages' then by theirs, plan.configured_tv; set: neither footprint rule)
     tv_ref_width: int = 0
     # what restores the colour: "field" (per-voxel von Kries gains), "global" (one gain for
     # the capture), "auto" (one gain under one light, the field where lights mix), "none"

@@ -63,6 +63,18 @@ def tv_scale(cfg: Config, stage: int) -> float:
     return float(width) / ref if ref > 0 and width > ref else 1.0
 
 
+def stage_tv_scale(cfg: Config, plan: RunPlan, stage: int) -> float:
+    """The factor on the TVs in `stage` of a run: tv_scale, times the plan's configured_tv
+    on the stages the config gave (every stage but the one the run appended;
+    plan.configured_tv None: 1)."""
+    scale = tv_scale(cfg, stage)
+    appended = (plan.appended_width is not None
+                and stage == len(cfg.grid.resolutions) - 1)
+    if plan.configured_tv is not None and not appended:
+        scale *= plan.configured_tv
+    return scale
+
+
 def step_plan(cfg: Config, plan: RunPlan, stage: int, scene) -> StepPlan:
     """The StepPlan of stage `stage` of a run: its plan's eps, opacity weight, candidate
     count and occupied-sample slots; the gain terms where the colour is the gain field; the
@@ -78,7 +90,7 @@ def step_plan(cfg: Config, plan: RunPlan, stage: int, scene) -> StepPlan:
                     n_candidates=plan.n_candidates[stage],
                     max_samples=plan.samples(stage, cfg),
                     train_gains=plan.colour.model == "field", anchor=anchor, locus=locus,
-                    tv_scale=tv_scale(cfg, stage))
+                    tv_scale=stage_tv_scale(cfg, plan, stage))
 
 
 def loss_fn(params, structure, rays: dict, key, cfg: Config, step: StepPlan, near_t: float,

@@ -46,7 +46,7 @@ APPENDED_STEPS = (1200, 3600)
 # what a plan saved before it recorded them trained: (1200, 2400)
 APPENDED_STEPS_BEFORE = (1200, 2400)
 # capture pixels across a vertex of the last stage where the grid priors' weights were set:
-# 480x270 captures and the 192-wide last stage (appended_tv_ref)
+# 480x270 captures and the 192-wide last stage (appended_tv_ref, configured_tv)
 TV_FOOTPRINT = 2.5
 
 
@@ -120,7 +120,10 @@ class RunPlan:
     None: none appended, or a plan saved before they were recorded, see
     trained_appended_steps); appended_tv_ref: the loss.tv_ref_width the appended stage's
     TVs were scaled against (appended_tv_ref; None: none appended, or a plan saved before
-    it was recorded: the config's, else its last configured width).
+    it was recorded: the config's, else its last configured width); configured_tv: the
+    factor on the TVs of the configured stages where a stage is appended (configured_tv;
+    None: none appended, loss.tv_ref_width set, or a plan saved before it was recorded:
+    the weights as configured).
     """
 
     method: str
@@ -142,6 +145,7 @@ class RunPlan:
     appended_width: int | None = None
     appended_steps: tuple[int, int] | None = None
     appended_tv_ref: int | None = None
+    configured_tv: float | None = None
 
     @property
     def one_gain(self) -> tuple[float, float, float] | None:
@@ -256,6 +260,27 @@ def appended_tv_ref(cfg, width: int, capture_width: int) -> int:
         return int(cfg.loss.tv_ref_width)
     last = int(cfg.grid.resolutions[-1][0])
     return max(1, int(round(last * capture_width / (TV_FOOTPRINT * int(width)))))
+
+
+def configured_tv(cfg, appended: int | None, capture_width: int) -> float | None:
+    """The factor on the TVs of cfg's own stages on a capture `capture_width` pixels wide
+    where a stage `appended` wide is appended after them (appended_width): TV_FOOTPRINT
+    over the capture pixels a vertex of the last configured stage spans, at most 1 (0.25 at
+    1920x1080, 0.375 at 1280x720); None where none is appended (every capture at 960
+    pixels across or fewer) or loss.tv_ref_width is set (the user's width rules the TVs).
+
+    Why: the weights were set at 480x270, where a vertex of each stage spans 480 / its
+    width capture pixels (2.5 for the 192-wide one). On a wider capture the same stage's
+    vertex spans more pixels, whose mean holds less noise, and the same prior holds back
+    texture rather than noise: each stage keeps the strength it had per pixel of a 480x270
+    frame, as appended_tv_ref does for the appended stage. Chosen on the tuning captures
+    bucket and dev_arc_shop at 1920x1080 (-0.01 and +0.20 dB; every TV halved instead:
+    -0.04 and +0.16, with CIEDE2000 +0.23 and +0.35), then shown on held-out and
+    path-traced captures (docs/results.md, "At the capture's own resolution")."""
+    if appended is None or cfg.loss.tv_ref_width:
+        return None
+    last = int(cfg.grid.resolutions[-1][0])
+    return min(1.0, TV_FOOTPRINT * last / int(capture_width))
 
 
 def capture_config(cfg, width: int | None, steps: tuple[int, int] | None = None,

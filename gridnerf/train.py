@@ -158,7 +158,7 @@ def _colour_solve(run: Path, cfg: Config, plan, scene, method, structure, params
     data = stage_data(data, scene, cfg, method, plan, last)
     params, record = colour_solve.solve(structure, params, data, near_t, far_t, cfg,
                                         plan.data_eps, plan.n_candidates[last],
-                                        optim.tv_scale(cfg, last))
+                                        optim.stage_tv_scale(cfg, plan, last))
     print(f"colour solve: {record['iterations']} L-BFGS iterations over {record['rays']:,} "
           f"rays in {record['seconds']:.0f} s, data term {record['data_before']:.4g} -> "
           f"{record['data_after']:.4g} ({record['kept']} colour kept)")
@@ -273,8 +273,10 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
         appended_steps = planmod.APPENDED_STEPS
         appended_tv = (None if appended is None
                        else planmod.appended_tv_ref(cfg, appended, scene.cameras.width))
+        configured_tv = planmod.configured_tv(cfg, appended, scene.cameras.width)
     else:  # a resume keeps the stage, steps and TVs its run began with
         appended, appended_tv = saved.appended_width, saved.appended_tv_ref
+        configured_tv = saved.configured_tv
         appended_steps = planmod.trained_appended_steps(saved)
     cfg = planmod.capture_config(cfg, appended, appended_steps, appended_tv)
     if appended is not None and saved is None:
@@ -282,7 +284,9 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
               f"{scene.cameras.width / cfg.grid.resolutions[-2][0]:.3g} capture pixels, over "
               f"grid.voxel_pixels = {cfg.grid.voxel_pixels:g}: a stage {appended} wide is "
               f"appended, its TVs x{optim.tv_scale(cfg, len(cfg.grid.resolutions) - 1):.3g} "
-              f"({scene.cameras.width / appended:.3g} pixels a vertex; plan.appended_tv_ref)")
+              f"({scene.cameras.width / appended:.3g} pixels a vertex; plan.appended_tv_ref)"
+              + ("" if configured_tv is None else
+                 f"; the configured stages' TVs x{configured_tv:.3g} (plan.configured_tv)"))
     downscale = (data_term.planned_downscale(cfg, scene.cameras.width) if saved is None
                  else saved.downscale)
     cfg = data_term.fitted_config(cfg, downscale)
@@ -366,7 +370,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
             photosite_snr=snr, mosaic_stages=mosaic_stages, downscale=downscale,
             appended_width=appended,
             appended_steps=None if appended is None else tuple(appended_steps),
-            appended_tv_ref=appended_tv)
+            appended_tv_ref=appended_tv, configured_tv=configured_tv)
         if scene.lens_correction and method.fits_raw(cfg):
             print(f"lens falloff: corrected on loading by the raw files' "
                   f"{scene.lens_correction}; the frame-based estimate is skipped")

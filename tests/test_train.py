@@ -341,6 +341,29 @@ def test_appended_stage_follows_the_capture_width():
     assert data_term.planned_downscale(c, 1920) == 1
 
 
+def test_configured_stages_tvs_follow_the_capture_footprint():
+    """Where a stage is appended, the configured stages' TVs scale by TV_FOOTPRINT over the
+    capture pixels a vertex of the last configured stage spans (0.25 at 1920, 0.375 at
+    1280), the appended stage's stay its own (appended_tv_ref); no factor where nothing is
+    appended, where loss.tv_ref_width is set, or in a plan saved before the rule."""
+    def cfg(*sets):
+        return cfgmod.override(cfgmod.Config(), ["grid.voxel_pixels=5", *sets])
+
+    assert planmod.configured_tv(cfg(), 384, 1920) == 0.25
+    assert planmod.configured_tv(cfg(), 384, 1280) == 0.375
+    assert planmod.configured_tv(cfg(), None, 480) is None
+    assert planmod.configured_tv(cfg("loss.tv_ref_width=192"), 384, 1920) is None
+    fitted = planmod.capture_config(cfg(), 384, tv_ref=planmod.appended_tv_ref(cfg(), 384, 1920))
+    base = dict(method="brightnerf", black_level="file", data_noise=None, data_eps=1e-3,
+                colour=planmod.ColourPlan(model="none"), opacity=(0.0,) * 4,
+                n_candidates=(0,) * 4)
+    ruled = planmod.RunPlan(**base, appended_width=384, configured_tv=0.25)
+    assert [optim.stage_tv_scale(fitted, ruled, s) for s in range(4)] == [0.25] * 3 + [1.0]
+    before = planmod.RunPlan(**base, appended_width=384)  # saved before the rule
+    assert [optim.stage_tv_scale(fitted, before, s) for s in range(4)] == [1.0] * 4
+    assert planmod.from_dict(planmod.to_dict(ruled)) == ruled
+
+
 def test_a_wide_capture_trains_an_appended_stage_and_resumes(small_scene, tmp_path, capsys,
                                                                monkeypatch):
     """Ten capture pixels a vertex of the last stage over a limit of 2: the run appends a
@@ -367,6 +390,8 @@ def test_a_wide_capture_trains_an_appended_stage_and_resumes(small_scene, tmp_pa
     assert planmod.load(run).appended_steps == (10, 20)
     tv_ref = planmod.load(run).appended_tv_ref
     assert tv_ref == planmod.appended_tv_ref(cfg, 32, 160) == 32  # the fixture is 160 wide
+    configured = planmod.load(run).configured_tv
+    assert configured == planmod.configured_tv(cfg, 32, 160) == 0.25
     # the code's steps and footprint changed since: the resume keeps what the run began with
     monkeypatch.setattr(planmod, "APPENDED_STEPS", (10, 30))
     monkeypatch.setattr(planmod, "TV_FOOTPRINT", 1.0)
@@ -376,6 +401,7 @@ def test_a_wide_capture_trains_an_appended_stage_and_resumes(small_scene, tmp_pa
     assert summary["resolution"][0] == 32 and planmod.load(run).appended_width == 32
     fitted = eval_run.load_run(run)[0]
     assert fitted.grid.resolutions[-1] == (32, 0, 12) and fitted.loss.tv_ref_width == tv_ref
+    assert planmod.load(run).configured_tv == configured
     last = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])
     assert (last["stage"], last["step"]) == (2, 20)
 
