@@ -272,11 +272,14 @@ def configured_tv(cfg, appended: int | None, capture_width: int) -> float | None
     Why: the weights were set at 480x270, where a vertex of each stage spans 480 / its
     width capture pixels (2.5 for the 192-wide one). On a wider capture the same stage's
     vertex spans more pixels, whose mean holds less noise, and the same prior holds back
-    texture rather than noise: each stage keeps the strength it had per pixel of a 480x270
-    frame, as appended_tv_ref does for the appended stage. Chosen on the tuning captures
-    bucket and dev_arc_shop at 1920x1080 (-0.01 and +0.20 dB; every TV halved instead:
-    -0.04 and +0.16, with CIEDE2000 +0.23 and +0.35), then shown on held-out and
-    path-traced captures (docs/results.md, "At the capture's own resolution")."""
+    texture rather than noise: each stage's weight falls as its vertex's footprint grows
+    over the one it was set at, as appended_tv_ref has the appended stage's do. Chosen on
+    the tuning captures bucket and dev_arc_shop at 1920x1080 (-0.01 and +0.20 dB; every TV
+    halved instead: -0.04 and +0.16, with CIEDE2000 +0.23 and +0.35), then shown on the
+    held-out held_arc_table and held_deep_hall at 1920x1080 (+0.24, +0.07) and a
+    path-traced capture at 1280x720 (+0.07), CIEDE2000 lower on all three (docs/results.md,
+    "At the capture's own resolution"). The detail rule's refined stage, where it acts on
+    such a capture, is a configured stage and takes the factor too."""
     if appended is None or cfg.loss.tv_ref_width:
         return None
     last = int(cfg.grid.resolutions[-1][0])
