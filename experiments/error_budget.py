@@ -86,7 +86,7 @@ from experiments.common import (
     update_doc,
     write_report,
 )
-from gridnerf import atomic, dataset, exposure, illuminant, image_io, raw
+from gridnerf import atomic, dataset, exposure, illuminant, image_io, plan, raw
 from gridnerf import config as cfgmod
 from gridnerf.color import srgb_encode
 from gridnerf.eval_run import load_run, render_view
@@ -236,10 +236,12 @@ def by_scale(pred_linear: np.ndarray, gt_linear: np.ndarray) -> dict[str, float]
 
 def best_maps(scene, run: Path) -> dict[str, float]:
     """Means over the test views of a loaded scene of best_map_psnr on a run's
-    renders (<run>/eval/<view>_pred.exr, the shipped "gridnerf" output: the file's colour
-    matrix): "best_white" (the diagonal) and "best_map" (any 3x3), and of by_scale
-    ("coarse", "detail_kept", "chroma_share"); empty where a render is missing."""
-    matrix = exposure.display_matrix(scene.xyz_to_cam, True)
+    renders (<run>/eval/<view>_pred.exr, the shipped "gridnerf" output: the colour matrix
+    the run took as the sensor's, ColourPlan.sensor_matrix): "best_white" (the diagonal)
+    and "best_map" (any 3x3), and of by_scale ("coarse", "detail_kept", "chroma_share");
+    empty where a render is missing."""
+    matrix = exposure.display_matrix(plan.load(run).colour.sensor_matrix(scene.xyz_to_cam),
+                                     True)
     out = {"best_white": [], "best_map": [], "coarse": [], "detail_kept": [], "chroma_share": []}
     for i in scene.test_idx:
         pred = run / "eval" / f"{scene.names[i]}_pred.exr"

@@ -171,9 +171,11 @@ def reference_matrix(scene) -> tuple[str, np.ndarray] | None:
 def matrix_check(scene) -> str | None:
     """Why the file's ColorMatrix cannot be trusted as the sensor's, or None: it differs by
     more than MATRIX_AGREE_DEG (illuminant.matrix_disagreement_deg) from the reference
-    matrix of the camera model the file names (reference_matrix). The file's matrix is
-    still the one used for display (the file's tag wins); only the locus prior, which
-    leans on it hardest, is given up."""
+    matrix of the camera model the file names (reference_matrix). The frames then decide
+    (trusted_locus): where they agree with the reference's Planckian locus, the run takes
+    the reference as the sensor's matrix, for the locus prior and the display alike
+    (ColourPlan.sensor_matrix); where they agree with neither, the locus prior is given
+    up and the display keeps the file's matrix."""
     ref = reference_matrix(scene)
     if ref is None:
         return None
@@ -355,8 +357,8 @@ def trusted_locus(scene, cfg: Config, frames, downscale: int
     where that is its camera's (matrix_check) and the frames agree with its locus
     (locus_check). Where the file's matrix is unlike its camera model's reference, the
     reference's locus is checked against the frames instead and used where they agree
-    with it: the frames, not the file, say which matrix describes the sensor (the display
-    keeps the file's matrix: the file's tag wins there). given up: whether the checks gave
+    with it: the frames, not the file, say which matrix describes the sensor, and the
+    display uses the same one (ColourPlan.sensor_matrix). given up: whether the checks gave
     the prior up ("consistent" then takes grey world, unprojected); disagreement: how far
     the estimators disagree without the locus (estimators_disagree). One printed line
     naming the file's matrix, the reason and the fallback wherever the file's locus is not
@@ -376,7 +378,7 @@ def trusted_locus(scene, cfg: Config, frames, downscale: int
             print(f"colour: {why}; the frames agree with the reference's Planckian locus "
                   f"({ref_angle:.1f} deg, grey world {ref_gap:.2f} from it) where the file's "
                   f"ColorMatrix {matrix} gives {angle:.1f} deg and {gap:.2f}: the locus prior "
-                  f"is built from {model}'s reference matrix (the display keeps the file's)")
+                  f"is built from {model}'s reference matrix, and the display uses it too")
             return np.asarray(ref, np.float64), False, disagreement, free
         why += (f", and the frames agree with neither locus ({ref_angle:.1f} deg / "
                 f"{ref_gap:.2f} from the reference's)")

@@ -301,7 +301,7 @@ class TrainConfig(_Section):
 @dataclass(frozen=True)
 class OutputConfig(_Section):
     _SECTION = "output"
-    use_color_matrix: bool = True  # camera RGB -> sRGB by the file's ColorMatrix (false: none)
+    use_color_matrix: bool = True  # camera RGB -> sRGB by the sensor's ColorMatrix (false: none)
     target_luminance: float = 0.18  # auto exposure: mean luminance of the training renders
 
     def _check(self) -> None:

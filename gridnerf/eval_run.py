@@ -337,7 +337,8 @@ def render_run(run: Path, settings: RenderSettings | None = None) -> Path:
     training_out = outputs.training_render(structure, params, scene, cfg)
     shown = run_outputs(cfg, plan, scene, structure, params, training_out)
     main = look.shown_output(shown, main_output(cfg), white,
-                             look.neutral_rgb(white, scene, render_frame),
+                             look.neutral_rgb(white, scene, render_frame,
+                                              plan.colour.sensor_matrix(scene.xyz_to_cam)),
                              settings.exposure_stops, training_out,
                              cfg.output.target_luminance)
     out_dir = run / "render"

@@ -13,7 +13,7 @@ the trained field:
   - `as_shot`: the files' AsShotNeutral (the camera's own white balance; mean over frames),
   - `temp:K[,DUV]`: a light at K kelvin on the Planckian locus, DUV off it (ANSI C78.377
     Duv: positive greener, negative more magenta; color.tinted_xyz_white), taken to camera
-    RGB with the file's ColorMatrix,
+    RGB with the ColorMatrix the run took as the sensor's (ColourPlan.sensor_matrix),
   - `neutral:VIEW:X,Y[,W,H]`: the field's low-light colour of a picked neutral patch
     (pixel box in the render of frame VIEW at the render's size; 5x5 around X,Y unless
     W,H are given), the "click on something grey" of a raw converter;
@@ -101,17 +101,20 @@ def view_index(scene, name: str) -> int:
     return scene.names.index(name)
 
 
-def neutral_rgb(white: White, scene, render_frame) -> np.ndarray | None:
+def neutral_rgb(white: White, scene, render_frame, xyz_to_cam=None) -> np.ndarray | None:
     """(3,) unit camera RGB of the light the white balance undoes; None for learned and
     one_gain (their gains come from the run). render_frame(i) -> the render dict
-    (H, W, ...) of frame i at the render's size, for a picked neutral point."""
+    (H, W, ...) of frame i at the render's size, for a picked neutral point; xyz_to_cam:
+    (3, 3) the sensor's matrix a temperature is taken through (the run's
+    ColourPlan.sensor_matrix; None: the file's)."""
     if white.mode == "as_shot":
         per_frame = np.asarray(scene.as_shot_neutral, np.float64)
         per_frame /= np.linalg.norm(per_frame, axis=-1, keepdims=True)
         return np.asarray(illuminant.unit(per_frame.mean(0)))
     if white.mode == "temperature":
         xyz = color.tinted_xyz_white(white.kelvin, white.duv)
-        return np.asarray(illuminant.unit(np.asarray(scene.xyz_to_cam, np.float64) @ xyz))
+        matrix = scene.xyz_to_cam if xyz_to_cam is None else xyz_to_cam
+        return np.asarray(illuminant.unit(np.asarray(matrix, np.float64) @ xyz))
     if white.mode == "neutral":
         out = render_frame(view_index(scene, white.view))
         rgb_low = np.asarray(out["rgb_low"], np.float64)

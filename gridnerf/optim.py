@@ -83,8 +83,7 @@ def step_plan(cfg: Config, plan: RunPlan, stage: int, scene) -> StepPlan:
     anchor = None if plan.colour.anchor is None else np.asarray(plan.colour.anchor, np.float32)
     locus = None
     if cfg.loss.ca_target == "batch" and plan.colour.locus and plan.colour.model == "field":
-        matrix = (scene.xyz_to_cam if plan.colour.locus_matrix is None
-                  else np.reshape(plan.colour.locus_matrix, (3, 3)))
+        matrix = plan.colour.sensor_matrix(scene.xyz_to_cam)
         locus = np.asarray(illuminant.planckian_locus(matrix), np.float32)
     return StepPlan(data_eps=plan.data_eps, opacity=plan.opacity[stage],
                     n_candidates=plan.n_candidates[stage],

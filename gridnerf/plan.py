@@ -35,6 +35,8 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
+
 from gridnerf import atomic
 from gridnerf.errors import CheckpointError
 
@@ -65,9 +67,10 @@ class ColourPlan:
     downscale the estimates ran at. locus: whether the estimates were projected onto the
     Planckian locus of the file's ColorMatrix (loss.ca_locus where the frames agree with
     it: colour_target.locus_check); locus_matrix: the XYZ -> camera matrix (9,) row-major
-    whose locus was used where it is not the file's (its camera model's reference, which
-    the frames agreed with where the file's matrix did not: colour_target.trusted_locus),
-    None for the file's. evidence: {name: (3,)} what the frames say the light
+    that the run takes as the sensor's where it is not the file's (its camera model's
+    reference, which the frames agreed with where the file's matrix did not:
+    colour_target.trusted_locus): the locus prior and the display both use it
+    (sensor_matrix); None for the file's. evidence: {name: (3,)} what the frames say the light
     is, without the locus (the three estimators, the files' as-shot neutral, a white
     reference where given): the end-of-training check (gridnerf.shipped_colour) compares
     the shipped white with it. shipped_gains / shipped_why: the one gain shown in place of
@@ -86,6 +89,14 @@ class ColourPlan:
     evidence: dict[str, tuple[float, float, float]] = field(default_factory=dict)
     shipped_gains: tuple[float, float, float] | None = None
     shipped_why: str | None = None
+
+    def sensor_matrix(self, file_matrix) -> np.ndarray:
+        """(3, 3) the XYZ -> camera matrix the run takes as the sensor's: locus_matrix
+        where the frames chose the camera model's reference over the file's ColorMatrix,
+        else the file's (`file_matrix`, Scene.xyz_to_cam)."""
+        if self.locus_matrix is None:
+            return np.asarray(file_matrix, np.float64)
+        return np.reshape(np.asarray(self.locus_matrix, np.float64), (3, 3))
 
 
 @dataclass(frozen=True)

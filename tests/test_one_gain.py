@@ -117,6 +117,20 @@ def test_auto_trains_one_gain_on_one_light_and_eval_shows_it(small_scene, tmp_pa
     as_field = replace(run_plan, colour=replace(run_plan.colour, model="field"))
     field = eval_run.run_outputs(cfg, as_field, scene, structure, params)["gridnerf"]
     assert field.source == "rgb_restored"
+    # the display goes through the matrix the run takes as the sensor's: the file's, or
+    # the reference the frames chose over it (colour.locus_matrix)
+    from gridnerf import exposure
+    from gridnerf.color import CAMERA_XYZ_TO_CAM
+
+    np.testing.assert_allclose(shown.matrix, exposure.display_matrix(scene.xyz_to_cam, True))
+    other = next(m for m in CAMERA_XYZ_TO_CAM.values()
+                 if not np.allclose(m, scene.xyz_to_cam))
+    chosen = replace(run_plan, colour=replace(run_plan.colour,
+                                              locus_matrix=tuple(np.ravel(other))))
+    for name, o in eval_run.run_outputs(cfg, chosen, scene, structure, params).items():
+        expected = np.eye(3) if name == "gridnerf_matrix_free" else exposure.display_matrix(
+            other, True)
+        np.testing.assert_allclose(o.matrix, expected, err_msg=name)
     metrics = eval_run.evaluate_run(run)
     assert metrics["colour"] == {"one_gain": pytest.approx(gains.tolist())}
     assert np.isfinite(metrics["summary"]["gridnerf"]["psnr"])

@@ -6,7 +6,7 @@ the oracle and 2D + NeRF rows, without gains) under RawNeRF's relative
 L2 (losses.data_loss) and the gain field under the chromatic adaptation loss (eq. 14,
 losses.ca_loss, its target from gridnerf.colour_target's plan) and the local smoothness
 (edge-aware grid TV, losses.edge_aware_gain_tv, or eq. 15 on ray patches,
-losses.smooth_loss_patch). Shown as rgb_low x gains through the file's colour matrix with
+losses.smooth_loss_patch). Shown as rgb_low x gains through the sensor's colour matrix with
 one auto exposure per run (gridnerf.outputs), beside the matrix-free output and one
 grey-world gain for the capture on the same field (the reference a gain field must beat).
 """
@@ -111,21 +111,21 @@ def outputs(structure, params, scene, cfg: Config, plan, out: dict | None = None
     `out`): "gridnerf" (the colour matrix, or matrix-free without output.use_color_matrix),
     "gridnerf_matrix_free", and "global_grey_world" (the field's low-light colour times one
     grey-world gain for the capture, global_gains). Where the run's colour is one
-    gain (plan.one_gain) the first two show the low-light colour times it."""
+    gain (plan.one_gain) the first two show the low-light colour times it. The colour
+    matrix is the one the run takes as the sensor's (ColourPlan.sensor_matrix: the file's,
+    or its camera model's reference where the frames chose it over the file's)."""
     out = training_render(structure, params, scene, cfg) if out is None else out
     raw_target = cfg.data.target in CAMERA_RAW
     one_gain = plan.one_gain
     ones = np.ones(3) if one_gain is None else np.asarray(one_gain, np.float64)
     source = "rgb_restored" if cfg.loss.use_gains and one_gain is None else "rgb_low"
     free = Output(source, ones, np.eye(3))
+    sensor = plan.colour.sensor_matrix(scene.xyz_to_cam)
     shown = {
-        "gridnerf": (Output(source, ones,
-                                    exposure.display_matrix(scene.xyz_to_cam, raw_target))
+        "gridnerf": (Output(source, ones, exposure.display_matrix(sensor, raw_target))
                      if cfg.output.use_color_matrix else free),
         "gridnerf_matrix_free": free,
-        "global_grey_world": Output("rgb_low", global_gains(out),
-                                            exposure.display_matrix(
-                                                scene.xyz_to_cam,
-                                                raw_target and cfg.output.use_color_matrix)),
+        "global_grey_world": Output("rgb_low", global_gains(out), exposure.display_matrix(
+            sensor, raw_target and cfg.output.use_color_matrix)),
     }
     return exposed(shown, out, cfg.output.target_luminance)
