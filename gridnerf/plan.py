@@ -65,8 +65,8 @@ class ColourPlan:
     light_spread_deg: how far the capture's illuminant maps stray from the consensus (the
     one-light test), None where it was not measured. estimate_downscale: the box
     downscale the estimates ran at. locus: whether the estimates were projected onto the
-    Planckian locus of the file's ColorMatrix (loss.ca_locus where the frames agree with
-    it: colour_target.locus_check); locus_matrix: the XYZ -> camera matrix (9,) row-major
+    Planckian locus of the sensor's matrix (loss.ca_locus where the frames agree with it:
+    colour_target.locus_check); locus_matrix: the XYZ -> camera matrix (9,) row-major
     that the run takes as the sensor's where it is not the file's (its camera model's
     reference, which the frames agreed with where the file's matrix did not:
     colour_target.trusted_locus): the locus prior and the display both use it

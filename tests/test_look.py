@@ -56,14 +56,19 @@ class _Scene:
 
 
 def test_temperature_white_is_the_cameras_response_to_that_light():
-    """temp:K gives the camera RGB of a blackbody at K through the file's matrix; a warmer
-    light has a higher R/B; as_shot is the files' neutral."""
+    """temp:K gives the camera RGB of a blackbody at K through the file's matrix, or
+    through the sensor's matrix the run took where it is given; a warmer light has a
+    higher R/B; as_shot is the files' neutral."""
     scene = _Scene()
     warm = look.neutral_rgb(look.White("temperature", kelvin=2800.0), scene, None)
     cool = look.neutral_rgb(look.White("temperature", kelvin=8000.0), scene, None)
     expected = scene.xyz_to_cam @ color.blackbody_xyz_white(2800.0)
     assert illuminant.angular_error_deg(warm, expected) < 1e-6
     assert warm[0] / warm[2] > cool[0] / cool[2]
+    sensor = np.diag([0.5, 1.0, 2.0]) @ scene.xyz_to_cam
+    taken = look.neutral_rgb(look.White("temperature", kelvin=2800.0), scene, None, sensor)
+    assert illuminant.angular_error_deg(taken, sensor @ color.blackbody_xyz_white(2800.0)) < 1e-6
+    assert illuminant.angular_error_deg(taken, expected) > 1.0
     shot = look.neutral_rgb(look.White("as_shot"), scene, None)
     assert illuminant.angular_error_deg(shot, [0.5, 1.0, 0.25]) < 1e-6
 
