@@ -22,7 +22,8 @@ def _simulate(args) -> None:
 
     groups = {"all": sim.SCENES, "heldout": sim.HELDOUT, "dev": sim.DEV, "mixed": sim.MIXED,
               "heldmixed": sim.HELDOUT_MIXED, "heldcolour": sim.HELDOUT_COLOUR,
-              "heldquirk": sim.HELDOUT_QUIRK, "cycles": tuple(cycles.CYCLES)}
+              "heldquirk": sim.HELDOUT_QUIRK, "heldunit": sim.HELDOUT_UNIT,
+              "cycles": tuple(cycles.CYCLES)}
     names = groups.get(args.name, (args.name,))
     for name in names:
         if name in cycles.CYCLES:  # path-traced by Blender, at its own size
@@ -33,8 +34,8 @@ def _simulate(args) -> None:
             continue
         if name not in sim.ALL_SCENES:
             fix = (f"choose one of {', '.join(sim.ALL_SCENES + tuple(cycles.CYCLES))}, 'all', "
-                   "'heldout', 'dev', 'mixed', 'heldmixed', 'heldcolour', 'heldquirk' or "
-                   "'cycles'")
+                   "'heldout', 'dev', 'mixed', 'heldmixed', 'heldcolour', 'heldquirk', "
+                   "'heldunit' or 'cycles'")
             raise GridNerfError(None, f"unknown scene {name!r}", fix)
         out = (Path(args.out) if args.out and len(names) == 1
                else Path("data/sim") / sim.folder_name(name, args.light))
@@ -168,9 +169,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "'all' (the nine scenes), 'heldout' (the held-out scenes), 'dev' (the tuning "
                    "scenes with an arc and a slide rig), 'mixed' (the mixed-light scenes), "
                    "'heldmixed' (the held-out mixed-light scenes), 'heldcolour' (held-out "
-                   "files with a wrong ColorMatrix and lights off the Planckian locus) or "
+                   "files with a wrong ColorMatrix and lights off the Planckian locus), "
                    "'heldquirk' (held-out scenes re-shot by a quirky camera: another CFA, "
-                   "12 or 10 bits, vignetting, exposure jitter, hot pixels)")
+                   "12 or 10 bits, vignetting, exposure jitter, hot pixels) or 'heldunit' "
+                   "(a sensor unlike its camera model's reference matrix)")
     s.add_argument("--out", help="scene folder (default data/sim/<name>)")
     s.add_argument("--width", type=_positive_int, default=480)
     s.add_argument("--height", type=_positive_int, default=270)

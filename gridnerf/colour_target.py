@@ -172,10 +172,11 @@ def matrix_check(scene) -> str | None:
     """Why the file's ColorMatrix cannot be trusted as the sensor's, or None: it differs by
     more than MATRIX_AGREE_DEG (illuminant.matrix_disagreement_deg) from the reference
     matrix of the camera model the file names (reference_matrix). The frames then decide
-    (trusted_locus): where they agree with the reference's Planckian locus, the run takes
-    the reference as the sensor's matrix, for the locus prior and the display alike
-    (ColourPlan.sensor_matrix); where they agree with neither, the locus prior is given
-    up and the display keeps the file's matrix."""
+    (trusted_locus): where they agree better with the reference's Planckian locus, the run
+    takes the reference as the sensor's matrix, for the locus prior and the display alike
+    (ColourPlan.sensor_matrix); where they agree better with the file's, the file's is
+    kept; where they agree with neither, the locus prior is given up and the display keeps
+    the file's matrix."""
     ref = reference_matrix(scene)
     if ref is None:
         return None
@@ -356,9 +357,12 @@ def trusted_locus(scene, cfg: Config, frames, downscale: int
     where there is no prior (loss.ca_locus off, or given up). It is the file's ColorMatrix
     where that is its camera's (matrix_check) and the frames agree with its locus
     (locus_check). Where the file's matrix is unlike its camera model's reference, the
-    reference's locus is checked against the frames instead and used where they agree
-    with it: the frames, not the file, say which matrix describes the sensor, and the
-    display uses the same one (ColourPlan.sensor_matrix). given up: whether the checks gave
+    reference's locus is checked against the frames too, and of the two matrices whose
+    locus the frames agree with, the one whose locus lies nearer the frames' grey world
+    (locus_check's grey gap) is taken: the frames, not the file or the table, say which
+    matrix describes the sensor (a generic or another camera's matrix lies farther; a
+    unit's own calibration nearer than its model's reference), and the display uses the
+    same one (ColourPlan.sensor_matrix). given up: whether the checks gave
     the prior up ("consistent" then takes grey world, unprojected); disagreement: how far
     the estimators disagree without the locus (estimators_disagree). One printed line
     naming the file's matrix, the reason and the fallback wherever the file's locus is not
@@ -374,11 +378,17 @@ def trusted_locus(scene, cfg: Config, frames, downscale: int
     if why is not None:
         model, ref = reference_matrix(scene)
         ok, ref_angle, _, ref_gap, _ = locus_check(scene, frames, downscale, ref, free)
+        if trusted and (not ok or gap <= ref_gap):
+            print(f"colour: {why}, but the frames agree better with the file's Planckian "
+                  f"locus (grey world {gap:.2f} from it, {angle:.1f} deg) than with the "
+                  f"reference's ({ref_gap:.2f}, {ref_angle:.1f} deg): the file's ColorMatrix "
+                  f"{matrix} is kept as the sensor's")
+            return np.asarray(scene.xyz_to_cam, np.float64), False, disagreement, free
         if ok:
             print(f"colour: {why}; the frames agree with the reference's Planckian locus "
-                  f"({ref_angle:.1f} deg, grey world {ref_gap:.2f} from it) where the file's "
-                  f"ColorMatrix {matrix} gives {angle:.1f} deg and {gap:.2f}: the locus prior "
-                  f"is built from {model}'s reference matrix, and the display uses it too")
+                  f"({ref_angle:.1f} deg, grey world {ref_gap:.2f} from it) better than with "
+                  f"the file's ColorMatrix {matrix} ({angle:.1f} deg and {gap:.2f}): the locus "
+                  f"prior is built from {model}'s reference matrix, and the display uses it too")
             return np.asarray(ref, np.float64), False, disagreement, free
         why += (f", and the frames agree with neither locus ({ref_angle:.1f} deg / "
                 f"{ref_gap:.2f} from the reference's)")

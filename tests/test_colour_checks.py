@@ -142,7 +142,8 @@ def colour_scenes(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("colour")
     return {n: simulate_scene(n, root / n, width=160, height=90, n_frames=12, seed=0)
-            for n in ("held_colour_generic", "held_colour_other", "held_colour_sodium")}
+            for n in ("held_colour_generic", "held_colour_other", "held_colour_sodium",
+                      "held_unit_own")}
 
 
 def _plan(scene_dir):
@@ -195,6 +196,35 @@ def test_a_wrong_matrix_is_replaced_by_the_reference_the_frames_agree_with(
     anchor = np.asarray(colour.anchor)
     on_reference = illuminant.to_locus(anchor, illuminant.planckian_locus(reference))
     assert float(illuminant.angular_error_deg(anchor, on_reference)) < 0.2
+
+
+def test_a_units_own_matrix_is_kept_where_the_frames_agree_with_it_better(colour_scenes,
+                                                                          capsys):
+    """A unit whose channels leak into their neighbours (4.4 deg from its model's reference),
+    its own matrix in the file: the matrix check fires, but the frames' grey world lies
+    nearer the file's locus than the reference's, so the file's matrix stays the sensor's
+    for the locus prior and the display (one printed line saying so)."""
+    scene, colour, _ = _plan(colour_scenes["held_unit_own"])
+    out = capsys.readouterr().out
+    assert colour_target.matrix_check(scene) is not None
+    assert out.count("is kept as the sensor's") == 1 and "reference matrix" not in out
+    assert colour.locus and colour.locus_matrix is None
+    np.testing.assert_array_equal(colour.sensor_matrix(scene.xyz_to_cam), scene.xyz_to_cam)
+
+
+def test_the_simulated_unit_leaks_into_its_neighbours():
+    """The simulator's crosstalk keeps a grey grey, and at 0.1 puts the sensor over the
+    2 deg at which a file's matrix is called not its camera's."""
+    from gridnerf.sim.sensor import SensorParams, crosstalk_matrix
+
+    np.testing.assert_allclose(crosstalk_matrix(0.1) @ np.ones(3), np.ones(3))
+    unit = SensorParams(camera_model=SONY, crosstalk=0.1)
+    gap = illuminant.matrix_disagreement_deg(unit.xyz_to_cam, CAMERA_XYZ_TO_CAM[SONY])
+    assert colour_target.MATRIX_AGREE_DEG < gap < 6.0
+    np.testing.assert_array_equal(SensorParams(camera_model=SONY).xyz_to_cam,
+                                  CAMERA_XYZ_TO_CAM[SONY])
+    with pytest.raises(ValueError, match="crosstalk"):
+        SensorParams(crosstalk=0.6)
 
 
 def test_a_wrong_matrix_of_an_unknown_camera_is_checked_by_the_frames(colour_scenes, capsys):

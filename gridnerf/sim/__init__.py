@@ -9,7 +9,8 @@ mixed-light scenes (a warm lamp and daylight lighting different parts of the sce
 `HELDOUT_COLOUR` captures that break the colour path's assumptions (a ColorMatrix that does
 not describe the sensor, lights off the Planckian locus), held out; `HELDOUT_QUIRK` held-out
 scenes re-shot by a camera with a real camera's quirks (another CFA layout, 12 or 10 bits,
-lens falloff, auto-exposure jitter, hot pixels), held out.
+lens falloff, auto-exposure jitter, hot pixels), held out; `HELDOUT_UNIT` a sensor unlike
+its camera model's reference matrix, held out.
 """
 
 from gridnerf.sim.scenes import (
@@ -19,10 +20,11 @@ from gridnerf.sim.scenes import (
     HELDOUT_COLOUR,
     HELDOUT_MIXED,
     HELDOUT_QUIRK,
+    HELDOUT_UNIT,
     MIXED,
     SCENES,
 )
 from gridnerf.sim.writer import folder_name, simulate_scene
 
 __all__ = ["ALL_SCENES", "DEV", "HELDOUT", "HELDOUT_COLOUR", "HELDOUT_MIXED", "HELDOUT_QUIRK",
-           "MIXED", "SCENES", "folder_name", "simulate_scene"]
+           "HELDOUT_UNIT", "MIXED", "SCENES", "folder_name", "simulate_scene"]

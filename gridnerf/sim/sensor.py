@@ -99,6 +99,9 @@ class SensorParams:
     # camera's), "diagonal" (the camera's with its rows scaled, as a converter that
     # calibrated under another light)
     file_matrix: str = "sensor"
+    # share of each colour channel's signal that leaks into its spectral neighbours in this
+    # unit (crosstalk_matrix; 0: the camera model's reference matrix is the sensor's)
+    crosstalk: float = 0.0
     # ADC bit depth: 14, 12 or 10 (white level 2**bits - 1, black level BLACK_BY_BITS)
     bits: int = 14
     # lens falloff at the image corners, stops (vignette_gain; 0: none), raw frames only
@@ -112,6 +115,8 @@ class SensorParams:
     converter: ConverterTags = ConverterTags()
 
     def __post_init__(self):
+        if not 0.0 <= self.crosstalk < 0.5:
+            raise ValueError(f"crosstalk must be in [0, 0.5), got {self.crosstalk}")
         if self.bits not in BLACK_BY_BITS:
             raise ValueError(f"bits must be one of {sorted(BLACK_BY_BITS)}, got {self.bits}")
         for field in ("vignette_stops", "exposure_jitter_stops", "hot_pixels"):
@@ -150,8 +155,9 @@ class SensorParams:
 
     @property
     def xyz_to_cam(self) -> np.ndarray:
-        """(3, 3) XYZ -> camera matrix of the sensor (its DNG ColorMatrix1, D65)."""
-        return CAMERA_XYZ_TO_CAM[self.camera_model]
+        """(3, 3) XYZ -> camera matrix of the sensor: its camera model's DNG ColorMatrix1
+        (D65), mixed by this unit's crosstalk (crosstalk_matrix)."""
+        return crosstalk_matrix(self.crosstalk) @ CAMERA_XYZ_TO_CAM[self.camera_model]
 
     @property
     def file_xyz_to_cam(self) -> np.ndarray:
@@ -167,6 +173,16 @@ class SensorParams:
         if self.file_matrix == "diagonal":
             return np.diag(FILE_MATRIX_DIAGONAL) @ self.xyz_to_cam
         raise ValueError(f"unknown file_matrix {self.file_matrix!r}")
+
+
+def crosstalk_matrix(share: float) -> np.ndarray:
+    """(3, 3) camera RGB of the model's reference -> this unit's: R and B each give `share`
+    of their signal to G, G gives share / 2 to each (rows sum to 1, so a grey stays grey).
+    0.1 puts the unit 4.4 deg from the Sony ILCE-7SM2's reference in the colour of a
+    blackbody (illuminant.matrix_disagreement_deg), over the 2 deg at which the colour path
+    calls a file's matrix not its camera's."""
+    s = float(share)
+    return np.array([[1.0 - s, s, 0.0], [s / 2, 1.0 - s, s / 2], [0.0, s, 1.0 - s]])
 
 
 # the row scales of file_matrix = "diagonal"

@@ -66,7 +66,9 @@ def clean_cam(scene_dir) -> Callable[[str], np.ndarray]:
         raise ValueError(f"{folder} is lit by several illuminants; its reference is white "
                          "balanced per light, so the raw signal cannot be rebuilt from it")
     if sim.get("illuminant_kelvin") is None:  # path-traced: the light applied in sRGB
-        to_cam = (sensor.SensorParams(camera_model=sim["camera_model"]).xyz_to_cam
+        to_cam = (sensor.SensorParams(camera_model=sim["camera_model"],
+                                      crosstalk=float(sim.get("sensor_crosstalk", 0.0))
+                                      ).xyz_to_cam
                   @ XYZ_FROM_SRGB)  # as gridnerf.sim.cycles lights its white render
         light = np.asarray(sim["light_rgb"], np.float64)
 
@@ -76,7 +78,8 @@ def clean_cam(scene_dir) -> Callable[[str], np.ndarray]:
         params = sensor.SensorParams(camera_model=sim["camera_model"],
                                      cfa_pattern=sim["cfa_pattern"],
                                      kelvin=float(sim["illuminant_kelvin"]),
-                                     tint_duv=float(sim.get("light_tint_duv", 0.0)))
+                                     tint_duv=float(sim.get("light_tint_duv", 0.0)),
+                                     crosstalk=float(sim.get("sensor_crosstalk", 0.0)))
 
         def scene_to_cam(rgb_linear: np.ndarray) -> np.ndarray:
             return sensor.scene_to_cam(rgb_linear, params)

@@ -383,6 +383,7 @@ def sensor_manifest(params, e_scale: float, gt_scale: float, near_far,
             "file_xyz_to_cam": params.file_xyz_to_cam.tolist(),
             "light_tint_duv": params.tint_duv}
            if params.file_matrix != "sensor" or params.tint_duv else {}),
+        **({"sensor_crosstalk": params.crosstalk} if params.crosstalk else {}),
         "hfov_deg": HFOV_DEG, "ssaa": SSAA, "near_far": near_far,
         "near_far_note": "true bounds for reference only; not in transforms.json",
         "depth_convention": "z-depth along the camera's -z axis, world units",
