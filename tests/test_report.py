@@ -284,3 +284,16 @@ def test_every_generated_table_has_its_markers(name, module, path):
     assert f"<!-- {name}:begin (written by python -m experiments.{module}) -->" in text
     assert f"<!-- {name}:end -->" in text
     assert (REPO / "experiments" / f"{module}.py").is_file()
+
+
+def test_a_colour_group_run_on_some_scenes_keeps_the_other_rows(tmp_path):
+    """kept_rows reads the rows the colour-group report last wrote, which a run on some of
+    the scenes keeps for the others; no report, no rows."""
+    from experiments import colour_groups
+
+    out = tmp_path / "colour_groups"
+    assert colour_groups.kept_rows(out) == {}
+    row = {"group": "nine", "gridnerf": [24.0, 6.0], "colour": "one_gain (0.04)",
+           "black": "lens cap"}
+    out.with_suffix(".json").write_text(json.dumps({"scenes": {"bucket": row}}))
+    assert colour_groups.kept_rows(out) == {"bucket": row}
