@@ -41,7 +41,7 @@ from experiments.common import (
 LABELS = {"nine": "nine built-in", "dev": "tuning", "heldout": "held out",
           "mixed": "mixed light", "heldmixed": "held-out mixed light",
           "heldcolour": "held-out colour", "cycles": "path-traced (Blender Cycles)",
-          "heldquirk": "held-out quirky camera"}
+          "heldquirk": "held-out quirky camera", "heldunit": "held-out sensor unit"}
 
 
 def shipped(facts: dict | None) -> str:

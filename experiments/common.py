@@ -17,6 +17,7 @@ from gridnerf.sim import (
     HELDOUT_COLOUR,
     HELDOUT_MIXED,
     HELDOUT_QUIRK,
+    HELDOUT_UNIT,
     MIXED,
     SCENES,
     folder_name,
@@ -104,7 +105,7 @@ def stale_run(run: Path, preset: str, quick: bool = False) -> bool:
 # the scene groups a study's --scenes may name
 GROUPS = {"nine": SCENES, "heldout": HELDOUT, "dev": DEV, "mixed": MIXED,
           "heldmixed": HELDOUT_MIXED, "heldcolour": HELDOUT_COLOUR, "cycles": tuple(CYCLES),
-          "heldquirk": HELDOUT_QUIRK}
+          "heldquirk": HELDOUT_QUIRK, "heldunit": HELDOUT_UNIT}
 # (label, scenes) of the groups a colour study reports its means over, each apart
 REPORT_GROUPS = tuple((label, GROUPS[key]) for key, label in (
     ("nine", "nine"), ("dev", "tuning"), ("heldout", "held out"), ("mixed", "mixed light"),
