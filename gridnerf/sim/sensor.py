@@ -99,8 +99,8 @@ class SensorParams:
     # camera's), "diagonal" (the camera's with its rows scaled, as a converter that
     # calibrated under another light)
     file_matrix: str = "sensor"
-    # share of each colour channel's signal that leaks into its spectral neighbours in this
-    # unit (crosstalk_matrix; 0: the camera model's reference matrix is the sensor's)
+    # share of each of this unit's colour channels taken from its spectral neighbours
+    # (crosstalk_matrix; 0: the camera model's reference matrix is the sensor's)
     crosstalk: float = 0.0
     # ADC bit depth: 14, 12 or 10 (white level 2**bits - 1, black level BLACK_BY_BITS)
     bits: int = 14
@@ -176,8 +176,9 @@ class SensorParams:
 
 
 def crosstalk_matrix(share: float) -> np.ndarray:
-    """(3, 3) camera RGB of the model's reference -> this unit's: R and B each give `share`
-    of their signal to G, G gives share / 2 to each (rows sum to 1, so a grey stays grey).
+    """(3, 3) camera RGB of the model's reference -> this unit's: the unit's R and B each
+    take `share` of their signal from G, its G share / 2 from each of R and B (rows sum to
+    1, so a grey stays grey).
     0.1 puts the unit 4.4 deg from the Sony ILCE-7SM2's reference in the colour of a
     blackbody (illuminant.matrix_disagreement_deg), over the 2 deg at which the colour path
     calls a file's matrix not its camera's."""
