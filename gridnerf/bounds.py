@@ -40,6 +40,12 @@ from gridnerf.scene import raw_files
 # the NDC near plane is lost, while a near plane too close only costs the coarse stage some
 # depth resolution (the box refit after it removes the rest).
 NEAR_FACTOR, FAR_FACTOR = 0.5, 2.0
+# SIFT sees the previews at most this many pixels on their long side (COLMAP scales the
+# keypoints back to preview pixels). Depth percentiles need no fine detail: on four
+# 1920x1080 simulated captures the bounds at 480 px lay within 1 % (near) and 3 % (far) of
+# those at full size, in 16-30 s instead of 80 s (docs/speed.md, "SfM bounds at 480 px").
+# A capture that does not reconstruct at this size is tried again at full size.
+SFM_IMAGE_SIZE = 480
 
 
 @dataclass(frozen=True)
@@ -63,6 +69,27 @@ def pair_scale(given: np.ndarray, other: np.ndarray) -> float | None:
     return float(np.median(ratios)) if ratios else None
 
 
+def _registered(rec, names: list[str]) -> list[str]:
+    """The frames (stems, in `names` order) that rec gives a pose."""
+    posed = {Path(im.name).stem for im in rec.images.values() if im.has_pose}
+    return [n for n in names if n in posed]
+
+
+def _sparse(image_dir: Path, images: list[str], work: Path, known, names: list[str]):
+    """COLMAP's largest model on the previews at SFM_IMAGE_SIZE, or at full size where that
+    registers fewer than 3 frames (None where neither does)."""
+    for size in (SFM_IMAGE_SIZE, None):
+        attempt = work / f"sfm-{size or 'full'}"
+        attempt.mkdir()
+        rec = poses.run_colmap(image_dir, images, attempt, "PINHOLE", known,
+                               max_image_size=size)
+        if rec is not None and len(_registered(rec, names)) >= 3:
+            return rec
+        if max(poses.preview_size(image_dir, images[0])) <= SFM_IMAGE_SIZE:
+            return rec
+    return rec
+
+
 def from_sfm(scene_dir: Path, cams: Cameras) -> Bounds | None:
     """Bounds from COLMAP points triangulated on the previews (module docstring, 2)."""
     files = raw_files(scene_dir)
@@ -80,8 +107,7 @@ def from_sfm(scene_dir: Path, cams: Cameras) -> Bounds | None:
                 image_dir, previews, _ = poses.sfm_images(scene_dir, files, names, "raw", work)
                 usable = [n for n in names if n in previews]
             known = poses.known_intrinsics(cams, image_dir, previews[usable[0]])
-            rec = poses.run_colmap(image_dir, [previews[n] for n in usable], work, "PINHOLE",
-                                   known)
+            rec = _sparse(image_dir, [previews[n] for n in usable], work, known, names)
         except (GridNerfError, RuntimeError, ValueError, OSError, IndexError):
             return None
         if rec is None:
@@ -89,8 +115,7 @@ def from_sfm(scene_dir: Path, cams: Cameras) -> Bounds | None:
         sparse = work / "sparse"
         sparse.mkdir()
         rec.write(sparse)
-        registered = [n for n in names if n in {Path(im.name).stem for im in rec.images.values()
-                                                if im.has_pose}]
+        registered = _registered(rec, names)
         if len(registered) < 3:
             return None
         colmap_cams, points = pose_files.load_colmap(sparse, registered)

@@ -57,12 +57,15 @@ def _previews(images_dir: Path) -> dict[str, str]:
 
 
 def run_colmap(images_dir: Path, image_names: list[str], work: Path, camera_model: str,
-                known: tuple[float, float, float, float] | None):
+                known: tuple[float, float, float, float] | None,
+                max_image_size: int | None = None):
     """SIFT + exhaustive matching + incremental mapping -> the largest Reconstruction.
 
     known: (fx, fy, cx, cy) in preview pixels, kept fixed (PINHOLE); None lets COLMAP
     estimate a shared `camera_model` (EXIF focal or 1.2 x image size as the start).
-    Inlier thresholds scale with the preview size (2 px at 320 px, COLMAP's 4 px from
+    max_image_size: SIFT runs on the previews scaled to at most this many pixels on the long
+    side (keypoints in preview pixels again); None: COLMAP's default (3200).
+    Inlier thresholds scale with the size SIFT sees (2 px at 320 px, COLMAP's 4 px from
     640 px up): on small noisy previews COLMAP's defaults admit enough outliers to bend
     forward-facing reconstructions by degrees.
     """
@@ -71,7 +74,7 @@ def run_colmap(images_dir: Path, image_names: list[str], work: Path, camera_mode
     # COLMAP logs every registration step at INFO (hundreds of lines per capture); its
     # warnings and errors still show
     pycolmap.logging.minloglevel = max(int(pycolmap.logging.minloglevel), 1)
-    max_error = float(np.clip(max(_preview_size(images_dir, image_names[0])) / 160.0, 2.0, 4.0))
+    max_error = inlier_threshold(max(preview_size(images_dir, image_names[0])), max_image_size)
 
     db = work / "database.db"
     reader = pycolmap.ImageReaderOptions()
@@ -84,6 +87,8 @@ def run_colmap(images_dir: Path, image_names: list[str], work: Path, camera_mode
     # change from run to run, and with them the estimated bounds (near 0.37-1.52 m on one
     # scene in four runs); seeds alone do not fix that
     extraction.num_threads = 1
+    if max_image_size:
+        extraction.max_image_size = int(max_image_size)
     pycolmap.extract_features(db, images_dir, image_names=image_names,
                               camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
                               extraction_options=extraction, device=pycolmap.Device.cpu)
@@ -118,7 +123,15 @@ def run_colmap(images_dir: Path, image_names: list[str], work: Path, camera_mode
     return max(models.values(), key=lambda rec: rec.num_reg_images())
 
 
-def _preview_size(images_dir: Path, name: str) -> tuple[int, int]:
+def inlier_threshold(long_side: int, max_image_size: int | None = None) -> float:
+    """COLMAP's inlier threshold in preview pixels for previews `long_side` pixels long that
+    SIFT sees at most `max_image_size` long: long_side / 160 pixels of the image SIFT saw,
+    within 2-4 (run_colmap), scaled back to preview pixels."""
+    sift_side = min(long_side, max_image_size) if max_image_size else long_side
+    return float(np.clip(sift_side / 160.0, 2.0, 4.0)) * long_side / sift_side
+
+
+def preview_size(images_dir: Path, name: str) -> tuple[int, int]:
     """(width, height) of a preview image, read from its header."""
     shape = iio.improps(images_dir / name).shape
     return int(shape[1]), int(shape[0])
@@ -187,7 +200,7 @@ def known_intrinsics(prev: cam_mod.Cameras | None, images_dir: Path, preview: st
     """Shared (fx, fy, cx, cy) of the previous transforms.json in preview pixels, or None."""
     if prev is None or not all(np.allclose(a, a[0]) for a in (prev.fx, prev.fy, prev.cx, prev.cy)):
         return None
-    width, height = _preview_size(images_dir, preview)
+    width, height = preview_size(images_dir, preview)
     sx, sy = width / prev.width, height / prev.height
     if abs(sx / sy - 1.0) > 0.02:
         return None

@@ -49,6 +49,11 @@ PRUNE_DILATE = 1
 # each end of each axis, with a margin of FIT_MARGIN first-stage voxels around the content
 FIT_QUANTILE = 0.005
 FIT_MARGIN = 2.0
+# carving marches every CARVE_STRIDE-th pixel per axis of a capture CARVE_WIDTH pixels wide
+# (480x270, where the carving was set) and as many rays per frame on a wider one
+# (carving_stride): a 1920x1080 capture's three carvings then took 4 s instead of 49 s
+# (docs/speed.md, "Carving at the capture's ray density")
+CARVE_STRIDE, CARVE_WIDTH = 2, 480
 INIT_DENSITY = -4.0  # raw density a grid starts from (softplus: sigma 0.018 per voxel)
 
 
@@ -154,10 +159,19 @@ def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, nea
     return render.cells_to_vertices(structure, c_max, c_sum)
 
 
+def carving_stride(capture_width: int) -> int:
+    """The pixel stride of the carving's rays on a capture `capture_width` pixels wide:
+    CARVE_STRIDE times the capture's width in CARVE_WIDTHs (rounded, at least 1), so every
+    capture is carved by about the same rays per frame, and a stage's voxels by the same
+    rays each, as the 480x270 captures the carving was set on."""
+    return CARVE_STRIDE * max(1, int(round(int(capture_width) / CARVE_WIDTH)))
+
+
 def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fit: bool,
-                    forward_facing: bool = True):
+                    forward_facing: bool = True, stride: int = CARVE_STRIDE):
     """Carve, optionally refit the box to the content, and resample to resolution `res`
-    (a y of 0 is resolved on the new box, see resolve_resolution).
+    (a y of 0 is resolved on the new box, see resolve_resolution), judged on every
+    `stride`-th training pixel per axis (carving_stride).
 
     Carving keeps the vertices some training ray weighs by more than grid.prune_threshold,
     dilated by PRUNE_DILATE; the fitted box leaves FIT_QUANTILE of the rendered mass out at
@@ -165,7 +179,7 @@ def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fi
     occupancy figures.
     """
     gc = cfg.grid
-    vis, mass = vertex_visibility(structure, params, data, cfg, near_t, far_t)
+    vis, mass = vertex_visibility(structure, params, data, cfg, near_t, far_t, stride)
     keep = grid.dilate_rows(structure, vis > gc.prune_threshold, PRUNE_DILATE)
     if not keep.any() or not mass.sum() > 0:
         raise NumericsError(None, "the coarse grid is empty: no vertex is visible from the "

@@ -74,3 +74,51 @@ def test_run_folder_estimates_bounds_once_and_reuses_them(small_scene, tmp_path,
     assert len(calls) == 1 and second.far == pytest.approx(first.far)
     with pytest.raises(BoundsMissing):
         runfolder.open_scene(small_scene, tmp_path / "other", estimate=False)
+
+
+class _Image:
+    def __init__(self, name):
+        self.name, self.has_pose = name, True
+
+
+class _Rec:
+    def __init__(self, names):
+        self.images = {i: _Image(f"{n}.png") for i, n in enumerate(names)}
+
+
+@pytest.mark.parametrize("width, fails, sizes", [
+    (1920, False, [bounds.SFM_IMAGE_SIZE]),  # a large capture: SIFT on small previews
+    (1920, True, [bounds.SFM_IMAGE_SIZE, None]),  # ... and at full size where that fails
+    (bounds.SFM_IMAGE_SIZE, True, [bounds.SFM_IMAGE_SIZE]),  # nothing larger to try
+])
+def test_sfm_bounds_look_at_small_previews_first(tmp_path, monkeypatch, width, fails, sizes):
+    import imageio.v3 as iio
+
+    from gridnerf import poses
+
+    names = ["a", "b", "c"]
+    for n in names:
+        iio.imwrite(tmp_path / f"{n}.png", np.zeros((width * 9 // 16, width, 3), np.uint8))
+    seen = []
+
+    def fake_colmap(image_dir, images, work, model, known, max_image_size=None):
+        assert work.is_dir() and not any(work.iterdir())  # each attempt its own folder
+        seen.append(max_image_size)
+        return None if fails and max_image_size else _Rec(names)
+
+    monkeypatch.setattr(poses, "run_colmap", fake_colmap)
+    work = tmp_path / "work"
+    work.mkdir()
+    rec = bounds._sparse(tmp_path, [f"{n}.png" for n in names], work, None, names)
+    assert seen == sizes
+    assert (rec is None) == (fails and width <= bounds.SFM_IMAGE_SIZE)
+
+
+def test_inlier_threshold_is_set_in_the_pixels_sift_sees():
+    from gridnerf.poses import inlier_threshold
+
+    assert inlier_threshold(320) == 2.0 and inlier_threshold(480) == 3.0
+    assert inlier_threshold(1920) == 4.0  # COLMAP's own from 640 px up
+    # SIFT on a 1920-pixel preview scaled to 480: 3 of its pixels, 12 preview pixels
+    assert inlier_threshold(1920, 480) == pytest.approx(12.0)
+    assert inlier_threshold(480, 960) == 3.0  # a limit above the size changes nothing

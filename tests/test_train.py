@@ -1114,3 +1114,14 @@ def test_the_views_agree_on_no_detail_where_the_frames_are_the_render_and_noise(
                                         gap=n)[0])
     with pytest.raises(ValueError, match="gap"):
         residual.read_views(structure, params, data, near_t, far_t, cfg.render, gap=0)
+
+
+def test_carving_marches_as_many_rays_a_frame_on_any_capture():
+    """The carving's stride is the one it was set with on a 480-pixel-wide capture, and grows
+    with the capture, so that a 1920x1080 one is carved by the same rays per frame."""
+    assert stages.carving_stride(480) == stages.CARVE_STRIDE == 2
+    assert stages.carving_stride(64) == 2  # never below the stride it was set with
+    for width in (960, 1280, 1920, 6000):
+        stride = stages.carving_stride(width)
+        assert stride % 2 == 0
+        assert width / stride == pytest.approx(480 / 2, rel=0.25)
