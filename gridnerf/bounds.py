@@ -41,9 +41,10 @@ from gridnerf.scene import raw_files
 # depth resolution (the box refit after it removes the rest).
 NEAR_FACTOR, FAR_FACTOR = 0.5, 2.0
 # SIFT sees the previews at most this many pixels on their long side (COLMAP scales the
-# keypoints back to preview pixels). Depth percentiles need no fine detail: on four
-# 1920x1080 simulated captures the bounds at 480 px lay within 1 % (near) and 3 % (far) of
-# those at full size, in 16-30 s instead of 80 s (docs/speed.md, "SfM bounds at 480 px").
+# keypoints back to preview pixels). Depth percentiles need no fine detail: on seven
+# 1280x720 and 1920x1080 captures the bounds at 480 px lay within 5 % (near) and 9 % (far)
+# of those at full size, and bouquet's took 23 s instead of 82 (docs/speed.md, "Outside
+# the training loop at 1920x1080").
 # A capture that does not reconstruct at this size is tried again at full size.
 SFM_IMAGE_SIZE = 480
 

@@ -29,6 +29,9 @@ sensor; none on any of the simulated scenes either).
 
 from __future__ import annotations
 
+import itertools
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 # a pixel is an outlier in a frame where its |deviation| from its same-colour neighbours'
@@ -50,6 +53,8 @@ NEIGHBOURS_MAX = 2
 ISOLATION = 2
 # the noise variance against the level is fitted to this many bins of equal count
 LEVEL_BINS = 16
+# frames read at once, each on its own thread
+WORKERS = 2
 # the 8 same-colour neighbours of a Bayer mosaic pixel: two pixels away
 _OFFSETS = tuple((dy, dx) for dy in (-2, 0, 2) for dx in (-2, 0, 2) if (dy, dx) != (0, 0))
 
@@ -117,6 +122,12 @@ def _lone(z: np.ndarray, sign: float) -> np.ndarray:
     return out
 
 
+def _outliers(raw_norm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(too bright, too dark): (H, W) bool each, the frame's lone outliers (_lone)."""
+    z = robust_z(*neighbour_deviation(raw_norm))
+    return _lone(z, 1.0), _lone(z, -1.0)
+
+
 def defective_pixels(raw_norm_frames) -> tuple[np.ndarray | None, str]:
     """(mask, why): the sensor positions that are outliers (|robust_z| > Z_DEFECT) in at
     least RECUR_SHARE and MIN_FRAMES of the frames, each time standing alone (_lone), and
@@ -130,11 +141,15 @@ def defective_pixels(raw_norm_frames) -> tuple[np.ndarray | None, str]:
     tell a defect from a star or a lamp, so none is taken). why: "" where there is no
     recurring outlier at all."""
     high, low, n = None, None, 0
-    for frame in raw_norm_frames:
-        z = robust_z(*neighbour_deviation(frame))
-        high = _lone(z, 1.0).astype(np.int32) + (0 if high is None else high)
-        low = _lone(z, -1.0).astype(np.int32) + (0 if low is None else low)
-        n += 1
+    frames = iter(raw_norm_frames)
+    # two frames at a time on two threads (numpy's sorts and medians release the GIL: a
+    # 1920x1080 capture's 24 frames took 14 s on one); the counts are the same either way
+    with ThreadPoolExecutor(WORKERS) as pool:
+        while chunk := list(itertools.islice(frames, WORKERS)):
+            for hi, lo in pool.map(_outliers, chunk):
+                high = hi.astype(np.int32) + (0 if high is None else high)
+                low = lo.astype(np.int32) + (0 if low is None else low)
+                n += 1
     if high is None or n < MIN_FRAMES:
         return None, ""
     mask = np.maximum(high, low) >= max(MIN_FRAMES, int(np.ceil(RECUR_SHARE * n)))

@@ -51,8 +51,7 @@ FIT_QUANTILE = 0.005
 FIT_MARGIN = 2.0
 # carving marches every CARVE_STRIDE-th pixel per axis of a capture CARVE_WIDTH pixels wide
 # (480x270, where the carving was set) and as many rays per frame on a wider one
-# (carving_stride): a 1920x1080 capture's three carvings then took 4 s instead of 49 s
-# (docs/speed.md, "Carving at the capture's ray density")
+# (carving_stride; docs/speed.md, "Outside the training loop at 1920x1080")
 CARVE_STRIDE, CARVE_WIDTH = 2, 480
 INIT_DENSITY = -4.0  # raw density a grid starts from (softplus: sigma 0.018 per voxel)
 
