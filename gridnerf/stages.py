@@ -158,19 +158,22 @@ def vertex_visibility(structure, params, data: dataset.RayData, cfg: Config, nea
     return render.cells_to_vertices(structure, c_max, c_sum)
 
 
-def carving_stride(capture_width: int) -> int:
-    """The pixel stride of the carving's rays on a capture `capture_width` pixels wide:
-    CARVE_STRIDE times the capture's width in CARVE_WIDTHs (rounded, at least 1), so every
-    capture is carved by about the same rays per frame, and a stage's voxels by the same
-    rays each, as the 480x270 captures the carving was set on."""
-    return CARVE_STRIDE * max(1, int(round(int(capture_width) / CARVE_WIDTH)))
+def carving_stride(width: int, mosaic: bool) -> int:
+    """The pixel stride of the carving's rays on training frames `width` pixels wide (the
+    raw mosaic's photosites where `mosaic`, else binned or downscaled pixels): CARVE_STRIDE
+    times the frames' width over the width a CARVE_WIDTH capture's frames have in the same
+    form (CARVE_WIDTH photosites, CARVE_WIDTH / 2 binned pixels), rounded, at least 1. So
+    every capture is carved by about the rays per frame, and a stage's voxels by the rays
+    each, of the 480x270 captures the carving was set on."""
+    reference = CARVE_WIDTH if mosaic else CARVE_WIDTH / 2
+    return CARVE_STRIDE * max(1, int(round(int(width) / reference)))
 
 
 def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fit: bool,
-                    forward_facing: bool = True, stride: int = CARVE_STRIDE):
+                    forward_facing: bool = True):
     """Carve, optionally refit the box to the content, and resample to resolution `res`
     (a y of 0 is resolved on the new box, see resolve_resolution), judged on every
-    `stride`-th training pixel per axis (carving_stride).
+    carving_stride-th training pixel per axis.
 
     Carving keeps the vertices some training ray weighs by more than grid.prune_threshold,
     dilated by PRUNE_DILATE; the fitted box leaves FIT_QUANTILE of the rendered mass out at
@@ -178,6 +181,7 @@ def next_stage_grid(structure, params, res, data, cfg: Config, near_t, far_t, fi
     occupancy figures.
     """
     gc = cfg.grid
+    stride = carving_stride(data.image_hw[1], bool(data.mosaic))
     vis, mass = vertex_visibility(structure, params, data, cfg, near_t, far_t, stride)
     keep = grid.dilate_rows(structure, vis > gc.prune_threshold, PRUNE_DILATE)
     if not keep.any() or not mass.sum() > 0:

@@ -402,8 +402,7 @@ def _train(scene_dir: Path, run: Path, cfg: Config, overwrite_config: bool,
                 res = schedule[stage][0]
             structure, params, info = stages.next_stage_grid(
                 structure, params, res, data, cfg, near_t, far_t,
-                fit=cfg.grid.fit_box and stage == 1, forward_facing=scene.forward_facing,
-                stride=stages.carving_stride(scene.cameras.width))
+                fit=cfg.grid.fit_box and stage == 1, forward_facing=scene.forward_facing)
             print(f"stage {stage}: {info['resolution']} grid, box "
                   f"{np.round(info['bbox_min'], 3).tolist()}.."
                   f"{np.round(info['bbox_max'], 3).tolist()}, "

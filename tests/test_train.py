@@ -1117,11 +1117,14 @@ def test_the_views_agree_on_no_detail_where_the_frames_are_the_render_and_noise(
 
 
 def test_carving_marches_as_many_rays_a_frame_on_any_capture():
-    """The carving's stride is the one it was set with on a 480-pixel-wide capture, and grows
-    with the capture, so that a 1920x1080 one is carved by the same rays per frame."""
-    assert stages.carving_stride(480) == stages.CARVE_STRIDE == 2
-    assert stages.carving_stride(64) == 2  # never below the stride it was set with
-    for width in (960, 1280, 1920, 6000):
-        stride = stages.carving_stride(width)
-        assert stride % 2 == 0
-        assert width / stride == pytest.approx(480 / 2, rel=0.25)
+    """The carving's stride is the one it was set with on a 480-pixel-wide capture, binned
+    or on its mosaic, and grows with the frames, so that a 1920x1080 capture (or one
+    downscaled) is carved by the same rays per frame."""
+    assert stages.carving_stride(240, mosaic=False) == stages.CARVE_STRIDE == 2
+    assert stages.carving_stride(480, mosaic=True) == 2
+    assert stages.carving_stride(32, mosaic=False) == 2  # never below it
+    assert stages.carving_stride(960, mosaic=False) == 8  # 1920x1080 binned
+    assert stages.carving_stride(480, mosaic=False) == 4  # ... and downscaled by 2
+    for width, mosaic in ((640, False), (1920, True), (3000, False)):
+        rays = width / stages.carving_stride(width, mosaic)
+        assert rays == pytest.approx((240 if mosaic else 120), rel=0.25)
