@@ -79,15 +79,15 @@ def _registered(rec, names: list[str]) -> list[str]:
 def _sparse(image_dir: Path, images: list[str], work: Path, known, names: list[str]):
     """COLMAP's largest model on the previews at SFM_IMAGE_SIZE, or at full size where that
     registers fewer than 3 frames (None where neither does)."""
-    for size in (SFM_IMAGE_SIZE, None):
+    larger = max(poses.preview_size(image_dir, images[0])) > SFM_IMAGE_SIZE
+    rec = None
+    for size in (SFM_IMAGE_SIZE, None) if larger else (SFM_IMAGE_SIZE,):
         attempt = work / f"sfm-{size or 'full'}"
         attempt.mkdir()
         rec = poses.run_colmap(image_dir, images, attempt, "PINHOLE", known,
                                max_image_size=size)
         if rec is not None and len(_registered(rec, names)) >= 3:
-            return rec
-        if max(poses.preview_size(image_dir, images[0])) <= SFM_IMAGE_SIZE:
-            return rec
+            break
     return rec
 
 
